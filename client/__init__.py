@@ -1,0 +1,1 @@
+"""swarmloc client: dataset format, synthetic route world, transports, replay and reports."""
