@@ -63,7 +63,7 @@ class Condition:
 
 CONDITIONS: dict[str, Condition] = {
     "sunny": Condition("sunny", True, 130.0, 38.0, 0.42, 0.85, 1.0, 1.15, -0.06),
-    "cloudy": Condition("cloudy", False, 0.0, 90.0, 0.82, 0.0, 1.35, 0.8, 0.18),
+    "cloudy": Condition("cloudy", False, 0.0, 90.0, 0.82, 0.0, 1.35, 0.7, 0.18),
 }
 
 
@@ -76,6 +76,7 @@ class Wall:
     texture: tx.Texture
     tint: float = 0.0  # warm (+) / cool (-) material, for white balance
     casts_shadow: float = 1.0  # fraction of light blocked (trees and fences let some through)
+    kind: str = ""
 
 
 @dataclass(frozen=True)
@@ -340,7 +341,7 @@ class World:
                 shadow: float = 1.0, **kw: object) -> None:
             length = float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1)))
             walls.append(Wall(pts, height, kind(rng, length, height, PPM, **kw),
-                              rng.uniform(-1, 1), shadow))
+                              rng.uniform(-1, 1), shadow, kind.__name__))
 
         for side in (+1, -1):
             s = rng.uniform(0, 5)
@@ -443,8 +444,21 @@ class World:
     def _ground_base(self) -> tuple[np.ndarray, tuple[float, float]]:
         return _ground_texture(self.route, np.random.default_rng([self.seed, 3]), self.parking)
 
+    def _seasonal(self, day: str) -> list[Wall]:
+        """Vegetation grows and sheds between days: hedges and trees get new foliage."""
+        rng = np.random.default_rng([self.seed, 6, *day.encode()])
+        out = []
+        for w in self.static_walls:
+            if w.kind in ("hedge", "tree"):
+                length = float(np.sum(np.linalg.norm(np.diff(w.points, axis=0), axis=1)))
+                gen = tx.hedge if w.kind == "hedge" else tx.tree
+                w = Wall(w.points, w.height, gen(rng, length, w.height, PPM), w.tint,
+                         w.casts_shadow, w.kind)
+            out.append(w)
+        return out
+
     def _build_scene(self, day: str, cond: Condition) -> Scene:
-        walls = self.static_walls + self.day_walls(day)
+        walls = self._seasonal(day) + self.day_walls(day)
         rng = np.random.default_rng([self.seed, 4])
         mover_textures = [tx.person(rng, 0.6, 1.75, PPM) for _ in range(6)]
         car_sizes = [(rng.uniform(3.8, 4.6), 1.5) for _ in range(3)]
@@ -582,6 +596,9 @@ class World:
                 ph = segs.phase[gid][None, :]
                 band = np.sin(au[None, :] / PPM * 0.6 + av / PPM * 0.45 + ph)
                 lit = lit * np.where((band > 0.8) & (np.sin(3 * ph) > 0.3), 0.6, 1.0)
+                # shadow of the buildings across the street: a sloped line on the facade
+                z_sh = hgt * (0.45 + 0.35 * np.sin(au / PPM * 0.08 + 2 * ph[0]))
+                lit = lit * np.where((z < z_sh[None, :]) & (np.cos(5 * ph) > -0.2), 0.5, 1.0)
             haze = np.exp(-depth_f / 400.0)[None, :]
             lit = lit * haze + 0.8 * (1 - haze)
             out[vis] = lit[vis]

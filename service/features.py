@@ -1,0 +1,192 @@
+"""SIFT extraction and the papers' symmetric ratio-test image similarity m(A, B).
+
+Journal Sec. 4: the distance between unit descriptors is their angle (arccos of the scalar
+product); a in M_AB iff angle(a, b1) / angle(a, b2) < delta for its nearest and second-nearest
+neighbours b1, b2 in B; the symmetric matches M*_AB are reciprocal nearest neighbours passing
+the test both ways; m(A, B) = |M*_AB| / min(|A|, |B|), 0 when either set is empty.
+
+A ratio test needs a second neighbour, so a set with fewer than two features matches nothing.
+One call compares a frame with K map images with a single matrix product (BLAS): the K
+descriptor sets are stacked into a zero-padded (K, n_max, D+1) block whose extra column is 0 for
+real rows and -4 for padding, against the frame's descriptors with an extra column of 1, so
+padding scores -4 (below any angle) without a masking pass.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+
+DEFAULT_DELTA = 0.6  # ratio threshold delta (journal Sec. 4)
+_PAD_SCORE = -4.0
+
+
+@dataclass(frozen=True)
+class SiftParams:
+    """OpenCV SIFT settings and the working image size frames are resized to."""
+
+    width: int = 320
+    height: int = 240
+    n_features: int = 0  # 0: keep all (OpenCV default)
+    contrast_threshold: float = 0.04
+    edge_threshold: float = 10.0
+    sigma: float = 1.6
+
+    def as_dict(self) -> dict:
+        return {"type": "sift", **asdict(self)}
+
+
+@dataclass(frozen=True)
+class Features:
+    """Keypoint positions (N, 2) in working-size pixels and unit descriptors (N, D) float32."""
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.descriptors)
+
+
+def to_working_size(image: np.ndarray, params: SiftParams) -> np.ndarray:
+    """Grayscale uint8 at the map's working size (area interpolation when shrinking)."""
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(image, code)
+    if image.dtype != np.uint8:
+        raise ValueError(f"expected an 8-bit image, got {image.dtype}")
+    h, w = image.shape
+    if (w, h) != (params.width, params.height):
+        interp = cv2.INTER_AREA if w > params.width else cv2.INTER_LINEAR
+        image = cv2.resize(image, (params.width, params.height), interpolation=interp)
+    return image
+
+
+def extract(image: np.ndarray, params: SiftParams | None = None) -> Features:
+    """SIFT keypoints and L2-normalised descriptors of a frame (resized to the working size)."""
+    params = params or SiftParams()
+    gray = to_working_size(image, params)
+    sift = cv2.SIFT_create(  # cheap to create; one per call keeps threads independent
+        nfeatures=params.n_features,
+        contrastThreshold=params.contrast_threshold,
+        edgeThreshold=params.edge_threshold,
+        sigma=params.sigma,
+    )
+    kps, desc = sift.detectAndCompute(gray, None)
+    if desc is None or len(kps) == 0:
+        return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32))
+    desc = desc.astype(np.float32)
+    norms = np.linalg.norm(desc, axis=1, keepdims=True)
+    keep = norms[:, 0] > 0
+    desc = desc[keep] / norms[keep]
+    pts = np.array([kp.pt for kp in kps], np.float32)[keep]
+    return Features(pts, desc)
+
+
+def _angles(dots: np.ndarray) -> np.ndarray:
+    return np.arccos(np.clip(dots, -1.0, 1.0))
+
+
+def _ratio_pass(best: np.ndarray, second: np.ndarray, delta: float) -> np.ndarray:
+    """angle(best) / angle(second) < delta, written without a division (0/0 never passes)."""
+    return _angles(best) < delta * _angles(second)
+
+
+@dataclass(frozen=True)
+class BatchMatch:
+    """Result of comparing one frame A with K sets B_k."""
+
+    counts: np.ndarray  # (K,) |M*_AB_k|
+    scores: np.ndarray  # (K,) m(A, B_k)
+    matched: np.ndarray  # (K, |A|) bool: feature a of A is in a symmetric match with B_k
+
+
+def match_batch(a: np.ndarray, sets: Sequence[np.ndarray], delta: float = DEFAULT_DELTA
+                ) -> BatchMatch:
+    """Symmetric ratio-test matches of descriptors ``a`` (nA, D) against each of ``sets``."""
+    k = len(sets)
+    na = len(a)
+    nb = np.array([len(b) for b in sets], np.int64)
+    if k == 0 or na == 0 or nb.max(initial=0) == 0:
+        return BatchMatch(np.zeros(k, np.int64), np.zeros(k), np.zeros((k, na), bool))
+    dim = a.shape[1]
+    n_max = int(nb.max())
+    block = np.zeros((k, n_max, dim + 1), np.float32)
+    block[:, :, dim] = _PAD_SCORE
+    for i, b in enumerate(sets):
+        block[i, : len(b), :dim] = b
+        block[i, : len(b), dim] = 0.0
+    a_aug = np.empty((na, dim + 1), np.float32)
+    a_aug[:, :dim] = a
+    a_aug[:, dim] = 1.0
+    # S[k, j, i] = <b_kj, a_i>, one GEMM for all K sets
+    s = (block.reshape(k * n_max, dim + 1) @ a_aug.T).reshape(k, n_max, na)
+
+    # B_k -> A: nearest a (i1) and the two best scores for every b (contiguous axis 2)
+    i1 = s.argmax(axis=2)
+    s1 = np.take_along_axis(s, i1[:, :, None], axis=2)
+    np.put_along_axis(s, i1[:, :, None], -np.inf, axis=2)
+    s2 = s.max(axis=2) if na > 1 else np.full((k, n_max), _PAD_SCORE, np.float32)
+    np.put_along_axis(s, i1[:, :, None], s1, axis=2)
+    s1 = s1[:, :, 0]
+    valid_b = np.arange(n_max)[None, :] < nb[:, None]
+    pass_ba = _ratio_pass(s1, s2, delta) & valid_b & (na >= 2)
+
+    # A -> B_k: best score t1 of every a (axis 1). b_kj and a_i1 are reciprocal nearest
+    # neighbours iff s1[k, j] == t1[k, i1]; ties cannot pass a ratio test (angle ratio 1), so
+    # no argmax over the strided axis is needed.
+    t1 = s.max(axis=1)
+    t1_at_b = np.take_along_axis(t1, i1, axis=1)
+    reciprocal = valid_b & (s1 == t1_at_b)
+    # second-best b for each a: hide the reciprocal partner, take the max again
+    kk, jj = np.nonzero(reciprocal)
+    ii = i1[kk, jj]
+    s[kk, jj, ii] = -np.inf
+    t2 = s.max(axis=1)
+    pass_ab = np.zeros((k, na), bool)
+    # an exact tie (two partners with one score) is an angle ratio of 1: never a match
+    unique = np.bincount(kk * na + ii, minlength=k * na)[kk * na + ii] == 1
+    pass_ab[kk, ii] = _ratio_pass(t1[kk, ii], t2[kk, ii], delta) & (nb[kk] >= 2) & unique
+    # a pair counts when both directions pass: mark a in the sets where its partner passes too
+    matched = np.zeros((k, na), bool)
+    both = pass_ab[kk, ii] & pass_ba[kk, jj]
+    matched[kk[both], ii[both]] = True
+    counts = matched.sum(axis=1)
+    denom = np.minimum(na, nb)
+    scores = np.where(denom > 0, counts / np.maximum(denom, 1), 0.0)
+    return BatchMatch(counts, scores, matched)
+
+
+def similarity(a: np.ndarray, b: np.ndarray, delta: float = DEFAULT_DELTA) -> float:
+    """m(A, B) for two descriptor sets (journal Sec. 4)."""
+    return float(match_batch(a, [b], delta).scores[0])
+
+
+def similarity_bfmatcher(a: np.ndarray, b: np.ndarray, delta: float = DEFAULT_DELTA
+                         ) -> tuple[int, float]:
+    """Reference: the same m(A, B) with OpenCV BFMatcher.knnMatch(k=2) both ways.
+
+    L2 distances between unit vectors are turned into angles (2 asin(d / 2)) for the ratio test.
+    Used by the benchmark and the tests; the service uses ``match_batch``.
+    """
+    if len(a) == 0 or len(b) == 0:
+        return 0, 0.0
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+
+    def one_way(q: np.ndarray, t: np.ndarray) -> dict[int, int]:
+        out = {}
+        if len(t) < 2:
+            return out
+        for pair in bf.knnMatch(q, t, k=2):
+            m1, m2 = pair
+            th1 = 2 * np.arcsin(min(m1.distance / 2, 1.0))
+            th2 = 2 * np.arcsin(min(m2.distance / 2, 1.0))
+            if th1 < delta * th2:
+                out[m1.queryIdx] = m1.trainIdx
+        return out
+
+    ab, ba = one_way(a, b), one_way(b, a)
+    count = sum(1 for i, j in ab.items() if ba.get(j) == i)
+    return count, count / min(len(a), len(b))

@@ -1,0 +1,335 @@
+"""Route maps: build from a round, save atomically, load memory-mapped and verified.
+
+File layout (``NAME.swmap``), all little-endian:
+
+    MAGIC (8 bytes) | header length (uint64) | header JSON (utf-8) | padding to 64 | arrays
+
+The header holds the format version, the metadata (feature type and parameters, delta, working
+image size, geodetic origin, build date, pruning statistics, source) and, for every array, its
+dtype, shape and byte offset. ``checksum`` is the SHA-256 of the header without that field
+(canonical JSON) followed by every data byte, so a flipped bit anywhere is caught on load.
+Arrays are 64-byte aligned and opened with ``numpy.memmap``: a map opens without copying its
+descriptors into memory.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+import os
+import struct
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from service.features import DEFAULT_DELTA, Features, SiftParams, match_batch
+from service.geo import LocalFrame
+
+MAGIC = b"SWMAP\x00\r\n"
+FORMAT_VERSION = 1
+SUFFIX = ".swmap"
+_ALIGN = 64
+
+
+class MapError(ValueError):
+    """A map file is missing, corrupted, of another format version, or inconsistent."""
+
+
+@dataclass(frozen=True)
+class PruneStats:
+    features_before: int
+    features_after: int
+
+    @property
+    def removed_fraction(self) -> float:
+        return 1.0 - self.features_after / max(self.features_before, 1)
+
+
+def prune(features: list[Features], delta: float = DEFAULT_DELTA
+          ) -> tuple[list[Features], PruneStats]:
+    """Keep only features with a symmetric match in a neighbouring image of the round.
+
+    As in the papers (Sec. 6): image i is compared with i-1 and i+1 (the first and last image
+    with their one neighbour); features found in neither are noise and are dropped.
+    """
+    kept: list[Features] = []
+    for i, f in enumerate(features):
+        neighbours = [features[j].descriptors for j in (i - 1, i + 1) if 0 <= j < len(features)]
+        if len(f) == 0 or not neighbours:
+            kept.append(f)
+            continue
+        mask = match_batch(f.descriptors, neighbours, delta).matched.any(axis=0)
+        kept.append(Features(f.keypoints[mask], f.descriptors[mask]))
+    before = sum(len(f) for f in features)
+    return kept, PruneStats(before, sum(len(f) for f in kept))
+
+
+@dataclass
+class RouteMap:
+    """A loaded map: image positions, pruned descriptors (memory-mapped) and a KD-tree."""
+
+    name: str
+    meta: dict
+    positions: np.ndarray  # (n, 2) metres east/north
+    image_names: list[str]
+    descriptors: np.ndarray  # (total, D) float32, memory-mapped
+    offsets: np.ndarray  # (n + 1,) row offsets of each image's descriptors
+    keypoints: np.ndarray  # (total, 2) float32
+    path: Path | None = None
+
+    def __post_init__(self) -> None:
+        self._tree = cKDTree(self.positions)
+        self._sets: list[np.ndarray | None] = [None] * len(self.positions)
+
+    @property
+    def n_images(self) -> int:
+        return len(self.positions)
+
+    @property
+    def delta(self) -> float:
+        return float(self.meta["delta"])
+
+    @property
+    def sift_params(self) -> SiftParams:
+        p = {k: v for k, v in self.meta["feature"].items() if k != "type"}
+        return SiftParams(**p)
+
+    @property
+    def frame(self) -> LocalFrame | None:
+        o = self.meta.get("origin")
+        return LocalFrame(o["lat"], o["lon"]) if o else None
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners of the map positions."""
+        return self.positions.min(axis=0), self.positions.max(axis=0)
+
+    @property
+    def spacing(self) -> float:
+        """Median distance between consecutive map images (metres)."""
+        if self.n_images < 2:
+            return 1.0
+        return float(np.median(np.linalg.norm(np.diff(self.positions, axis=0), axis=1)))
+
+    def features_of(self, image_id: int) -> np.ndarray:
+        """Pruned descriptors of one map image (a view into the memory map)."""
+        cached = self._sets[image_id]
+        if cached is None:
+            cached = self.descriptors[self.offsets[image_id] : self.offsets[image_id + 1]]
+            self._sets[image_id] = cached
+        return cached
+
+    def nearest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest map image id and its distance for each of many positions, in one call."""
+        dist, idx = self._tree.query(np.asarray(positions, float).reshape(-1, 2))
+        return idx.astype(np.int64), dist
+
+    def similarity(self, frame_descriptors: np.ndarray, image_ids: Iterable[int]) -> np.ndarray:
+        """m(frame, map image) for each id, batched (one matrix product)."""
+        sets = [self.features_of(int(i)) for i in image_ids]
+        return match_batch(frame_descriptors, sets, self.delta).scores
+
+    def summary(self) -> dict:
+        return {
+            "name": self.name,
+            "n_images": self.n_images,
+            "n_features": int(self.offsets[-1]),
+            "bounds": [self.bounds[0].tolist(), self.bounds[1].tolist()],
+            "spacing_m": self.spacing,
+            **{k: v for k, v in self.meta.items() if k not in ("arrays", "checksum")},
+        }
+
+
+def build_map(
+    name: str,
+    images: Iterable[np.ndarray],
+    positions: np.ndarray,
+    image_names: list[str],
+    params: SiftParams | None = None,
+    delta: float = DEFAULT_DELTA,
+    origin: tuple[float, float] | None = None,
+    source: dict | None = None,
+    extract: Callable[[np.ndarray, SiftParams], Features] | None = None,
+) -> RouteMap:
+    """Extract, prune and assemble a map in memory (``save_map`` writes it)."""
+    from service.features import extract as sift_extract
+
+    params = params or SiftParams()
+    extract = extract or sift_extract
+    feats = [extract(img, params) for img in images]
+    positions = np.asarray(positions, float)
+    if len(feats) != len(positions) or len(feats) != len(image_names):
+        raise MapError("images, positions and names must have the same length")
+    if len(feats) == 0:
+        raise MapError("a map needs at least one image")
+    pruned, stats = prune(feats, delta)
+    counts = np.array([len(f) for f in pruned], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    dim = feats[0].descriptors.shape[1] if feats else 128
+    desc = (np.concatenate([f.descriptors for f in pruned]) if offsets[-1]
+            else np.zeros((0, dim), np.float32)).astype(np.float32)
+    kps = (np.concatenate([f.keypoints for f in pruned]) if offsets[-1]
+           else np.zeros((0, 2), np.float32)).astype(np.float32)
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "feature": params.as_dict(),
+        "delta": delta,
+        "image_size": [params.width, params.height],
+        "origin": {"lat": origin[0], "lon": origin[1]} if origin else None,
+        "build_date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "pruning": {
+            "features_before": stats.features_before,
+            "features_after": stats.features_after,
+            "removed_fraction": round(stats.removed_fraction, 4),
+        },
+        "source": source or {},
+    }
+    return RouteMap(name, meta, positions, list(image_names), desc, offsets, kps)
+
+
+def _arrays(m: RouteMap) -> dict[str, np.ndarray]:
+    names = np.frombuffer(json.dumps(m.image_names).encode(), np.uint8)
+    return {
+        "positions": np.ascontiguousarray(m.positions, "<f8"),
+        "offsets": np.ascontiguousarray(m.offsets, "<i8"),
+        "descriptors": np.ascontiguousarray(m.descriptors, "<f4"),
+        "keypoints": np.ascontiguousarray(m.keypoints, "<f4"),
+        "image_names": names,
+    }
+
+
+def _canonical(header: dict) -> bytes:
+    return json.dumps({k: v for k, v in header.items() if k != "checksum"},
+                      sort_keys=True, separators=(",", ":")).encode()
+
+
+def _pad(n: int) -> int:
+    return (-n) % _ALIGN
+
+
+def save_map(m: RouteMap, path: str | Path) -> Path:
+    """Write the map atomically: a crash leaves the old file or none, never half of one."""
+    path = Path(path)
+    if path.suffix != SUFFIX:
+        path = path.with_name(path.name + SUFFIX)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = _arrays(m)
+    layout, offset = {}, 0
+    for key, arr in arrays.items():
+        layout[key] = {"dtype": arr.dtype.str, "shape": list(arr.shape), "offset": offset,
+                       "nbytes": int(arr.nbytes)}
+        offset += arr.nbytes + _pad(arr.nbytes)
+    header = {**m.meta, "name": m.name, "format_version": FORMAT_VERSION, "arrays": layout}
+    digest = hashlib.sha256(_canonical(header))
+    for arr in arrays.values():
+        digest.update(arr.tobytes())
+    header["checksum"] = digest.hexdigest()
+    head = json.dumps(header).encode()
+    prefix = MAGIC + struct.pack("<Q", len(head)) + head
+    prefix += b"\x00" * _pad(len(prefix))
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with tmp.open("wb") as fh:
+            fh.write(prefix)
+            for arr in arrays.values():
+                fh.write(arr.tobytes())
+                fh.write(b"\x00" * _pad(arr.nbytes))
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+    m.path = path
+    return path
+
+
+def _read_header(path: Path) -> tuple[dict, int]:
+    try:
+        with path.open("rb") as fh:
+            magic = fh.read(len(MAGIC))
+            if magic != MAGIC:
+                raise MapError(f"{path}: not a swarmloc map (bad magic bytes)")
+            raw_len = fh.read(8)
+            if len(raw_len) != 8:
+                raise MapError(f"{path}: truncated header")
+            (n,) = struct.unpack("<Q", raw_len)
+            if n > 64 * 1024 * 1024:
+                raise MapError(f"{path}: header length {n} is implausible (corrupted file)")
+            raw = fh.read(n)
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read ({exc})") from None
+    if len(raw) != n:
+        raise MapError(f"{path}: truncated header")
+    try:
+        header = json.loads(raw.decode())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise MapError(f"{path}: header is not valid JSON (corrupted file)") from None
+    if not isinstance(header, dict):
+        raise MapError(f"{path}: header is not a JSON object (corrupted file)")
+    start = len(MAGIC) + 8 + n
+    return header, start + _pad(start)
+
+
+def load_map(path: str | Path, verify: bool = True) -> RouteMap:
+    """Open a map memory-mapped; check version, layout and (by default) the checksum."""
+    path = Path(path)
+    if not path.is_file():
+        raise MapError(f"{path}: no such map file")
+    header, data_start = _read_header(path)
+    version = header.get("format_version")
+    if version != FORMAT_VERSION:
+        raise MapError(
+            f"{path}: map format version {version} is not supported (this swarmloc reads "
+            f"version {FORMAT_VERSION}); rebuild it with 'swarmloc map build'"
+        )
+    size = path.stat().st_size
+    arrays: dict[str, np.ndarray] = {}
+    try:
+        layout = header["arrays"]
+        for key in ("positions", "offsets", "descriptors", "keypoints", "image_names"):
+            spec = layout[key]
+            begin = data_start + int(spec["offset"])
+            if begin + int(spec["nbytes"]) > size:
+                raise MapError(f"{path}: truncated file (array '{key}' runs past the end)")
+            shape = tuple(int(x) for x in spec["shape"])
+            arrays[key] = (np.memmap(path, dtype=np.dtype(spec["dtype"]), mode="r",
+                                     offset=begin, shape=shape)
+                           if int(spec["nbytes"]) else np.zeros(shape, np.dtype(spec["dtype"])))
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, MapError):
+            raise
+        raise MapError(f"{path}: header does not describe the arrays ({exc})") from None
+    if verify:
+        digest = hashlib.sha256(_canonical(header))
+        for arr in arrays.values():
+            digest.update(np.asarray(arr).tobytes())
+        if digest.hexdigest() != header.get("checksum"):
+            raise MapError(f"{path}: checksum mismatch, the file is corrupted; rebuild the map")
+    positions = np.asarray(arrays["positions"])
+    offsets = np.asarray(arrays["offsets"])
+    n = len(positions)
+    if positions.ndim != 2 or positions.shape[1] != 2 or len(offsets) != n + 1 or \
+            offsets[-1] != len(arrays["descriptors"]) or np.any(np.diff(offsets) < 0):
+        raise MapError(f"{path}: inconsistent arrays (positions/offsets/descriptors)")
+    try:
+        names = json.loads(bytes(arrays["image_names"]).decode())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise MapError(f"{path}: image names are corrupted") from None
+    meta = {k: v for k, v in header.items() if k not in ("name",)}
+    name = str(header.get("name", path.stem))
+    return RouteMap(name, meta, positions, names, arrays["descriptors"], offsets,
+                    arrays["keypoints"], path)
+
+
+def list_maps(directory: str | Path) -> list[Path]:
+    directory = Path(directory)
+    return sorted(p for p in directory.glob(f"*{SUFFIX}") if p.is_file())
