@@ -1,0 +1,191 @@
+"""The ``swarmloc`` command: world rendering, maps, benchmarks, experiments, serving, replay."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+
+app = typer.Typer(help="swarmloc: visual localization service (SIFT maps + Dynamic PSO).",
+                  no_args_is_help=True, pretty_exceptions_enable=False)
+world_app = typer.Typer(help="Synthetic route world.", no_args_is_help=True)
+map_app = typer.Typer(help="Route maps.", no_args_is_help=True)
+bench_app = typer.Typer(help="Benchmarks (print numbers).", no_args_is_help=True)
+app.add_typer(world_app, name="world")
+app.add_typer(map_app, name="map")
+app.add_typer(bench_app, name="bench")
+
+
+def _fail(msg: str) -> None:
+    typer.echo(f"error: {msg}", err=True)
+    raise typer.Exit(2)
+
+
+# ---- world ------------------------------------------------------------------------------
+@world_app.command("render")
+def world_render(
+    out: Annotated[Path, typer.Argument(help="dataset directory to write")],
+    seed: int = 0,
+    length: Annotated[float, typer.Option(help="loop length, m")] = 260.0,
+    spacing: Annotated[float, typer.Option(help="distance between frames, m")] = 0.6,
+    rounds: Annotated[str, typer.Option(help="comma-separated subset, e.g. sunny1,cloudy1")] = "",
+) -> None:
+    """Render rounds (default: sunny1-3, cloudy1-3) in the dataset format."""
+    from client.world import DatasetSpec, render_dataset
+
+    spec = DatasetSpec(seed=seed, length_m=length, spacing_m=spacing)
+    only = [r for r in rounds.split(",") if r] or None
+    render_dataset(out, spec, progress=True, only=only)
+    typer.echo(f"wrote {out}")
+
+
+@world_app.command("sheet")
+def world_sheet(
+    round_dir: Path,
+    out: Annotated[Path, typer.Option(help="PNG to write")] = Path("sheet.png"),
+    count: int = 12,
+) -> None:
+    """Write a contact sheet PNG of evenly spaced frames of a round."""
+    import cv2
+
+    from client.dataset import DatasetError, read_round
+    from client.world import contact_sheet
+
+    try:
+        rnd = read_round(round_dir)
+    except DatasetError as exc:
+        _fail(str(exc))
+    idx = np.linspace(0, len(rnd) - 1, min(count, len(rnd))).astype(int)
+    sheet = contact_sheet([rnd.load_image(i) for i in idx], 4, [f"{rnd.images[i]}" for i in idx])
+    cv2.imwrite(str(out), sheet)
+    typer.echo(f"wrote {out}")
+
+
+@world_app.command("eval")
+def world_eval(
+    map_round: Path, query_round: Path,
+    radius: Annotated[float, typer.Option(help="success radius, m")] = 3.0,
+    every: Annotated[int, typer.Option(help="use every k-th query frame")] = 2,
+) -> None:
+    """SIFT features per frame, pruning, and the fraction of query frames whose best-matching
+    map image lies within RADIUS of the truth (symmetric ratio matching)."""
+    from client.dataset import read_round
+    from service.features import extract
+    from service.route_map import build_map
+
+    mr, qr = read_round(map_round), read_round(query_round)
+    m = build_map(mr.name, [mr.load_image(i) for i in range(len(mr))], mr.xy, list(mr.images))
+    hits, n_feat = [], []
+    for i in range(0, len(qr), every):
+        f = extract(qr.load_image(i), m.sift_params)
+        n_feat.append(len(f))
+        best = int(np.argmax(m.similarity(f.descriptors, range(m.n_images))))
+        hits.append(np.linalg.norm(m.positions[best] - qr.reference_xy[i]) <= radius)
+    pr = m.meta["pruning"]
+    typer.echo(f"map {mr.name}: {len(mr)} images, {pr['features_before'] / len(mr):.0f} SIFT "
+               f"features/frame, pruning removed {100 * pr['removed_fraction']:.1f} %")
+    typer.echo(f"query {qr.name}: {np.mean(n_feat):.0f} SIFT features/frame; best match within "
+               f"{radius:g} m of the truth for {100 * np.mean(hits):.1f} % of {len(hits)} frames")
+
+
+# ---- maps -------------------------------------------------------------------------------
+@map_app.command("build")
+def map_build(
+    round_dir: Path,
+    out: Annotated[Path, typer.Option(help="map path, e.g. maps/NAME (.swmap is added)")],
+    delta: Annotated[float, typer.Option(help="ratio-test threshold")] = 0.6,
+    width: int = 320,
+    height: int = 240,
+) -> None:
+    """Build a map from a round: SIFT, neighbour pruning, atomic write."""
+    from tqdm import tqdm
+
+    from client.dataset import DatasetError, read_round
+    from service.features import SiftParams
+    from service.route_map import build_map, save_map
+
+    try:
+        rnd = read_round(round_dir)
+    except DatasetError as exc:
+        _fail(str(exc))
+    images = (rnd.load_image(i) for i in tqdm(range(len(rnd)), desc="features", unit="img"))
+    m = build_map(out.name.removesuffix(".swmap"), images, rnd.xy, list(rnd.images),
+                  SiftParams(width=width, height=height), delta, rnd.origin,
+                  {"round": str(rnd.path), "name": rnd.name})
+    path = save_map(m, out)
+    pr = m.meta["pruning"]
+    typer.echo(f"wrote {path}: {m.n_images} images, {pr['features_after']} features kept of "
+               f"{pr['features_before']} (pruning removed {100 * pr['removed_fraction']:.1f} %)")
+
+
+@map_app.command("info")
+def map_info(path: Path) -> None:
+    """Verify a map and print its metadata."""
+    from service.route_map import MapError, load_map
+
+    try:
+        m = load_map(path)
+    except MapError as exc:
+        _fail(str(exc))
+    typer.echo(json.dumps(m.summary(), indent=2))
+
+
+# ---- benchmarks -------------------------------------------------------------------------
+@bench_app.command("similarity")
+def bench_similarity_cmd(k: int = 20, repeats: int = 7) -> None:
+    """SIFT ms/frame; batched similarity vs OpenCV BFMatcher per comparison."""
+    from client.bench import bench_similarity
+
+    b = bench_similarity(k=k, repeats=repeats)
+    typer.echo(f"SIFT extraction (320x240):        {b.extract_ms:8.2f} ms/frame (median)")
+    typer.echo(f"batched similarity (K={b.k}):      {b.batched_ms_per_comparison:8.3f} ms/comparison")
+    typer.echo(f"BFMatcher knnMatch x2 + recip.:   {b.bfmatcher_ms_per_comparison:8.3f} ms/comparison")
+    typer.echo(f"speed-up:                         {b.speedup:8.1f} x")
+    typer.echo(f"features: frame {b.frame_features:.0f}, map image {b.map_features:.0f} (pruned); "
+               f"identical match counts: {b.counts_equal}")
+
+
+# ---- service ----------------------------------------------------------------------------
+@app.command("serve")
+def serve(
+    host: Annotated[str | None, typer.Option(help="bind address [SWARMLOC_HOST]")] = None,
+    port: Annotated[int | None, typer.Option(help="HTTP port [SWARMLOC_PORT]")] = None,
+    maps_dir: Annotated[Path | None, typer.Option(help="maps directory [SWARMLOC_MAPS_DIR]")]
+    = None,
+    demo: Annotated[bool, typer.Option(help="build maps/demo.swmap first if it is missing")]
+    = False,
+    default_map: Annotated[str | None, typer.Option(help="[SWARMLOC_DEFAULT_MAP]")] = None,
+    default_estimator: Annotated[str | None, typer.Option(help="dpso | pf-g | pf-l")] = None,
+    token: Annotated[str | None, typer.Option(help="bearer token [SWARMLOC_AUTH_TOKEN]")] = None,
+    zenoh: Annotated[bool | None, typer.Option(help="serve Zenoh too [SWARMLOC_ZENOH_ENABLED]")]
+    = None,
+    zenoh_listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint")] = None,
+    zenoh_connect: Annotated[list[str] | None, typer.Option(help="Zenoh connect endpoint")]
+    = None,
+) -> None:
+    """Run the localization service (HTTP + Zenoh). Flags override SWARMLOC_* variables."""
+    from service.server import run
+    from service.settings import Settings
+
+    overrides = {k: v for k, v in {
+        "host": host, "port": port, "maps_dir": maps_dir, "default_map": default_map,
+        "default_estimator": default_estimator, "auth_token": token, "zenoh_enabled": zenoh,
+        "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect}.items() if v is not None}
+    settings = Settings(**overrides)
+    if demo:
+        from client.demo import ensure_demo_map
+
+        path = ensure_demo_map(settings.maps_dir)
+        typer.echo(f"demo map: {path}")
+    run(settings)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

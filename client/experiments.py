@@ -1,0 +1,120 @@
+"""The papers' experiment protocol, in process (journal Sec. 6-7).
+
+A round is replayed against a map from a chosen start image (wrapping around the loop), at a
+simulated speed (every k-th image, or each image repeated), optionally kidnapped at the middle
+of the run (image index + n/2). Many runs over the same frames share one lazily filled table of
+similarities m(frame, map image): a value is computed (batched) the first time any run asks for
+it, so repeating runs costs estimator time only. Each run still counts its own comparisons.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from client.dataset import Round
+from service.features import Features, extract, match_batch
+from service.localizer import Localizer
+from service.route_map import RouteMap
+
+
+class SimilarityTable:
+    """m(query frame q, map image i), computed on first use and kept."""
+
+    def __init__(self, route_map: RouteMap, queries: Sequence[Features]) -> None:
+        self.map = route_map
+        self.queries = queries
+        self.table = np.full((len(queries), route_map.n_images), np.nan, np.float64)
+
+    @classmethod
+    def from_round(cls, route_map: RouteMap, rnd: Round) -> SimilarityTable:
+        params = route_map.sift_params
+        return cls(route_map, [extract(rnd.load_image(i), params) for i in range(len(rnd))])
+
+    def scores(self, q: int, ids: np.ndarray) -> np.ndarray:
+        row = self.table[q]
+        missing = ids[np.isnan(row[ids])]
+        if len(missing):
+            sets = [self.map.features_of(int(i)) for i in missing]
+            row[missing] = match_batch(self.queries[q].descriptors, sets, self.map.delta).scores
+        return row[ids]
+
+
+def frame_sequence(n: int, start: int = 0, speed: float = 1.0, kidnap: bool = False,
+                   length: int | None = None) -> np.ndarray:
+    """Query image indices of one run (Sec. 6-7.1).
+
+    ``speed`` k > 1 uses every k-th image; 1/r repeats each image r times. ``kidnap`` adds
+    n/2 to the image index from the middle of the run on.
+    """
+    length = length or n
+    if speed >= 1:
+        seq = start + np.arange(length) * round(speed)
+    else:
+        seq = start + np.arange(length) // round(1 / speed)
+    seq = seq % n
+    if kidnap:
+        seq[length // 2 :] = (seq[length // 2 :] + n // 2) % n
+    return seq
+
+
+@dataclass
+class RunResult:
+    estimator: str
+    frames: np.ndarray  # query image index per iteration
+    est_xy: np.ndarray
+    true_xy: np.ndarray
+    comparisons: np.ndarray
+    status: list[str]
+    speed: np.ndarray  # estimated m/s
+    true_speed: np.ndarray  # m/s between consecutive iterations
+    scores: np.ndarray
+    step_ms: np.ndarray  # estimator time per frame, feature extraction excluded
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def errors(self) -> np.ndarray:
+        return np.linalg.norm(self.est_xy - self.true_xy, axis=1)
+
+
+def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str = "dpso",
+        params: dict[str, Any] | None = None, seed: int = 0, start: int = 0, speed: float = 1.0,
+        kidnap: bool = False, length: int | None = None) -> RunResult:
+    """Replay one run of the protocol in process and collect per-frame results."""
+    import time
+
+    n = len(rnd)
+    seq = frame_sequence(n, start, speed, kidnap, length)
+    truth = rnd.reference_xy
+    dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and n > 1 else 1.0
+    loc = Localizer(route_map, estimator, params, seed)
+    est, comps, status, spd, scores, ms = [], [], [], [], [], []
+    for it, q in enumerate(seq):
+        t0 = time.perf_counter()
+        e = loc.estimator.step(lambda ids, q=q: table.scores(int(q), ids), it * dt)
+        ms.append(1e3 * (time.perf_counter() - t0))
+        est.append(e.position)
+        comps.append(e.comparisons)
+        status.append(e.status.value)
+        spd.append(e.speed_mps)
+        scores.append(e.score)
+    true_xy = truth[seq]
+    step_len = np.linalg.norm(np.diff(true_xy, axis=0), axis=1)
+    true_speed = np.concatenate([[step_len[0] if len(step_len) else 0.0], step_len]) / dt
+    return RunResult(estimator, seq, np.array(est), true_xy, np.array(comps), status,
+                     np.array(spd), true_speed, np.array(scores), np.array(ms))
+
+
+def frames_to_recover(res: RunResult, within_m: float = 5.0, hold: int = 5) -> int | None:
+    """Iterations after the kidnapping (middle of the run) until the error stays within
+    ``within_m`` for ``hold`` frames; None if it never does."""
+    err = res.errors
+    k0 = len(err) // 2
+    ok = err[k0:] <= within_m
+    for i in range(len(ok) - hold + 1):
+        if ok[i : i + hold].all():
+            return i
+    return None

@@ -1,0 +1,148 @@
+"""What every estimator shares: initial placement, status bookkeeping, output of one step."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+
+from service.fitness import FrameFitness, MapIndex, SimilarityFn
+from service.params import CommonParams
+
+# radius of the 68 % confidence disc of a 2-D Gaussian in units of sigma: sqrt(chi2_2(0.68))
+_R68 = math.sqrt(-2.0 * math.log(1.0 - 0.68))
+
+
+class Status(StrEnum):
+    INITIALIZING = "initializing"
+    TRACKING = "tracking"
+    RECOVERING = "recovering"  # DPSO's recovery phase (boosted diversity)
+    LOST = "lost"  # bad matches for lost_frames in a row, no recovery mechanism (PF)
+
+
+@dataclass(frozen=True)
+class StepResult:
+    position: np.ndarray  # (2,) metres
+    covariance: np.ndarray  # (2, 2) m^2
+    heading: float  # radians, counter-clockwise from east (direction of motion)
+    speed_mps: float
+    status: Status
+    lost: bool
+    score: float  # best similarity m among the compared images
+    comparisons: int  # distinct map images compared for this frame
+    spread_m: float  # mean distance of particles to their centre (swarm diversity)
+
+    @property
+    def accuracy_m(self) -> float:
+        """Radius of the 68 % horizontal confidence disc (ARCore Geospatial convention)."""
+        return float(_R68 * math.sqrt(max(np.linalg.eigvalsh(self.covariance).max(), 0.0)))
+
+
+def weighted_covariance(x: np.ndarray, w: np.ndarray, floor_m: float) -> np.ndarray:
+    w = w / w.sum() if w.sum() > 0 else np.full(len(w), 1.0 / len(w))
+    mu = w @ x
+    d = x - mu
+    cov = (d * w[:, None]).T @ d
+    return cov + np.eye(2) * floor_m**2
+
+
+class Estimator:
+    """Base class: owns the generator, the placement of particles and the status machine."""
+
+    name = "base"
+
+    def __init__(self, index: MapIndex, params: CommonParams, rng: np.random.Generator) -> None:
+        self.index = index
+        self.params = params
+        self.rng = rng
+        pos = np.asarray(index.positions, float)
+        self._map_positions = pos
+        self._spacing = float(np.median(np.linalg.norm(np.diff(pos, axis=0), axis=1))) \
+            if len(pos) > 1 else 1.0
+        self._init_near: tuple[np.ndarray, float] | None = None
+        self._needs_init = True
+        self._bad = 0
+        self._good = 0
+        self._converged = False
+        self._last_t: float | None = None
+        self._dt_ema: float | None = None
+
+    # ---- placement ----------------------------------------------------------------------
+    def reset(self, near: tuple[float, float] | None = None, radius: float | None = None) -> None:
+        """Global re-initialisation, or around a known pose (like AMCL's initial pose)."""
+        if near is not None:
+            r = float(radius) if radius is not None else 5.0
+            self._init_near = (np.asarray(near, float), max(r, 0.0))
+        else:
+            self._init_near = None
+        self._needs_init = True
+        self._bad = self._good = 0
+        self._converged = False
+        self._last_t = None
+        self._dt_ema = None
+
+    def sample_positions(self, n: int) -> np.ndarray:
+        if self._init_near is not None:
+            c, r = self._init_near
+            return disc_sample(self.rng, c, r, n)
+        ids = self.rng.integers(0, len(self._map_positions), n)
+        return self._map_positions[ids] + self.rng.normal(0, self.params.init_spread_m, (n, 2))
+
+    def constrain(self, center: tuple[float, float], radius: float) -> None:
+        """A pose prior for this frame: particles outside the disc are redrawn inside it."""
+        x = self.particles()
+        if x is None:
+            self.reset(center, radius)
+            return
+        c = np.asarray(center, float)
+        outside = np.linalg.norm(x - c, axis=1) > radius
+        if outside.any():
+            self.place(outside, disc_sample(self.rng, c, radius, int(outside.sum())))
+
+    def particles(self) -> np.ndarray | None:
+        raise NotImplementedError
+
+    def place(self, mask: np.ndarray, positions: np.ndarray) -> None:
+        raise NotImplementedError
+
+    # ---- one frame ----------------------------------------------------------------------
+    def frame_dt(self, t: float | None) -> float:
+        """Seconds since the previous frame (EMA-smoothed); default_dt_s without timestamps."""
+        dt = self.params.default_dt_s
+        if t is not None and self._last_t is not None and t > self._last_t:
+            dt = t - self._last_t
+        self._last_t = t if t is not None else None
+        self._dt_ema = dt if self._dt_ema is None else 0.875 * self._dt_ema + 0.125 * dt
+        return dt
+
+    def update_status(self, best_m: float, recovering: bool = False) -> tuple[Status, bool]:
+        p = self.params
+        if best_m < p.lost_threshold:
+            self._bad += 1
+            self._good = 0
+        else:
+            self._bad = 0
+            self._good += 1
+        if self._good >= p.converge_frames:
+            self._converged = True
+        lost = self._bad >= p.lost_frames
+        if recovering:
+            return Status.RECOVERING, lost
+        if lost:
+            return Status.LOST, True
+        return (Status.TRACKING if self._converged else Status.INITIALIZING), False
+
+    def step(self, similarity: SimilarityFn, t: float | None = None) -> StepResult:
+        fitness = FrameFitness(self.index, similarity, self.params.penalty_sigma_m)
+        return self._step(fitness, t)
+
+    def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
+        raise NotImplementedError
+
+
+def disc_sample(rng: np.random.Generator, c: np.ndarray, r: float, n: int) -> np.ndarray:
+    ang = rng.uniform(0, 2 * np.pi, n)
+    rad = r * np.sqrt(rng.uniform(0, 1, n))
+    return c + np.column_stack([rad * np.cos(ang), rad * np.sin(ang)])

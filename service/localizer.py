@@ -1,0 +1,91 @@
+"""One robot's localizer: a map, an estimator (DPSO | PF-g | PF-l) and its generator."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from service.estimator import Estimator, StepResult
+from service.features import Features, extract
+from service.models import Estimate
+from service.params import DPSOParams, PFParams, params_for
+from service.particle_filter import ParticleFilter
+from service.route_map import RouteMap
+from service.swarm import DPSO
+
+_UNKNOWN_VAR = 1e6
+
+
+def make_estimator(route_map: RouteMap, name: str, params: dict[str, Any] | None,
+                   rng: np.random.Generator) -> Estimator:
+    p = params_for(name, params)
+    if name == "dpso":
+        assert isinstance(p, DPSOParams)
+        return DPSO(route_map, p, rng)
+    assert isinstance(p, PFParams)
+    return ParticleFilter(route_map, p, rng, "gauss" if name == "pf-g" else "linear")
+
+
+class Localizer:
+    """Feeds frames to an estimator and turns its output into an ``Estimate``.
+
+    Same map, frames, parameters and seed give identical estimates, bit for bit.
+    """
+
+    def __init__(self, route_map: RouteMap, estimator: str = "dpso",
+                 params: dict[str, Any] | None = None, seed: int = 0) -> None:
+        self.map = route_map
+        self.estimator_name = estimator
+        self.param_overrides = dict(params or {})
+        self.seed = seed
+        self.estimator = make_estimator(route_map, estimator, params,
+                                        np.random.default_rng(seed))
+        self.seq = 0
+        self.last: Estimate | None = None
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return self.estimator.params.as_dict()
+
+    def reset(self, near: tuple[float, float] | None = None, radius: float | None = None) -> None:
+        self.estimator.reset(near, radius)
+
+    def extract(self, image: np.ndarray) -> Features:
+        return extract(image, self.map.sift_params)
+
+    def localize(self, image: np.ndarray, t: float | None = None,
+                 prior: tuple[float, float, float] | None = None) -> Estimate:
+        return self.step(self.extract(image), t, prior)
+
+    def step(self, features: Features, t: float | None = None,
+             prior: tuple[float, float, float] | None = None) -> Estimate:
+        """One frame: optional pose prior (x, y, radius), estimator step, Estimate."""
+        if prior is not None:
+            self.estimator.constrain((prior[0], prior[1]), prior[2])
+        desc = features.descriptors
+        res = self.estimator.step(lambda ids: self.map.similarity(desc, ids), t)
+        self.seq += 1
+        self.last = self._estimate(res, t)
+        return self.last
+
+    def _estimate(self, res: StepResult, t: float | None) -> Estimate:
+        x, y = (float(v) for v in res.position)
+        lat = lon = None
+        frame = self.map.frame
+        if frame is not None:
+            lat, lon = (float(v) for v in frame.to_geo(res.position)[0])
+        ids, _ = self.map.nearest(res.position[None, :])
+        nid = int(ids[0])
+        cov = res.covariance
+        pose_cov = np.diag([0.0, 0.0, _UNKNOWN_VAR, _UNKNOWN_VAR, _UNKNOWN_VAR, _UNKNOWN_VAR])
+        pose_cov[:2, :2] = cov
+        return Estimate(
+            seq=self.seq, stamp=t, frame_id=self.map.name, estimator=self.estimator_name,
+            x=x, y=y, lat=lat, lon=lon, heading=float(res.heading), speed=float(res.speed_mps),
+            status=res.status.value, lost=bool(res.lost), score=float(res.score),
+            comparisons=int(res.comparisons), covariance=cov.tolist(),
+            pose_covariance=pose_cov.ravel().tolist(), accuracy_m=res.accuracy_m,
+            nearest_image=nid, nearest_image_name=self.map.image_names[nid],
+            spread_m=res.spread_m,
+        )

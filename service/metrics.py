@@ -1,0 +1,31 @@
+"""Prometheus metrics of one service instance (own registry: no global state)."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+
+class Metrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        r = self.registry
+        self.frames = Counter("swarmloc_frames_total", "Frames localized", ["transport"],
+                              registry=r)
+        self.latency = Histogram(
+            "swarmloc_frame_latency_seconds", "Decode + features + estimator time per frame",
+            ["transport"], registry=r,
+            buckets=(0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5, 1.0, 2.5))
+        self.comparisons = Counter("swarmloc_comparisons_total", "Image comparisons made",
+                                   registry=r)
+        self.rejected = Counter("swarmloc_rejected_inputs_total", "Rejected requests or frames",
+                                ["reason"], registry=r)
+        self.sessions = Gauge("swarmloc_sessions", "Open robot sessions", registry=r)
+        self.expired = Counter("swarmloc_sessions_expired_total", "Sessions expired when idle",
+                               registry=r)
+        self.dropped = Counter("swarmloc_zenoh_dropped_frames_total",
+                               "Stale Zenoh frames dropped (a newer one arrived first)",
+                               registry=r)
+        self.maps = Gauge("swarmloc_maps_loaded", "Maps loaded", registry=r)
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)

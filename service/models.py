@@ -1,0 +1,99 @@
+"""Pydantic schemas shared by the HTTP and Zenoh transports (the single source of the API)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+StatusName = Literal["initializing", "tracking", "recovering", "lost"]
+EstimatorName = Literal["dpso", "pf-g", "pf-l"]
+
+
+class Estimate(BaseModel):
+    """One localization result: what a ROS 2 bridge needs for PoseWithCovarianceStamped."""
+
+    model_config = ConfigDict(frozen=True)
+
+    seq: int = Field(description="frame counter of the session, from 1")
+    stamp: float | None = Field(description="frame timestamp (s) as sent by the robot")
+    frame_id: str = Field(description="map name: the local east/north frame of the estimate")
+    estimator: EstimatorName
+    x: float = Field(description="metres east in the map frame")
+    y: float = Field(description="metres north in the map frame")
+    lat: float | None = Field(None, description="WGS84 latitude when the map has an origin")
+    lon: float | None = Field(None, description="WGS84 longitude when the map has an origin")
+    heading: float = Field(description="direction of motion, rad counter-clockwise from east")
+    speed: float = Field(description="speed estimate, m/s")
+    status: StatusName
+    lost: bool = Field(description="best match below the lost threshold for several frames")
+    score: float = Field(description="best image similarity m of this frame, 0..1")
+    comparisons: int = Field(description="distinct map images compared for this frame")
+    covariance: list[list[float]] = Field(description="2x2 position covariance, m^2")
+    pose_covariance: list[float] = Field(
+        description="6x6 row-major covariance (x, y, z, roll, pitch, yaw) for ROS; "
+        "unknown entries carry 1e6")
+    accuracy_m: float = Field(description="radius of the 68 % horizontal confidence disc, m")
+    nearest_image: int = Field(description="id of the map image nearest to the estimate")
+    nearest_image_name: str
+    spread_m: float = Field(description="mean distance of the particles to their centre, m")
+    robot_id: str | None = None
+    input_seq: int | None = Field(None, description="sequence number sent with the frame")
+
+
+class ErrorBody(BaseModel):
+    error: str
+    detail: Any | None = None
+
+
+class PosePrior(BaseModel):
+    """A known position with an uncertainty radius (like AMCL's initial pose)."""
+
+    x: float = Field(description="metres east in the map frame")
+    y: float = Field(description="metres north in the map frame")
+    radius: float = Field(5.0, gt=0, le=10_000, description="search radius, m")
+
+
+class SessionConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    map: str | None = Field(None, description="map name; default: the service's default map")
+    estimator: EstimatorName | None = Field(None, description="default: the service default")
+    params: dict[str, float | int] = Field(
+        default_factory=dict, description="estimator parameter overrides (see README)")
+    seed: int = Field(0, ge=0, description="random seed: same seed and frames, same estimates")
+    initial_pose: PosePrior | None = None
+
+
+class ResetRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    x: float | None = None
+    y: float | None = None
+    radius: float | None = Field(None, gt=0)
+
+
+class SessionInfo(BaseModel):
+    robot_id: str
+    map: str
+    estimator: EstimatorName
+    seed: int
+    params: dict[str, Any]
+    frames: int
+    created: float
+    last_used: float
+    last_estimate: Estimate | None = None
+
+
+class MapSummary(BaseModel):
+    name: str
+    n_images: int
+    n_features: int
+    bounds: list[list[float]]
+    spacing_m: float
+    meta: dict[str, Any]
+
+
+class MapDetail(MapSummary):
+    positions: list[list[float]]
+    image_names: list[str]

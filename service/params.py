@@ -1,0 +1,151 @@
+"""Estimator parameters with the papers' defaults, units and the choices where they are silent.
+
+Reference: Kronfeld, Weiss, Zell, "Swarm-supported outdoor localization with sparse visual
+data" (journal version), Sec. 4-5 and 7.2. The conference version's Tab. I gives v0 = 0.015
+for the original speed, which fixes v0's unit: a fraction of the axis range per iteration.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any, Self
+
+
+class ParamError(ValueError):
+    """An unknown parameter name or an invalid value."""
+
+
+@dataclass(frozen=True)
+class _Params:
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def with_overrides(self, overrides: dict[str, Any] | None) -> Self:
+        if not overrides:
+            return self
+        known = {f.name: f for f in fields(self)}
+        unknown = sorted(set(overrides) - set(known))
+        if unknown:
+            raise ParamError(f"unknown parameter(s) {unknown}; known: {sorted(known)}")
+        coerced = {}
+        for k, v in overrides.items():
+            typ = type(getattr(self, k))
+            try:
+                coerced[k] = typ(v)
+            except (TypeError, ValueError):
+                raise ParamError(f"parameter {k}={v!r} must be a {typ.__name__}") from None
+        out = replace(self, **coerced)
+        out.validate()
+        return out
+
+    def validate(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ParamError(f"parameter {f.name} must be finite")
+
+
+@dataclass(frozen=True)
+class CommonParams(_Params):
+    """Fitness (Eq. 3) and lost detection, shared by all estimators."""
+
+    # zeta in Eq. 3: Gaussian penalty of a particle's distance to its nearest map image. The
+    # papers give no value; 2 m keeps full credit within the lateral spread of a street
+    # (GPS noise, lane changes) and halves it ~2.4 m off the recorded path. Unit: metres.
+    penalty_sigma_m: float = 2.0
+    # "best match ... matching less than 5 % of local features" (Sec. 5). Unit: m in [0, 1].
+    lost_threshold: float = 0.05
+    # "several iterations in a row" (Sec. 5): 3 frames, long enough to ignore one blurred or
+    # occluded frame, short enough to react within ~2 m at the papers' 0.6 m per frame.
+    lost_frames: int = 3
+    # frames of good matches in a row before "initializing" becomes "tracking"
+    converge_frames: int = 3
+    # frame interval assumed when frames carry no timestamps (s); the papers' 1 image/s
+    default_dt_s: float = 1.0
+    # initial placement (global start, our choice): particles around randomly drawn map
+    # image positions with this spread (m) -- localisation is only possible near map images,
+    # and uniform placement over the bounding box would waste most particles off the route.
+    init_spread_m: float = 2.0
+
+    def validate(self) -> None:
+        super().validate()
+        if self.penalty_sigma_m <= 0 or not 0 <= self.lost_threshold <= 1:
+            raise ParamError("penalty_sigma_m must be > 0 and lost_threshold in [0, 1]")
+        if self.lost_frames < 1 or self.converge_frames < 1 or self.default_dt_s <= 0:
+            raise ParamError("lost_frames, converge_frames >= 1 and default_dt_s > 0 required")
+
+
+@dataclass(frozen=True)
+class DPSOParams(CommonParams):
+    """Dynamic PSO, Eqs. 4-6 and the self-adaptation of Sec. 5."""
+
+    n_particles: int = 80  # swarm size (Sec. 7.1)
+    omega: float = 0.99  # inertia
+    phi0: float = 0.3  # weight of the random perturbation
+    phi2: float = 0.6  # attraction to the neighbourhood best p^n (star topology)
+    # maximum velocity, fraction of the axis range per iteration; 0.015 is the conference
+    # paper's manual setting for the original speed, the start value of the self-adaptation
+    v0: float = 0.015
+    v0_min: float = 0.001  # floor of the self-adaptation (our choice: never freeze the swarm)
+    v0_max: float = 0.1  # recovery limit: "cross the search space in about 10 iterations"
+    quantum_ratio: float = 0.1  # q_r, fraction of quantum particles (Eq. 6)
+    quantum_ratio_max: float = 0.2  # recovery limit of q_r
+    quantum_sigma: float = 0.15  # q_d, std of quantum particles, fraction of the axis range
+    high_energy_ratio: float = 0.1  # h_r, particles allowed high_energy_factor * v0
+    high_energy_factor: float = 3.0
+    phi2_min: float = 0.01  # recovery limit of phi2
+    ema_alpha: float = 0.125  # EMA of the swarm-centre speed, alpha = 1/8
+    adapt_low: float = 0.4  # keep EMA(v_sw) / v0 within [adapt_low, adapt_high] ...
+    adapt_high: float = 0.6
+    adapt_step: float = 0.1  # ... by changing v0 by 10 % per iteration
+    # recovery raises v0 and q_r and lowers phi2 "towards" their limits (Sec. 5) by this
+    # relative step per frame: v0 reaches v0_max ~9 frames after the loss. Measured over
+    # 10 %, 20 % and 35 % on two routes (README, "Choices measured"): 20 % recovers fastest
+    # from kidnapping without scattering the swarm in ambiguous stretches
+    recovery_step: float = 0.2
+    # good frames in a row that end the recovery phase ("as soon as the best matches increase
+    # in quality again"); 1 ends it on the first good frame
+    recovered_frames: int = 1
+    # smallest axis range used for delta_i (m): a straight route would otherwise have a zero
+    # range across it and no lateral exploration at all
+    min_axis_range_m: float = 20.0
+
+    def validate(self) -> None:
+        super().validate()
+        if self.n_particles < 2:
+            raise ParamError("n_particles must be at least 2")
+        for name in ("quantum_ratio", "quantum_ratio_max", "high_energy_ratio", "recovery_step"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ParamError(f"{name} must be in [0, 1]")
+        if not 0 < self.v0_min <= self.v0 <= self.v0_max:
+            raise ParamError("need 0 < v0_min <= v0 <= v0_max")
+        if not 0 < self.adapt_low < self.adapt_high:
+            raise ParamError("need 0 < adapt_low < adapt_high")
+
+
+@dataclass(frozen=True)
+class PFParams(CommonParams):
+    """Particle filter baselines (Sec. 7.2): PF-g (Gaussian motion) and PF-l (Eqs. 7-8)."""
+
+    n_particles: int = 300
+    sigma_gauss_m: float = 4.0  # PF-g motion noise per iteration (m)
+    sigma_rot_deg: float = 60.0  # PF-l rotation noise per iteration
+    sigma_acc: float = 1e-3  # PF-l log-speed noise per iteration
+    v_init_mps: float = 2.0  # PF-l initial speed |v(0)| (m/s), about 3 v_R in the paper
+
+    def validate(self) -> None:
+        super().validate()
+        if self.n_particles < 1 or self.sigma_gauss_m < 0 or self.sigma_rot_deg < 0:
+            raise ParamError("n_particles >= 1 and non-negative noise levels required")
+
+
+ESTIMATORS = ("dpso", "pf-g", "pf-l")
+
+
+def params_for(estimator: str, overrides: dict[str, Any] | None = None) -> CommonParams:
+    if estimator == "dpso":
+        return DPSOParams().with_overrides(overrides)
+    if estimator in ("pf-g", "pf-l"):
+        return PFParams().with_overrides(overrides)
+    raise ParamError(f"unknown estimator '{estimator}'; choose one of {list(ESTIMATORS)}")

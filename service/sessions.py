@@ -1,0 +1,212 @@
+"""The localization engine behind both transports: maps, robot sessions, frame processing.
+
+Nothing here knows HTTP or Zenoh. A frame is decoded and its features extracted outside any
+lock (OpenCV and NumPy release the GIL, so robots run in parallel); only the estimator step
+holds the session's lock. Every check that can reject a frame runs before that step, so a
+rejected frame never changes the session.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from service.errors import Conflict, InvalidParameters, NotFound, Unavailable
+from service.imaging import decode_frame
+from service.localizer import Localizer
+from service.metrics import Metrics
+from service.models import Estimate, MapDetail, MapSummary, PosePrior, SessionConfig, SessionInfo
+from service.params import ParamError
+from service.route_map import MapError, RouteMap, list_maps, load_map
+from service.settings import Settings
+
+
+@dataclass
+class Session:
+    robot_id: str
+    config: SessionConfig
+    localizer: Localizer
+    created: float
+    last_used: float
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    last_t: float | None = None
+
+    def info(self) -> SessionInfo:
+        loc = self.localizer
+        return SessionInfo(robot_id=self.robot_id, map=loc.map.name,
+                           estimator=loc.estimator_name, seed=loc.seed, params=loc.params,
+                           frames=loc.seq, created=self.created, last_used=self.last_used,
+                           last_estimate=loc.last)
+
+
+class LocalizationService:
+    def __init__(self, settings: Settings, maps: dict[str, RouteMap] | None = None,
+                 metrics: Metrics | None = None) -> None:
+        self.settings = settings
+        self.metrics = metrics or Metrics()
+        self.maps: dict[str, RouteMap] = maps if maps is not None else {}
+        self.load_errors: dict[str, str] = {}
+        self._sessions: dict[str, Session] = {}
+        self._lock = threading.Lock()
+        if maps is None:
+            self.load_maps(settings.maps_dir)
+
+    # ---- maps ---------------------------------------------------------------------------
+    def load_maps(self, directory: Path) -> None:
+        for path in list_maps(directory):
+            try:
+                m = load_map(path)
+                self.maps[m.name] = m
+            except MapError as exc:  # a broken map is reported, the others still load
+                self.load_errors[path.name] = str(exc)
+        self.metrics.maps.set(len(self.maps))
+
+    @property
+    def ready(self) -> bool:
+        return bool(self.maps)
+
+    @property
+    def default_map(self) -> str:
+        name = self.settings.default_map
+        if name:
+            return name
+        if len(self.maps) == 1:
+            return next(iter(self.maps))
+        if "demo" in self.maps:
+            return "demo"
+        raise InvalidParameters(f"no default map: name one of {sorted(self.maps)}")
+
+    def get_map(self, name: str) -> RouteMap:
+        try:
+            return self.maps[name]
+        except KeyError:
+            raise NotFound(f"unknown map '{name}'; loaded maps: {sorted(self.maps)}") from None
+
+    def map_summary(self, name: str) -> MapSummary:
+        s = self.get_map(name).summary()
+        return MapSummary(name=s.pop("name"), n_images=s.pop("n_images"),
+                          n_features=s.pop("n_features"), bounds=s.pop("bounds"),
+                          spacing_m=s.pop("spacing_m"), meta=s)
+
+    def map_detail(self, name: str) -> MapDetail:
+        m = self.get_map(name)
+        return MapDetail(**self.map_summary(name).model_dump(),
+                         positions=m.positions.tolist(), image_names=m.image_names)
+
+    # ---- sessions -----------------------------------------------------------------------
+    def put_session(self, robot_id: str, config: SessionConfig) -> tuple[SessionInfo, bool]:
+        """Create or replace a robot's session; True when it was created."""
+        _check_robot_id(robot_id)
+        route_map = self.get_map(config.map or self.default_map)
+        estimator = config.estimator or self.settings.default_estimator
+        try:
+            loc = Localizer(route_map, estimator, config.params, config.seed)
+        except ParamError as exc:
+            raise InvalidParameters(str(exc)) from None
+        if config.initial_pose is not None:
+            p = config.initial_pose
+            loc.reset((p.x, p.y), p.radius)
+        now = time.time()
+        with self._lock:
+            created = robot_id not in self._sessions
+            if created and len(self._sessions) >= self.settings.max_sessions:
+                self.metrics.rejected.labels("session_limit").inc()
+                raise Unavailable(f"session limit of {self.settings.max_sessions} reached; "
+                                  "delete idle sessions or raise SWARMLOC_MAX_SESSIONS")
+            s = Session(robot_id, config.model_copy(update={"estimator": estimator}), loc,
+                        now, now)
+            self._sessions[robot_id] = s
+            self.metrics.sessions.set(len(self._sessions))
+        return s.info(), created
+
+    def session(self, robot_id: str) -> Session:
+        try:
+            return self._sessions[robot_id]
+        except KeyError:
+            raise NotFound(f"no session for robot '{robot_id}'; create it with "
+                           f"PUT /sessions/{robot_id}") from None
+
+    def ensure_session(self, robot_id: str) -> Session:
+        """The robot's session, created with the default map and estimator if missing."""
+        if robot_id not in self._sessions:
+            try:
+                self.put_session(robot_id, SessionConfig())
+            except Unavailable:
+                raise
+        return self.session(robot_id)
+
+    def sessions(self) -> list[SessionInfo]:
+        return [s.info() for s in list(self._sessions.values())]
+
+    def delete_session(self, robot_id: str) -> None:
+        with self._lock:
+            if self._sessions.pop(robot_id, None) is None:
+                raise NotFound(f"no session for robot '{robot_id}'")
+            self.metrics.sessions.set(len(self._sessions))
+
+    def reset_session(self, robot_id: str, near: PosePrior | None) -> SessionInfo:
+        s = self.session(robot_id)
+        with s.lock:
+            if near is None:
+                s.localizer.reset()
+            else:
+                s.localizer.reset((near.x, near.y), near.radius)
+            s.last_t = None
+            s.last_used = time.time()
+        return s.info()
+
+    def expire_idle(self, now: float | None = None) -> list[str]:
+        now = time.time() if now is None else now
+        limit = self.settings.session_idle_s
+        with self._lock:
+            gone = [rid for rid, s in self._sessions.items() if now - s.last_used > limit
+                    and not s.lock.locked()]
+            for rid in gone:
+                del self._sessions[rid]
+            self.metrics.sessions.set(len(self._sessions))
+        self.metrics.expired.inc(len(gone))
+        return gone
+
+    # ---- frames -------------------------------------------------------------------------
+    def process_frame(self, robot_id: str, data: bytes, content_type: str | None,
+                      t: float | None = None, prior: PosePrior | None = None,
+                      transport: str = "http", session: Session | None = None,
+                      input_seq: int | None = None) -> Estimate:
+        """Decode, validate, extract and step one frame; raises ServiceError on bad input."""
+        t0 = time.perf_counter()
+        s = session or self.session(robot_id)
+        try:
+            image = decode_frame(data, content_type, self.settings.max_body_bytes,
+                                 self.settings.max_pixels)
+            if t is not None and not _finite(t):
+                raise InvalidParameters("timestamp t must be a finite number of seconds")
+            features = s.localizer.extract(image)
+            with s.lock:
+                if t is not None and s.last_t is not None and t < s.last_t:
+                    raise Conflict(f"frame timestamp {t} is older than the last processed "
+                                   f"frame ({s.last_t}); send frames in time order")
+                est = s.localizer.step(features, t,
+                                       (prior.x, prior.y, prior.radius) if prior else None)
+                if t is not None:
+                    s.last_t = t
+                s.last_used = time.time()
+        except Exception as exc:
+            self.metrics.rejected.labels(type(exc).__name__).inc()
+            raise
+        self.metrics.frames.labels(transport).inc()
+        self.metrics.comparisons.inc(est.comparisons)
+        self.metrics.latency.labels(transport).observe(time.perf_counter() - t0)
+        return est.model_copy(update={"robot_id": robot_id, "input_seq": input_seq})
+
+
+def _finite(v: float) -> bool:
+    return v == v and v not in (float("inf"), float("-inf"))
+
+
+def _check_robot_id(robot_id: str) -> None:
+    ok = robot_id and len(robot_id) <= 128 and all(c.isalnum() or c in "-_." for c in robot_id)
+    if not ok:
+        raise InvalidParameters(f"robot id '{robot_id}' must be 1-128 characters of letters, "
+                                "digits, '-', '_' or '.'")

@@ -1,0 +1,32 @@
+"""Service configuration from environment variables (prefix SWARMLOC_) or CLI flags."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="SWARMLOC_", env_nested_delimiter="__")
+
+    host: str = Field("0.0.0.0", description="HTTP bind address")
+    port: int = Field(8080, description="HTTP port")
+    maps_dir: Path = Field(Path("maps"), description="directory of *.swmap files to load")
+    default_map: str | None = Field(None, description="map for sessions that name none "
+                                    "(default: the only map, or 'demo')")
+    default_estimator: Literal["dpso", "pf-g", "pf-l"] = "dpso"
+    max_sessions: int = Field(256, description="most concurrent robot sessions")
+    session_idle_s: float = Field(600.0, description="idle sessions expire after this")
+    max_body_bytes: int = Field(8 * 1024 * 1024, description="largest accepted frame body")
+    max_pixels: int = Field(16_000_000, description="largest accepted image (width*height)")
+    auth_token: str | None = Field(None, description="if set, HTTP needs 'Bearer <token>'")
+    workers: int = Field(0, description="frame-processing threads (0: number of CPUs)")
+    zenoh_enabled: bool = True
+    zenoh_mode: Literal["peer", "client", "router"] = "peer"
+    zenoh_connect: list[str] = Field(default_factory=list, description="e.g. tcp/10.0.0.2:7447")
+    zenoh_listen: list[str] = Field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
+    zenoh_multicast_scouting: bool = True
+    zenoh_prefix: str = "swarmloc"

@@ -1,0 +1,155 @@
+"""Dynamic Particle Swarm Optimization (DPSO), journal Sec. 5.
+
+Per frame: evaluate Eq. 3 at every particle, take the best particle p^n (star topology) as the
+estimate, adapt v0 from the swarm-centre speed, run the recovery state machine, then move the
+swarm for the next frame with Eqs. 4-5 (normal and high-energy particles) and Eq. 6 (quantum
+particles). Positions are metres; delta_i is the map's range along axis i.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from service.estimator import Estimator, Status, StepResult, weighted_covariance
+from service.fitness import FrameFitness, MapIndex
+from service.params import DPSOParams
+
+
+class DPSO(Estimator):
+    name = "dpso"
+    params: DPSOParams
+
+    def __init__(self, index: MapIndex, params: DPSOParams, rng: np.random.Generator) -> None:
+        super().__init__(index, params, rng)
+        pos = np.asarray(index.positions, float)
+        # delta_i: range of axis i (m), floored so that a straight route still has a width
+        self.delta = np.maximum(pos.max(axis=0) - pos.min(axis=0), params.min_axis_range_m)
+        n = params.n_particles
+        # search space: the map's bounding box, widened by 10 % of each range; particles
+        # reflect at its walls (standard PSO boundary handling, not spelled out in the paper)
+        self.lower = pos.min(axis=0) - 0.1 * self.delta
+        self.upper = pos.max(axis=0) + 0.1 * self.delta
+        # particle types are fixed subsets, as in the quantum swarms of Blackwell & Branke
+        # (the paper's ref. [32]): the last h_r * n are high-energy, the first q_r * n quantum
+        # (see _move; recovery grows the quantum subset towards quantum_ratio_max)
+        self.high_energy = np.arange(n) >= n - round(params.high_energy_ratio * n)
+        self.x = np.zeros((n, 2))
+        self.v = np.zeros((n, 2))
+        self._init_adaptive()
+
+    def _init_adaptive(self) -> None:
+        p = self.params
+        self.v0, self.q_r, self.phi2 = p.v0, p.quantum_ratio, p.phi2
+        self.recovering = False
+        self._v0_before_recovery = p.v0
+        self._ema_vsw: float | None = None  # EMA of the centre speed, axis-range units
+        self._ema_speed_m: float | None = None  # same in metres per iteration
+        self._ema_dir = np.zeros(2)
+        self._centre_prev: np.ndarray | None = None
+
+    def particles(self) -> np.ndarray | None:
+        return None if self._needs_init else self.x
+
+    def place(self, mask: np.ndarray, positions: np.ndarray) -> None:
+        self.x[mask] = positions
+        self.v[mask] = 0.0
+
+    def _initialize(self) -> None:
+        p = self.params
+        n = p.n_particles
+        self.x = self.sample_positions(n)
+        ang = self.rng.uniform(0, 2 * math.pi, n)
+        mag = self.rng.uniform(0, 1, n) * p.v0
+        self.v = np.column_stack([np.cos(ang), np.sin(ang)]) * mag[:, None] * self.delta
+        self._init_adaptive()
+        self._needs_init = False
+
+    def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
+        if self._needs_init:
+            self._initialize()
+        p = self.params
+        dt = self.frame_dt(t)
+        f, m, _ = fitness(self.x)
+        best = int(np.argmax(f))
+        p_n = self.x[best].copy()
+        best_m = float(m.max())
+        cov = weighted_covariance(self.x, f, 0.5 * self._spacing)
+        centre = self.x.mean(axis=0)
+        spread = float(np.mean(np.linalg.norm(self.x - centre, axis=1)))
+        total = float(f.sum())
+        self._track_centre((f @ self.x) / total if total > 0 else centre)
+
+        status, lost = self.update_status(best_m)
+        if lost and not self.recovering:  # recovery phase starts (Sec. 5)
+            self.recovering = True
+            self._v0_before_recovery = self.v0
+        elif self.recovering and self._good >= p.recovered_frames:  # matches are good again
+            self.recovering = False
+            self.v0, self.q_r, self.phi2 = self._v0_before_recovery, p.quantum_ratio, p.phi2
+        if self.recovering:  # boost diversity step by step towards the limits
+            a = p.recovery_step
+            self.v0 = min(self.v0 * (1 + a), p.v0_max)
+            self.q_r = min(self.q_r * (1 + a), p.quantum_ratio_max)
+            self.phi2 = max(self.phi2 * (1 - a), p.phi2_min)
+            status = Status.RECOVERING
+        else:
+            self._adapt_v0()
+
+        self._move(p_n)
+        speed = (self._ema_speed_m or 0.0) / (self._dt_ema or dt)
+        heading = math.atan2(self._ema_dir[1], self._ema_dir[0])
+        return StepResult(p_n, cov, heading, speed, status, lost, best_m, fitness.comparisons,
+                          spread)
+
+    def _track_centre(self, centre: np.ndarray) -> None:
+        """EMA (alpha = 1/8) of the velocity of the swarm's centre of mass; v_sw is its norm.
+
+        The masses are the particles' fitness (the "weighted swarm center" of Sec. 4): quantum
+        particles are redrawn around p^n every frame with q_d = 15 % of the axis range, and in
+        an unweighted centre that redraw alone moves the centre by about a metre per frame.
+        The EMA runs over the velocity vector, so remaining jitter averages out instead of
+        adding to the speed (an EMA of the norm would be biased upwards by it).
+        """
+        if self._centre_prev is not None:
+            dc = centre - self._centre_prev
+            a = self.params.ema_alpha
+            self._ema_dir = dc.copy() if self._ema_vsw is None else (1 - a) * self._ema_dir + a * dc
+            self._ema_speed_m = float(np.linalg.norm(self._ema_dir))
+            self._ema_vsw = float(np.linalg.norm(self._ema_dir / self.delta))
+        self._centre_prev = centre
+
+    def _adapt_v0(self) -> None:
+        """Hold v0 ~ 2 v_sw: change v0 by 10 % when EMA(v_sw) / v0 leaves [0.4, 0.6]."""
+        p = self.params
+        if self._ema_vsw is None:
+            return
+        ratio = self._ema_vsw / self.v0
+        if ratio < p.adapt_low:
+            self.v0 *= 1 - p.adapt_step
+        elif ratio > p.adapt_high:
+            self.v0 *= 1 + p.adapt_step
+        self.v0 = float(np.clip(self.v0, p.v0_min, p.v0_max))
+
+    def _move(self, p_n: np.ndarray) -> None:
+        p, rng = self.params, self.rng
+        n = p.n_particles
+        r0 = rng.uniform(-1.0, 1.0, (n, 2))  # symmetric perturbation (see README: r0 range)
+        r2 = rng.uniform(0.0, 1.0, (n, 2))
+        # Eq. 4
+        v = p.omega * self.v + p.phi0 * r0 * self.delta * self.v0 + self.phi2 * r2 * (p_n - self.x)
+        norm = np.linalg.norm(v / self.delta, axis=1)
+        limit = self.v0 * np.where(self.high_energy, p.high_energy_factor, 1.0)
+        v *= np.minimum(1.0, limit / np.maximum(norm, 1e-12))[:, None]
+        x = self.x + v  # Eq. 5
+        # Eq. 6: the quantum particles are redrawn around p^n and have no speed
+        k = min(round(self.q_r * n), n - int(self.high_energy.sum()))
+        x[:k] = p_n + self.delta * rng.normal(0.0, p.quantum_sigma, (k, 2))
+        v[:k] = 0.0
+        # reflect at the walls of the search space
+        below, above = x < self.lower, x > self.upper
+        x = np.where(below, 2 * self.lower - x, np.where(above, 2 * self.upper - x, x))
+        x = np.clip(x, self.lower, self.upper)
+        v = np.where(below | above, -v, v)
+        self.x, self.v = x, v

@@ -1,0 +1,53 @@
+"""Shared fixtures: a small rendered world, its rounds and a map built from one of them.
+
+Everything is rendered here, into pytest's temporary directories; nothing from ../shared.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from client.dataset import Round, read_round
+from client.world import World
+from service.route_map import RouteMap, build_map, load_map, save_map
+
+SMALL_LENGTH_M = 90.0
+
+
+@pytest.fixture(scope="session")
+def small_world() -> World:
+    return World(seed=3, length_m=SMALL_LENGTH_M)
+
+
+@pytest.fixture(scope="session")
+def rounds_dir(tmp_path_factory: pytest.TempPathFactory, small_world: World) -> Path:
+    root = tmp_path_factory.mktemp("world")
+    small_world.render_round(root / "sunny1", 0, "sunny")
+    small_world.render_round(root / "sunny2", 1, "sunny")
+    small_world.render_round(root / "cloudy1", 3, "cloudy")
+    return root
+
+
+@pytest.fixture(scope="session")
+def sunny1(rounds_dir: Path) -> Round:
+    return read_round(rounds_dir / "sunny1")
+
+
+@pytest.fixture(scope="session")
+def sunny2(rounds_dir: Path) -> Round:
+    return read_round(rounds_dir / "sunny2")
+
+
+@pytest.fixture(scope="session")
+def cloudy1(rounds_dir: Path) -> Round:
+    return read_round(rounds_dir / "cloudy1")
+
+
+@pytest.fixture(scope="session")
+def small_map(tmp_path_factory: pytest.TempPathFactory, sunny1: Round) -> RouteMap:
+    m = build_map("small", [sunny1.load_image(i) for i in range(len(sunny1))], sunny1.xy,
+                  list(sunny1.images))
+    path = save_map(m, tmp_path_factory.mktemp("maps") / "small")
+    return load_map(path)

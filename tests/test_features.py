@@ -1,0 +1,70 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.features import (
+    SiftParams,
+    extract,
+    match_batch,
+    similarity,
+    similarity_bfmatcher,
+    to_working_size,
+)
+
+
+def _unit(rng: np.random.Generator, n: int, d: int = 128) -> np.ndarray:
+    a = rng.random((n, d)).astype(np.float32) ** 3  # non-negative and fairly distinct, as SIFT
+    return a / np.linalg.norm(a, axis=1, keepdims=True)
+
+
+def test_self_similarity_is_one_for_distinct_features() -> None:
+    a = _unit(np.random.default_rng(0), 200)
+    assert similarity(a, a) == pytest.approx(1.0)
+
+
+def test_symmetric_and_bounded(sunny1, cloudy1) -> None:
+    fa = extract(sunny1.load_image(3)).descriptors
+    for img in (sunny1.load_image(5), cloudy1.load_image(4), sunny1.load_image(60)):
+        fb = extract(img).descriptors
+        ab, ba = similarity(fa, fb), similarity(fb, fa)
+        assert ab == pytest.approx(ba)
+        assert 0.0 <= ab <= 1.0
+
+
+def test_empty_and_single_feature_sets() -> None:
+    a = _unit(np.random.default_rng(1), 10)
+    empty = np.zeros((0, 128), np.float32)
+    assert similarity(a, empty) == 0.0
+    assert similarity(empty, a) == 0.0
+    assert similarity(a, a[:1]) == 0.0  # no second neighbour: no ratio test can pass
+    bm = match_batch(a, [a, empty, a[:3]])
+    assert bm.scores[0] == pytest.approx(1.0) and bm.scores[1] == 0.0
+    assert bm.matched.shape == (3, 10)
+
+
+def test_batched_equals_bfmatcher_reference(sunny1, cloudy1) -> None:
+    frames = [sunny1.load_image(i) for i in range(0, 40, 4)] + [cloudy1.load_image(2)]
+    feats = [extract(f).descriptors for f in frames]
+    for a in feats[:4]:
+        counts = match_batch(a, feats).counts.tolist()
+        ref = [similarity_bfmatcher(a, b)[0] for b in feats]
+        assert counts == ref
+        assert max(ref) > 0  # not a vacuous comparison
+
+
+def test_exact_duplicate_partner_never_matches() -> None:
+    a = _unit(np.random.default_rng(2), 30)
+    b = np.vstack([a[:10], a[:1]])  # a[0] has two identical partners: angle ratio 1
+    bm = match_batch(a, [b])
+    assert not bm.matched[0, 0]
+    assert bm.counts[0] == similarity_bfmatcher(a, b)[0] == 9
+
+
+def test_frames_of_other_sizes_are_resized() -> None:
+    params = SiftParams(width=320, height=240)
+    big = np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    assert to_working_size(big, params).shape == (240, 320)
+    f = extract(big, params)
+    assert f.keypoints[:, 0].max() < 320 and f.keypoints[:, 1].max() < 240
+    np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)

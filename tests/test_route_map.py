@@ -1,0 +1,127 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.features import Features, extract, match_batch
+from service.route_map import MapError, list_maps, load_map, prune, save_map
+
+
+def test_pruning_keeps_features_seen_in_a_neighbour(sunny1) -> None:
+    feats = [extract(sunny1.load_image(i)) for i in range(6)]
+    pruned, stats = prune(feats)
+    assert 0.2 < stats.removed_fraction < 0.9
+    for i in range(1, 5):
+        kept = pruned[i].descriptors
+        nb = [feats[i - 1].descriptors, feats[i + 1].descriptors]
+        # every kept feature has a symmetric match in a neighbour
+        assert match_batch(kept, nb).matched.any(axis=0).all()
+        assert 0 < len(kept) < len(feats[i])
+
+
+def test_pruning_edge_images_use_one_neighbour() -> None:
+    rng = np.random.default_rng(0)
+    a = rng.random((20, 128)).astype(np.float32) ** 3
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    f = [Features(np.zeros((20, 2), np.float32), a), Features(np.zeros((10, 2), np.float32), a[:10])]
+    pruned, _ = prune(f)
+    assert len(pruned[0]) == 10 and len(pruned[1]) == 10
+
+
+def test_map_roundtrip_is_memory_mapped(small_map, sunny1) -> None:
+    assert isinstance(small_map.descriptors, np.memmap)
+    assert small_map.n_images == len(sunny1)
+    np.testing.assert_allclose(small_map.positions, sunny1.xy)
+    assert small_map.image_names == list(sunny1.images)
+    meta = small_map.meta
+    assert meta["format_version"] == 1 and meta["delta"] == 0.6
+    assert meta["image_size"] == [320, 240] and meta["feature"]["type"] == "sift"
+    assert len(meta["checksum"]) == 64 and meta["pruning"]["features_after"] > 0
+
+
+def test_nearest_many_positions(small_map) -> None:
+    q = small_map.positions[[0, 10, 20]] + 0.01
+    ids, dist = small_map.nearest(q)
+    assert ids.tolist() == [0, 10, 20]
+    assert np.all(dist < 0.05)
+
+
+def test_true_image_outscores_far_ones(small_map, sunny2, cloudy1) -> None:
+    for rnd, min_frac in ((sunny2, 0.85), (cloudy1, 0.5)):
+        wins = 0
+        idx = range(0, len(rnd), 5)
+        for i in idx:
+            f = extract(rnd.load_image(i))
+            ids, _ = small_map.nearest(rnd.truth_xy[i][None])
+            d = np.linalg.norm(small_map.positions - rnd.truth_xy[i], axis=1)
+            far = np.flatnonzero(d > 15)[::7]
+            sc = small_map.similarity(f.descriptors, np.concatenate([ids, far]))
+            wins += sc[0] > sc[1:].max()
+        assert wins / len(idx) >= min_frac
+
+
+def _copy(small_map, tmp_path: Path) -> Path:
+    return save_map(small_map, tmp_path / "m")
+
+
+def test_corrupted_maps_are_refused(small_map, tmp_path: Path) -> None:
+    path = _copy(small_map, tmp_path)
+    raw = bytearray(path.read_bytes())
+    # a flipped byte deep in the descriptors
+    flipped = tmp_path / "flipped.swmap"
+    b = bytearray(raw)
+    b[len(b) - 5000] ^= 0xFF
+    flipped.write_bytes(bytes(b))
+    with pytest.raises(MapError, match="checksum mismatch"):
+        load_map(flipped)
+    # truncated
+    trunc = tmp_path / "trunc.swmap"
+    trunc.write_bytes(bytes(raw[: len(raw) // 2]))
+    with pytest.raises(MapError, match="truncated"):
+        load_map(trunc)
+    # wrong version, with a consistent header otherwise (same length: only the digit changes)
+    needle = b'"format_version": 1'
+    assert raw.count(needle) == 1
+    wrong = tmp_path / "wrong.swmap"
+    wrong.write_bytes(bytes(raw).replace(needle, b'"format_version": 9'))
+    with pytest.raises(MapError, match="format version 9 is not supported"):
+        load_map(wrong)
+    # not a map at all
+    junk = tmp_path / "junk.swmap"
+    junk.write_bytes(b"hello world")
+    with pytest.raises(MapError, match="not a swarmloc map"):
+        load_map(junk)
+
+
+def test_atomic_write_replaces_whole_file(small_map, tmp_path: Path) -> None:
+    path = _copy(small_map, tmp_path)
+    save_map(small_map, path)  # overwrite in place
+    assert [p.name for p in tmp_path.iterdir()] == ["m.swmap"]  # no temp files left
+    assert load_map(path).n_images == small_map.n_images
+    assert list_maps(tmp_path) == [path]
+
+
+def test_map_from_geographic_round(tmp_path: Path, sunny1) -> None:
+    from client.dataset import read_round
+    from service.geo import LocalFrame
+    from service.route_map import build_map
+
+    d = tmp_path / "geo"
+    d.mkdir()
+    frame = LocalFrame(48.52, 9.06)
+    latlon = frame.to_geo(sunny1.xy[:8])
+    rows = ["image,lat,lon"]
+    for i in range(8):
+        (d / sunny1.images[i]).write_bytes(sunny1.image_path(i).read_bytes())
+        rows.append(f"{sunny1.images[i]},{latlon[i, 0]:.9f},{latlon[i, 1]:.9f}")
+    (d / "poses.csv").write_text("\n".join(rows) + "\n")
+    rnd = read_round(d)
+    m = build_map("geo", [rnd.load_image(i) for i in range(len(rnd))], rnd.xy, list(rnd.images),
+                  origin=rnd.origin)
+    path = save_map(m, tmp_path / "geo")
+    loaded = load_map(path)
+    assert loaded.frame is not None
+    back = loaded.frame.to_geo(loaded.positions)
+    np.testing.assert_allclose(back, latlon, atol=1e-7)
