@@ -183,6 +183,101 @@ def serve(
     run(settings)
 
 
+# ---- replay -----------------------------------------------------------------------------
+def _parse_params(items: list[str] | None) -> dict:
+    out: dict = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            _fail(f"--param takes KEY=VALUE, got '{item}'")
+        try:
+            out[key] = int(value) if value.lstrip("-").isdigit() else float(value)
+        except ValueError:
+            _fail(f"--param {key}: '{value}' is not a number")
+    return out
+
+
+@app.command("replay")
+def replay_cmd(
+    round_dir: Path,
+    map_name: Annotated[str | None, typer.Option("--map", help="map name on the service")]
+    = None,
+    via: Annotated[str, typer.Option(help="http://HOST:PORT | zenoh[:ENDPOINT] | local[:DIR]")]
+    = "local",
+    estimator: Annotated[str, typer.Option(help="dpso | pf-g | pf-l")] = "dpso",
+    param: Annotated[list[str] | None, typer.Option(help="estimator parameter KEY=VALUE")]
+    = None,
+    seed: int = 0,
+    start: Annotated[int, typer.Option(help="first image (wraps around)")] = 0,
+    speed: Annotated[float, typer.Option(help="k: every k-th image; 0.5: each image twice")]
+    = 1.0,
+    kidnap: Annotated[bool, typer.Option(help="jump n/2 images at the middle of the run")]
+    = False,
+    repeat: Annotated[int, typer.Option(help="runs from evenly spaced start images")] = 1,
+    length: Annotated[int | None, typer.Option(help="iterations per run")] = None,
+    out: Annotated[Path, typer.Option(help="report directory")] = Path("report"),
+    baseline: Annotated[Path | None, typer.Option(help="earlier report.json to compare")]
+    = None,
+    tolerance: Annotated[float, typer.Option(help="allowed relative regression")] = 0.1,
+    token: Annotated[str | None, typer.Option(help="bearer token for HTTP")] = None,
+    robot_id: str = "replay",
+) -> None:
+    """Replay a round against a map; write report.json, report.md and plots; compare."""
+    from client.dataset import DatasetError, read_round
+    from client.replay import ReplayConfig, replay
+    from client.report import build_report, compare, write_report
+    from client.transports import SwarmlocError, connect
+
+    try:
+        rnd = read_round(round_dir)
+    except DatasetError as exc:
+        _fail(str(exc))
+    cfg = ReplayConfig(map_name, estimator, _parse_params(param), seed, start, speed, kidnap,
+                       length, repeat)
+    try:
+        client = connect(via, token)
+    except ValueError as exc:
+        _fail(str(exc))
+    try:
+        runs = replay(client, rnd, cfg, robot_id, progress=True)
+        route = _route_positions(client, map_name, rnd)
+    except SwarmlocError as exc:
+        _fail(f"service error {exc.status}: {exc.message}")
+    finally:
+        client.close()
+    report = build_report(rnd, cfg, runs, via)
+    files = write_report(report, runs, route, out)
+    s = report["summary"]
+    typer.echo(f"mean error {s['error_mean_m']:.2f} m (median {s['error_median_m']:.2f}, "
+               f"p95 {s['error_p95_m']:.2f}), within 5 m {100 * s['within_5m']:.1f} %, "
+               f"{s['comparisons_per_frame']:.1f} comparisons/frame, latency p50 "
+               f"{s['latency_p50_ms']:.1f} ms p99 {s['latency_p99_ms']:.1f} ms")
+    typer.echo("wrote " + ", ".join(str(f) for f in files))
+    if baseline is not None:
+        problems = compare(report, json.loads(baseline.read_text()), tolerance)
+        for p in problems:
+            typer.echo(f"REGRESSION: {p}", err=True)
+        if problems:
+            raise typer.Exit(1)
+        typer.echo(f"no regression against {baseline} (tolerance {tolerance:g})")
+
+
+def _route_positions(client: object, map_name: str | None, rnd: object) -> np.ndarray:
+    """The map's image positions for the plot (HTTP/local), else the round's own positions."""
+    from client.transports import HttpClient, LocalClient
+
+    if isinstance(client, HttpClient | LocalClient) and (map_name or isinstance(
+            client, LocalClient)):
+        try:
+            if isinstance(client, HttpClient):
+                return np.array(client.map_detail(map_name).positions)  # type: ignore[arg-type]
+            svc = client.service
+            return svc.get_map(map_name or svc.default_map).positions
+        except Exception:  # the plot falls back to the round's own positions
+            pass
+    return rnd.xy  # type: ignore[attr-defined]
+
+
 def main() -> None:
     app()
 

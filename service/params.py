@@ -105,8 +105,10 @@ class DPSOParams(CommonParams):
     # from kidnapping without scattering the swarm in ambiguous stretches
     recovery_step: float = 0.2
     # good frames in a row that end the recovery phase ("as soon as the best matches increase
-    # in quality again"); 1 ends it on the first good frame
-    recovered_frames: int = 1
+    # in quality again"), symmetric with lost_frames. Measured on two routes (README): with 1,
+    # one spurious match at the wrong place ends the search and the ramp starts over (kidnap
+    # recovery medians 32-93 frames); with 3 they are 27-41 frames
+    recovered_frames: int = 3
     # smallest axis range used for delta_i (m): a straight route would otherwise have a zero
     # range across it and no lateral exploration at all
     min_axis_range_m: float = 20.0

@@ -1,0 +1,318 @@
+"""One client interface, three transports: HTTP (sync and async, httpx), Zenoh, in-process.
+
+Every transport returns the service's own pydantic schemas (``Estimate``, ``SessionInfo``,
+``MapSummary``) and raises ``SwarmlocError`` carrying the service's status and message.
+Frames are sent as encoded PNG/JPEG bytes (a NumPy image is PNG-encoded first, losslessly),
+so every transport runs the very same decoding and localizer code.
+
+Retries: connection failures are retried (the request never reached the service, so that is
+safe for every call); a frame that reached the service is never sent twice, because a second
+copy would advance the robot's estimator a second time.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Protocol
+
+import httpx
+import numpy as np
+
+from service.models import Estimate, MapDetail, MapSummary, PosePrior, SessionConfig, SessionInfo
+
+
+class SwarmlocError(Exception):
+    """The service refused a call (status as in HTTP) or could not be reached (status 0)."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(f"[{status}] {message}")
+        self.status = status
+        self.message = message
+
+
+def _frame_bytes(image: np.ndarray | bytes) -> bytes:
+    if isinstance(image, bytes | bytearray | memoryview):
+        return bytes(image)
+    from service.imaging import encode_png
+
+    return encode_png(np.asarray(image))
+
+
+def _config(map_name: str | None, estimator: str | None, params: dict | None, seed: int,
+            initial_pose: PosePrior | None) -> SessionConfig:
+    return SessionConfig(map=map_name, estimator=estimator, params=params or {}, seed=seed,
+                         initial_pose=initial_pose)
+
+
+class Client(Protocol):
+    def maps(self) -> list[MapSummary]: ...
+
+    def create_session(self, robot_id: str, map_name: str | None = None,
+                       estimator: str | None = None, params: dict | None = None,
+                       seed: int = 0, initial_pose: PosePrior | None = None) -> SessionInfo: ...
+
+    def session(self, robot_id: str) -> SessionInfo: ...
+
+    def delete_session(self, robot_id: str) -> None: ...
+
+    def reset(self, robot_id: str, near: PosePrior | None = None) -> SessionInfo: ...
+
+    def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
+                 seq: int | None = None, prior: PosePrior | None = None) -> Estimate: ...
+
+    def close(self) -> None: ...
+
+
+# ---- HTTP --------------------------------------------------------------------------------
+def _raise_for(resp: httpx.Response) -> None:
+    if resp.status_code < 400:
+        return
+    try:
+        message = resp.json().get("error", resp.text)
+    except ValueError:
+        message = resp.text
+    raise SwarmlocError(resp.status_code, message)
+
+
+def _frame_params(t: float | None, seq: int | None, prior: PosePrior | None) -> dict:
+    q: dict[str, Any] = {}
+    if t is not None:
+        q["t"] = t
+    if seq is not None:
+        q["seq"] = seq
+    if prior is not None:
+        q.update(prior_x=prior.x, prior_y=prior.y, prior_radius=prior.radius)
+    return q
+
+
+class HttpClient:
+    """Synchronous HTTP client (httpx)."""
+
+    def __init__(self, base_url: str, token: str | None = None, timeout: float = 30.0,
+                 retries: int = 2) -> None:
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self._http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout,
+                                  transport=httpx.HTTPTransport(retries=retries))
+
+    def _call(self, method: str, url: str, **kw: Any) -> httpx.Response:
+        try:
+            resp = self._http.request(method, url, **kw)
+        except httpx.HTTPError as exc:
+            raise SwarmlocError(0, f"cannot reach the service: {exc}") from None
+        _raise_for(resp)
+        return resp
+
+    def maps(self) -> list[MapSummary]:
+        return [MapSummary(**m) for m in self._call("GET", "/maps").json()]
+
+    def map_detail(self, name: str) -> MapDetail:
+        return MapDetail(**self._call("GET", f"/maps/{name}").json())
+
+    def create_session(self, robot_id: str, map_name: str | None = None,
+                       estimator: str | None = None, params: dict | None = None,
+                       seed: int = 0, initial_pose: PosePrior | None = None) -> SessionInfo:
+        cfg = _config(map_name, estimator, params, seed, initial_pose)
+        resp = self._call("PUT", f"/sessions/{robot_id}", json=cfg.model_dump(mode="json"))
+        return SessionInfo(**resp.json())
+
+    def session(self, robot_id: str) -> SessionInfo:
+        return SessionInfo(**self._call("GET", f"/sessions/{robot_id}").json())
+
+    def delete_session(self, robot_id: str) -> None:
+        self._call("DELETE", f"/sessions/{robot_id}")
+
+    def reset(self, robot_id: str, near: PosePrior | None = None) -> SessionInfo:
+        body = near.model_dump() if near else None
+        return SessionInfo(**self._call("POST", f"/sessions/{robot_id}/reset", json=body).json())
+
+    def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
+                 seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
+        data = _frame_bytes(image)
+        ctype = "image/jpeg" if data[:2] == b"\xff\xd8" else "image/png"
+        resp = self._call("POST", f"/sessions/{robot_id}/frames", content=data,
+                          params=_frame_params(t, seq, prior), headers={"Content-Type": ctype})
+        return Estimate(**resp.json())
+
+    def close(self) -> None:
+        self._http.close()
+
+
+class AsyncHttpClient:
+    """Asynchronous HTTP client (httpx), the same calls as ``HttpClient``."""
+
+    def __init__(self, base_url: str, token: str | None = None, timeout: float = 30.0,
+                 retries: int = 2) -> None:
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self._http = httpx.AsyncClient(base_url=base_url, headers=headers, timeout=timeout,
+                                       transport=httpx.AsyncHTTPTransport(retries=retries))
+
+    async def _call(self, method: str, url: str, **kw: Any) -> httpx.Response:
+        try:
+            resp = await self._http.request(method, url, **kw)
+        except httpx.HTTPError as exc:
+            raise SwarmlocError(0, f"cannot reach the service: {exc}") from None
+        _raise_for(resp)
+        return resp
+
+    async def maps(self) -> list[MapSummary]:
+        return [MapSummary(**m) for m in (await self._call("GET", "/maps")).json()]
+
+    async def create_session(self, robot_id: str, map_name: str | None = None,
+                             estimator: str | None = None, params: dict | None = None,
+                             seed: int = 0, initial_pose: PosePrior | None = None
+                             ) -> SessionInfo:
+        cfg = _config(map_name, estimator, params, seed, initial_pose)
+        resp = await self._call("PUT", f"/sessions/{robot_id}", json=cfg.model_dump(mode="json"))
+        return SessionInfo(**resp.json())
+
+    async def session(self, robot_id: str) -> SessionInfo:
+        return SessionInfo(**(await self._call("GET", f"/sessions/{robot_id}")).json())
+
+    async def delete_session(self, robot_id: str) -> None:
+        await self._call("DELETE", f"/sessions/{robot_id}")
+
+    async def reset(self, robot_id: str, near: PosePrior | None = None) -> SessionInfo:
+        body = near.model_dump() if near else None
+        resp = await self._call("POST", f"/sessions/{robot_id}/reset", json=body)
+        return SessionInfo(**resp.json())
+
+    async def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
+                       seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
+        data = _frame_bytes(image)
+        ctype = "image/jpeg" if data[:2] == b"\xff\xd8" else "image/png"
+        resp = await self._call("POST", f"/sessions/{robot_id}/frames", content=data,
+                                params=_frame_params(t, seq, prior),
+                                headers={"Content-Type": ctype})
+        return Estimate(**resp.json())
+
+    async def close(self) -> None:
+        await self._http.aclose()
+
+
+# ---- Zenoh -------------------------------------------------------------------------------
+class ZenohClient:
+    """Request/response over the service's Zenoh queryables (``{prefix}/{robot}/...``)."""
+
+    def __init__(self, connect: list[str] | None = None, prefix: str = "swarmloc",
+                 timeout: float = 30.0, mode: str = "client") -> None:
+        import zenoh
+
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", json.dumps(mode))
+        if connect:
+            cfg.insert_json5("connect/endpoints", json.dumps(connect))
+        cfg.insert_json5("scouting/multicast/enabled", json.dumps(not connect))
+        self._z = zenoh.open(cfg)
+        self.prefix = prefix.strip("/")
+        self.timeout = timeout
+
+    def _query(self, key: str, payload: bytes, attachment: bytes | None = None) -> dict:
+        replies = self._z.get(f"{self.prefix}/{key}", payload=payload, attachment=attachment,
+                              timeout=self.timeout)
+        for reply in replies:
+            if reply.ok is not None:
+                return json.loads(reply.ok.payload.to_bytes())
+            body = json.loads(reply.err.payload.to_bytes())
+            raise SwarmlocError(int(body.get("status", 500)), body.get("error", "error"))
+        raise SwarmlocError(0, f"no reply on {self.prefix}/{key} within {self.timeout} s: "
+                               "is the service running and reachable over Zenoh?")
+
+    def _control(self, robot_id: str, body: dict) -> dict:
+        return self._query(f"{robot_id}/control", json.dumps(body).encode())
+
+    def maps(self) -> list[MapSummary]:
+        raise SwarmlocError(501, "map listing is served over HTTP (GET /maps)")
+
+    def create_session(self, robot_id: str, map_name: str | None = None,
+                       estimator: str | None = None, params: dict | None = None,
+                       seed: int = 0, initial_pose: PosePrior | None = None) -> SessionInfo:
+        cfg = _config(map_name, estimator, params, seed, initial_pose)
+        return SessionInfo(**self._control(robot_id, {"action": "put",
+                                                      **cfg.model_dump(mode="json")}))
+
+    def session(self, robot_id: str) -> SessionInfo:
+        return SessionInfo(**self._control(robot_id, {"action": "get"}))
+
+    def delete_session(self, robot_id: str) -> None:
+        self._control(robot_id, {"action": "delete"})
+
+    def reset(self, robot_id: str, near: PosePrior | None = None) -> SessionInfo:
+        body: dict[str, Any] = {"action": "reset"}
+        if near:
+            body.update(near.model_dump())
+        return SessionInfo(**self._control(robot_id, body))
+
+    def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
+                 seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
+        meta: dict[str, Any] = {"t": t, "seq": seq}
+        if prior is not None:
+            meta["prior"] = prior.model_dump()
+        body = self._query(f"{robot_id}/localize", _frame_bytes(image), json.dumps(meta).encode())
+        return Estimate(**body)
+
+    def close(self) -> None:
+        self._z.close()
+
+
+# ---- in process --------------------------------------------------------------------------
+class LocalClient:
+    """No network: the service engine in this process (same decoding and localizer code)."""
+
+    def __init__(self, maps_dir: str | Path | None = None, service: Any = None) -> None:
+        from service.sessions import LocalizationService
+        from service.settings import Settings
+
+        if service is None:
+            settings = Settings(maps_dir=Path(maps_dir or "maps"), zenoh_enabled=False)
+            service = LocalizationService(settings)
+        self.service = service
+
+    def _wrap(self, fn: Any, *args: Any) -> Any:
+        from service.errors import ServiceError
+
+        try:
+            return fn(*args)
+        except ServiceError as exc:
+            raise SwarmlocError(exc.status, exc.message) from None
+
+    def maps(self) -> list[MapSummary]:
+        return [self.service.map_summary(n) for n in sorted(self.service.maps)]
+
+    def create_session(self, robot_id: str, map_name: str | None = None,
+                       estimator: str | None = None, params: dict | None = None,
+                       seed: int = 0, initial_pose: PosePrior | None = None) -> SessionInfo:
+        cfg = _config(map_name, estimator, params, seed, initial_pose)
+        return self._wrap(self.service.put_session, robot_id, cfg)[0]
+
+    def session(self, robot_id: str) -> SessionInfo:
+        return self._wrap(lambda: self.service.session(robot_id).info())
+
+    def delete_session(self, robot_id: str) -> None:
+        self._wrap(self.service.delete_session, robot_id)
+
+    def reset(self, robot_id: str, near: PosePrior | None = None) -> SessionInfo:
+        return self._wrap(self.service.reset_session, robot_id, near)
+
+    def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
+                 seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
+        data = _frame_bytes(image)
+        return self._wrap(lambda: self.service.process_frame(
+            robot_id, data, None, t, prior, "local", None, seq))
+
+    def close(self) -> None:
+        pass
+
+
+def connect(via: str, token: str | None = None, maps_dir: str | Path | None = None,
+            prefix: str = "swarmloc") -> Client:
+    """``http://HOST:PORT`` | ``zenoh`` | ``zenoh:tcp/HOST:7447`` | ``local`` | ``local:DIR``."""
+    if via.startswith(("http://", "https://")):
+        return HttpClient(via, token)
+    if via == "zenoh" or via.startswith("zenoh:"):
+        endpoint = via.partition(":")[2]
+        return ZenohClient([endpoint] if endpoint else None, prefix)
+    if via == "local" or via.startswith("local:"):
+        return LocalClient(via.partition(":")[2] or maps_dir)
+    raise ValueError(f"unknown transport '{via}': use http://HOST:PORT, zenoh[:ENDPOINT] "
+                     "or local[:MAPS_DIR]")

@@ -1,0 +1,127 @@
+"""Estimators on rendered routes with the papers' defaults (no per-route tuning)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from client.experiments import SimilarityTable, frames_to_recover, run
+from service.fitness import FrameFitness
+from service.localizer import Localizer
+from service.params import ParamError, params_for
+from service.particle_filter import low_variance_resample
+
+WARMUP = 20  # frames of global convergence left out of tracking errors
+
+
+@pytest.fixture(scope="module")
+def table(small_map, sunny2) -> SimilarityTable:
+    return SimilarityTable.from_round(small_map, sunny2)
+
+
+@pytest.fixture(scope="module")
+def starts(sunny2) -> list[int]:
+    return list(range(0, len(sunny2), len(sunny2) // 5))[:5]
+
+
+def _mean_error(small_map, table, rnd, est, params, starts) -> tuple[float, float]:
+    errs, comps = [], []
+    for s in starts:
+        res = run(small_map, table, rnd, est, params, seed=s, start=s)
+        errs.append(res.errors[WARMUP:].mean())
+        comps.append(res.comparisons[WARMUP:].mean())
+    return float(np.mean(errs)), float(np.mean(comps))
+
+
+def test_dpso_converges_globally_and_tracks(small_map, table, sunny2, starts) -> None:
+    for s in starts[:3]:
+        res = run(small_map, table, sunny2, "dpso", None, seed=s, start=s)
+        assert res.errors[WARMUP:].mean() < 2.0
+        assert np.mean(res.errors[WARMUP:] < 5.0) > 0.95
+        assert res.status[0] == "initializing" and "tracking" in res.status
+
+
+def test_dpso_accuracy_and_comparisons_vs_particle_filters(small_map, table, sunny2,
+                                                           starts) -> None:
+    dpso_err, dpso_cmp = _mean_error(small_map, table, sunny2, "dpso", None, starts)
+    pfl_err, pfl_cmp = _mean_error(small_map, table, sunny2, "pf-l", {"n_particles": 300},
+                                   starts)
+    _, pfg_cmp = _mean_error(small_map, table, sunny2, "pf-g", {"n_particles": 300}, starts)
+    assert dpso_err <= 1.1 * pfl_err
+    assert dpso_cmp < pfl_cmp and dpso_cmp < pfg_cmp
+
+
+def test_kidnapped_dpso_recovers(small_map, table, sunny2, starts) -> None:
+    n = len(sunny2)
+    frames = []
+    for s in starts:
+        res = run(small_map, table, sunny2, "dpso", None, seed=s, start=s, kidnap=True,
+                  length=2 * n)
+        after = res.status[n:]
+        assert "recovering" in after[:15]  # the loss is detected within a few frames
+        frames.append(frames_to_recover(res))
+    assert all(f is not None for f in frames)
+    assert np.median(frames) <= 60
+
+
+def test_speed_estimate_of_tracking_swarm(small_map, table, sunny2, starts) -> None:
+    for s in starts[:3]:
+        res = run(small_map, table, sunny2, "dpso", None, seed=s, start=s)
+        tracking = np.array(res.status) == "tracking"
+        tracking[:40] = False  # the EMA needs a few frames after convergence
+        ratio = np.median(res.speed[tracking]) / np.median(res.true_speed)
+        assert abs(ratio - 1) < 0.2
+
+
+@pytest.mark.parametrize("estimator", ["dpso", "pf-g", "pf-l"])
+def test_same_seed_same_estimates_bit_for_bit(small_map, table, sunny2, estimator) -> None:
+    a = run(small_map, table, sunny2, estimator, None, seed=5, start=10, length=40)
+    b = run(small_map, table, sunny2, estimator, None, seed=5, start=10, length=40)
+    c = run(small_map, table, sunny2, estimator, None, seed=6, start=10, length=40)
+    assert np.array_equal(a.est_xy, b.est_xy)
+    assert np.array_equal(a.speed, b.speed)
+    assert not np.array_equal(a.est_xy, c.est_xy)
+
+
+def test_reset_near_a_known_pose(small_map, table, sunny2) -> None:
+    loc = Localizer(small_map, "dpso", None, seed=1)
+    truth = sunny2.truth_xy
+    loc.reset(near=tuple(truth[50]), radius=3.0)
+    e = loc.estimator.step(lambda ids: table.scores(50, ids), 0.0)
+    assert np.linalg.norm(e.position - truth[50]) < 4.0
+    assert e.comparisons < 20  # a local start compares only nearby images
+
+
+def test_fitness_shares_comparisons_between_particles(small_map) -> None:
+    calls: list[np.ndarray] = []
+
+    def sim(ids: np.ndarray) -> np.ndarray:
+        calls.append(ids.copy())
+        return np.full(len(ids), 0.5)
+
+    fit = FrameFitness(small_map, sim, penalty_sigma_m=2.0)
+    pos = np.repeat(small_map.positions[[3, 7]], 10, axis=0)
+    f, m, ids = fit(pos)
+    assert fit.comparisons == 2 and len(calls) == 1
+    np.testing.assert_allclose(f, 0.5)  # at an image position the penalty is 1
+    far = small_map.positions[[3]] + np.array([[0.0, 50.0]])
+    f2, _, _ = fit(np.vstack([pos, far]))
+    assert f2[-1] < 0.5 * np.exp(-0.5 * (40 / 2.0) ** 2) + 1e-9 or f2[-1] < 1e-6
+    assert fit.comparisons <= 3
+
+
+def test_low_variance_resampling_keeps_proportions() -> None:
+    rng = np.random.default_rng(0)
+    w = np.array([0.5, 0.25, 0.25, 0.0])
+    idx = low_variance_resample(rng, w)
+    assert np.bincount(idx, minlength=4).tolist() == [2, 1, 1, 0]
+
+
+def test_parameter_overrides_are_validated() -> None:
+    assert params_for("dpso", {"n_particles": 40}).n_particles == 40
+    with pytest.raises(ParamError, match="unknown parameter"):
+        params_for("dpso", {"swarm": 3})
+    with pytest.raises(ParamError, match="n_particles"):
+        params_for("pf-l", {"n_particles": 0})
+    with pytest.raises(ParamError, match="unknown estimator"):
+        params_for("kalman")
