@@ -141,8 +141,9 @@ def bench_similarity_cmd(k: int = 20, repeats: int = 7) -> None:
 
     b = bench_similarity(k=k, repeats=repeats)
     typer.echo(f"SIFT extraction (320x240):        {b.extract_ms:8.2f} ms/frame (median)")
-    typer.echo(f"batched similarity (K={b.k}):      {b.batched_ms_per_comparison:8.3f} ms/comparison")
-    typer.echo(f"BFMatcher knnMatch x2 + recip.:   {b.bfmatcher_ms_per_comparison:8.3f} ms/comparison")
+    batched, bf = b.batched_ms_per_comparison, b.bfmatcher_ms_per_comparison
+    typer.echo(f"batched similarity (K={b.k}):      {batched:8.3f} ms/comparison (median)")
+    typer.echo(f"BFMatcher knnMatch x2 + recip.:   {bf:8.3f} ms/comparison (median)")
     typer.echo(f"speed-up:                         {b.speedup:8.1f} x")
     typer.echo(f"features: frame {b.frame_features:.0f}, map image {b.map_features:.0f} (pruned); "
                f"identical match counts: {b.counts_equal}")

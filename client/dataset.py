@@ -118,7 +118,8 @@ def _parse_positions(
             raise DatasetError(f"{csv_path}, line {line}: empty image name")
         if name in seen:
             raise DatasetError(
-                f"{csv_path}, line {line}: duplicate image name '{name}' (first on line {seen[name]})"
+                f"{csv_path}, line {line}: duplicate image name '{name}' "
+                f"(first on line {seen[name]})"
             )
         seen[name] = line
         names.append(name)

@@ -63,7 +63,8 @@ def _glyphs(rng: np.random.Generator, img: np.ndarray, x0: int, y0: int, w: int,
             img[gy : gy + gh, x : x + max(1, gw // 3)] = ink
             img[gy : gy + max(1, gh // 4), x : x + gw] = ink
         elif kind == 2:
-            cv2.circle(img, (x + gw // 2, gy + gh // 2), max(1, gw // 2), float(ink), max(1, gw // 5))
+            cv2.circle(img, (x + gw // 2, gy + gh // 2), max(1, gw // 2), float(ink),
+                       max(1, gw // 5))
         else:
             img[gy + gh // 2 - max(1, gh // 8) : gy + gh // 2 + max(1, gh // 8), x : x + gw] = ink
             img[gy : gy + gh, x + gw - max(1, gw // 3) : x + gw] = ink
@@ -82,7 +83,8 @@ def facade(rng: np.random.Generator, width_m: float, height_m: float, ppm: float
         cols = (np.arange(w)[None, :] + offs[:, None]) // bw
         brick_id = rows[:, None] * 10007 + cols
         jitter = rng.uniform(-0.08, 0.08, 50021)[brick_id % 50021]
-        mortar = (np.arange(h) % bh == 0)[:, None] | ((np.arange(w)[None, :] + offs[:, None]) % bw == 0)
+        shifted = np.arange(w)[None, :] + offs[:, None]
+        mortar = (np.arange(h) % bh == 0)[:, None] | (shifted % bw == 0)
         img = img + jitter
         img[mortar] = img[mortar] * 0.7 + 0.25
     floor_h = rng.uniform(2.9, 3.6)
@@ -129,7 +131,8 @@ def facade(rng: np.random.Generator, width_m: float, height_m: float, ppm: float
                 img[wy0:wy1, mx - fr // 2 : mx + fr // 2 + 1] = frame
                 img[my - fr // 2 : my + fr // 2 + 1, wx0:wx1] = frame
             sill = max(1, _px(0.06, ppm))
-            img[wy1 + fr : wy1 + fr + sill, wx0 - 2 * fr : wx1 + 2 * fr] = np.clip(frame + 0.1, 0, 1)
+            ledge = np.clip(frame + 0.1, 0, 1)
+            img[wy1 + fr : wy1 + fr + sill, wx0 - 2 * fr : wx1 + 2 * fr] = ledge
     for _ in range(rng.poisson(max(0.5, width_m / 12))):  # shop signs and posters
         sw, sh = rng.uniform(0.8, 3.5), rng.uniform(0.35, 0.9)
         sx = rng.uniform(0, max(0.1, width_m - sw))
@@ -198,7 +201,8 @@ def low_wall(rng: np.random.Generator, width_m: float, height_m: float, ppm: flo
     return np.clip(img, 0, 1).astype(np.float32), _full(h, w)
 
 
-def car(rng: np.random.Generator, length_m: float, height_m: float, ppm: float, side: bool) -> Texture:
+def car(rng: np.random.Generator, length_m: float, height_m: float, ppm: float,
+        side: bool) -> Texture:
     """A car seen from the side (``side``) or from the front/back; transparent around the body."""
     h, w = _px(height_m, ppm), _px(length_m, ppm)
     paint = rng.choice([rng.uniform(0.05, 0.2), rng.uniform(0.4, 0.6), rng.uniform(0.8, 0.95)])

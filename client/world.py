@@ -15,6 +15,7 @@ and sensor noise. Everything is deterministic by seed; nothing is read from disk
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -132,7 +133,7 @@ class Route:
         return np.column_stack([-np.sin(a), np.cos(a)])
 
     def offset_polyline(self, s0: float, s1: float, offset: float, step: float = 1.0) -> np.ndarray:
-        s = np.linspace(s0, s1, max(2, int(math.ceil((s1 - s0) / step)) + 1))
+        s = np.linspace(s0, s1, max(2, math.ceil((s1 - s0) / step) + 1))
         return self.point(s) + offset * self.normal(s)
 
     def project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -308,7 +309,7 @@ def _ground_shadows(walls: list[Wall], shape: tuple[int, int], origin: tuple[flo
     # draw weak occluders first so that overlapping stronger shadows overwrite them
     for wall in sorted(walls, key=lambda w: w.casts_shadow):
         p = wall.points
-        for a, b in zip(p[:-1], p[1:], strict=True):
+        for a, b in itertools.pairwise(p):
             quad = np.array([a, b, b + wall.height * away, a + wall.height * away])
             pix = np.column_stack([(quad[:, 0] - ox) * GROUND_PPM, (oy - quad[:, 1]) * GROUND_PPM])
             cv2.fillConvexPoly(occlusion, np.round(pix).astype(np.int32),
@@ -656,7 +657,7 @@ class World:
         """Exact poses (x, y, heading, pitch) and times of one round, deterministic by index."""
         rng = np.random.default_rng([self.seed, 10, round_index])
         L = self.route.length
-        n = n_frames or int(round(L / self.spacing_m))
+        n = n_frames or round(L / self.spacing_m)
 
         def smooth(amp: float, corr: float) -> np.ndarray:
             raw = rng.normal(0, 1, n + 64)

@@ -66,7 +66,7 @@ def test_validation_errors_name_file_and_row(tmp_path: Path, rows: str, message:
 def test_unreadable_image_is_reported(tmp_path: Path) -> None:
     d = _round(tmp_path, "image,x,y\na.png,1,2\nb.png,3,4\n")
     (d / "b.png").write_bytes(b"not a png")
-    with pytest.raises(DatasetError, match="line 3: image 'b.png' is unreadable"):
+    with pytest.raises(DatasetError, match=r"line 3: image 'b\.png' is unreadable"):
         read_round(d, decode_images=True)
 
 

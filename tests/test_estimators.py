@@ -101,7 +101,7 @@ def test_fitness_shares_comparisons_between_particles(small_map) -> None:
 
     fit = FrameFitness(small_map, sim, penalty_sigma_m=2.0)
     pos = np.repeat(small_map.positions[[3, 7]], 10, axis=0)
-    f, m, ids = fit(pos)
+    f, _m, _ids = fit(pos)
     assert fit.comparisons == 2 and len(calls) == 1
     np.testing.assert_allclose(f, 0.5)  # at an image position the penalty is 1
     far = small_map.positions[[3]] + np.array([[0.0, 50.0]])

@@ -25,7 +25,8 @@ def test_pruning_edge_images_use_one_neighbour() -> None:
     rng = np.random.default_rng(0)
     a = rng.random((20, 128)).astype(np.float32) ** 3
     a /= np.linalg.norm(a, axis=1, keepdims=True)
-    f = [Features(np.zeros((20, 2), np.float32), a), Features(np.zeros((10, 2), np.float32), a[:10])]
+    kp = np.zeros((20, 2), np.float32)
+    f = [Features(kp, a), Features(kp[:10], a[:10])]
     pruned, _ = prune(f)
     assert len(pruned[0]) == 10 and len(pruned[1]) == 10
 

@@ -1,0 +1,204 @@
+"""A real uvicorn server with the Zenoh bridge on loopback, driven by the client library."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import httpx
+import numpy as np
+import pytest
+import zenoh
+
+from client.transports import HttpClient, LocalClient, SwarmlocError, ZenohClient
+from tests.conftest import free_port
+
+
+def _peer(endpoint: str) -> zenoh.Session:
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"peer"')
+    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(cfg)
+
+
+def _replay(client, robot: str, rnd, frames: range, seed: int) -> list[tuple]:
+    client.create_session(robot, "small", "dpso", None, seed)
+    out = []
+    for k, i in enumerate(frames):
+        e = client.localize(robot, rnd.image_path(i).read_bytes(), t=float(k), seq=k)
+        out.append((e.x, e.y, e.speed, e.comparisons, e.status))
+    client.delete_session(robot)
+    return out
+
+
+def test_same_estimates_over_http_zenoh_and_in_process(server, sunny2) -> None:
+    frames = range(5, 35)
+    http = HttpClient(server["url"])
+    z = ZenohClient([server["zenoh"]], mode="peer")
+    local = LocalClient(server["maps"])
+    try:
+        via_http = _replay(http, "same", sunny2, frames, 4)
+        via_zenoh = _replay(z, "same", sunny2, frames, 4)
+        via_local = _replay(local, "same", sunny2, frames, 4)
+    finally:
+        http.close()
+        z.close()
+    assert via_http == via_zenoh == via_local
+    errs = [np.hypot(x - sunny2.truth_xy[i, 0], y - sunny2.truth_xy[i, 1])
+            for (x, y, *_), i in zip(via_http, frames, strict=True)]
+    assert np.mean(errs[-10:]) < 3.0
+
+
+def test_sixteen_robots_in_parallel_equal_each_alone(server, sunny2) -> None:
+    robots = [(f"robot{k}", range(6 * k, 6 * k + 12), k) for k in range(16)]
+    alone = {}
+    c = HttpClient(server["url"])
+    for rid, frames, seed in robots:
+        alone[rid] = _replay(c, rid, sunny2, frames, seed)
+    c.close()
+
+    def one(args: tuple) -> tuple[str, list]:
+        rid, frames, seed = args
+        cl = HttpClient(server["url"])
+        try:
+            return rid, _replay(cl, rid, sunny2, frames, seed)
+        finally:
+            cl.close()
+
+    with ThreadPoolExecutor(16) as pool:
+        together = dict(pool.map(one, robots))
+    assert together == alone
+
+
+def test_zenoh_stream_publishes_estimates_and_drops_stale_frames(server, sunny2) -> None:
+    service = server["service"]
+    peer = _peer(server["zenoh"])
+    got: list[dict] = []
+    done = threading.Event()
+
+    def on_estimate(sample: zenoh.Sample) -> None:
+        body = json.loads(sample.payload.to_bytes())
+        got.append(body)
+        if body.get("input_seq") == 29:
+            done.set()
+
+    sub = peer.declare_subscriber("swarmloc/streamer/estimate", on_estimate)
+    time.sleep(0.5)
+    dropped_before = service.metrics.dropped._value.get()
+    try:
+        for k in range(30):  # a burst much faster than frames are processed
+            # BLOCK: Zenoh itself must not drop frames here, only the service's stale policy
+            peer.put("swarmloc/streamer/frame", sunny2.image_path(k).read_bytes(),
+                     attachment=json.dumps({"t": float(k), "seq": k}).encode(),
+                     congestion_control=zenoh.CongestionControl.BLOCK)
+        arrived = done.wait(60)
+        seen = [(g.get("input_seq"), g.get("error")) for g in got]
+        assert arrived, f"the newest frame's estimate never arrived: {seen}"
+    finally:
+        sub.undeclare()
+        peer.close()
+    assert all("error" not in g for g in got)
+    seqs = [g["input_seq"] for g in got]
+    assert seqs == sorted(seqs) and seqs[-1] == 29
+    dropped = service.metrics.dropped._value.get() - dropped_before
+    assert len(got) + dropped == 30 and dropped > 0
+    assert got[-1]["robot_id"] == "streamer" and got[-1]["frame_id"] == "small"
+
+
+def test_zenoh_errors_carry_the_http_messages(server, sunny2) -> None:
+    z = ZenohClient([server["zenoh"]], mode="peer")
+    http = HttpClient(server["url"])
+    try:
+        z.create_session("zerr", "small")
+        with pytest.raises(SwarmlocError) as ez:
+            z.localize("zerr", b"junk")
+        http.create_session("herr", "small")
+        with pytest.raises(SwarmlocError) as eh:
+            http.localize("herr", b"junk")
+        assert ez.value.status == eh.value.status == 400
+        assert ez.value.message == eh.value.message
+        info_before = z.session("zerr")
+        assert info_before.frames == 0  # the rejected frame changed nothing
+        with pytest.raises(SwarmlocError) as e2:
+            z.create_session("zerr", "nope")
+        assert e2.value.status == 404 and "unknown map 'nope'" in e2.value.message
+        with pytest.raises(SwarmlocError) as e3:
+            z._control("zerr", {"action": "fly"})
+        assert e3.value.status == 400
+        # broken frame on the publish channel: the error comes back on the estimate key
+        peer = _peer(server["zenoh"])
+        got: list[dict] = []
+        ev = threading.Event()
+        sub = peer.declare_subscriber("swarmloc/zerr/estimate",
+                                      lambda s: (got.append(json.loads(s.payload.to_bytes())),
+                                                 ev.set()))
+        time.sleep(0.5)
+        peer.put("swarmloc/zerr/frame", b"\x89PNG\r\n\x1a\nbroken", attachment=b'{"seq": 7}')
+        assert ev.wait(20)
+        sub.undeclare()
+        peer.close()
+        assert got[0]["status"] == 400 and got[0]["input_seq"] == 7
+        assert "IHDR" in got[0]["error"]
+        assert z.session("zerr").frames == 0
+    finally:
+        z.close()
+        http.close()
+
+
+def test_zenoh_first_frame_creates_default_session(server, sunny2) -> None:
+    z = ZenohClient([server["zenoh"]], mode="peer")
+    try:
+        est = z.localize("newcomer", sunny2.image_path(0).read_bytes(), t=0.0)
+        assert est.seq == 1 and est.frame_id == "small"
+        assert z.session("newcomer").frames == 1
+        z.delete_session("newcomer")
+    finally:
+        z.close()
+
+
+def test_metrics_count_what_happened(server) -> None:
+    text = httpx.get(server["url"] + "/metrics").text
+    values = {}
+    for line in text.splitlines():
+        if line.startswith("swarmloc_") and not line.startswith("#"):
+            name, _, v = line.rpartition(" ")
+            values[name] = float(v)
+    assert values['swarmloc_frames_total{transport="http"}'] > 0
+    assert values['swarmloc_frames_total{transport="zenoh"}'] > 0
+    assert values["swarmloc_comparisons_total"] > 0
+    assert values['swarmloc_frame_latency_seconds_count{transport="http"}'] == \
+        values['swarmloc_frames_total{transport="http"}']
+    assert values['swarmloc_rejected_inputs_total{reason="BadRequest"}'] >= 2
+    assert values["swarmloc_zenoh_dropped_frames_total"] > 0
+    assert values["swarmloc_maps_loaded"] == 1
+
+
+def test_client_reports_unreachable_service() -> None:
+    c = HttpClient(f"http://127.0.0.1:{free_port()}", retries=0, timeout=2)
+    with pytest.raises(SwarmlocError) as exc:
+        c.maps()
+    assert exc.value.status == 0 and "cannot reach" in exc.value.message
+    c.close()
+
+
+def test_async_http_client(server, sunny2) -> None:
+    import asyncio
+
+    from client.transports import AsyncHttpClient
+
+    async def go() -> tuple:
+        c = AsyncHttpClient(server["url"])
+        try:
+            await c.create_session("async", "small", seed=2)
+            e = await c.localize("async", sunny2.image_path(3).read_bytes(), t=0.0)
+            await c.delete_session("async")
+            return e.seq, e.comparisons
+        finally:
+            await c.close()
+
+    seq, comps = asyncio.run(go())
+    assert seq == 1 and comps > 0
+
