@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from client.world import Pose, World
-from service.features import Features, extract, match_batch, similarity_bfmatcher
+from service.features import extract, match_batch, similarity_bfmatcher
 from service.route_map import prune
 
 
@@ -39,7 +39,7 @@ def bench_similarity(seed: int = 0, k: int = 20, repeats: int = 7) -> Similarity
 
     Frames come from a rendered round; the K map-side sets are pruned like a real map.
     """
-    world = World(seed, length_m=160.0)
+    world = World(seed)
     poses, t, _ = world.round_trajectory(0)
     frames = [world.render(Pose(*poses[i]), "sunny", t=float(t[i]), noise_seed=i)
               for i in range(0, 2 * (k + 2), 2)]
@@ -57,5 +57,68 @@ def bench_similarity(seed: int = 0, k: int = 20, repeats: int = 7) -> Similarity
                            float(np.mean([len(s) for s in sets])), counts == ref)
 
 
-def features_of_frames(frames: list[np.ndarray]) -> list[Features]:
-    return [extract(f) for f in frames]
+@dataclass
+class LatencyBench:
+    transport: str
+    frames: int
+    p50_ms: float
+    p99_ms: float
+    mean_ms: float
+
+
+def bench_latency(maps_dir: str, round_dir: str, frames: int = 200, seed: int = 0
+                  ) -> list[LatencyBench]:
+    """Per-frame latency as a robot sees it, 320x240 PNG frames, against a real server
+    (uvicorn + Zenoh bridge on loopback) and in process (no transport) for reference."""
+    import socket
+    import threading
+
+    import uvicorn
+
+    from client.dataset import read_round
+    from client.transports import HttpClient, LocalClient, ZenohClient
+    from service.http_api import create_app
+    from service.sessions import LocalizationService
+    from service.settings import Settings
+    from service.zenoh_bridge import ZenohBridge
+
+    def free_port() -> int:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            return s.getsockname()[1]
+
+    rnd = read_round(round_dir)
+    data = [rnd.image_path(i % len(rnd)).read_bytes() for i in range(frames)]
+    port, zport = free_port(), free_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    settings = Settings(maps_dir=maps_dir, host="127.0.0.1", port=port, zenoh_listen=[endpoint],
+                        zenoh_multicast_scouting=False)
+    service = LocalizationService(settings)
+    server = uvicorn.Server(uvicorn.Config(create_app(service, lifespan_hooks=[
+        ZenohBridge(service)]), host="127.0.0.1", port=port, log_level="warning"))
+    th = threading.Thread(target=server.run, daemon=True)
+    th.start()
+    while not server.started:
+        time.sleep(0.05)
+    clients = {"in-process": LocalClient(maps_dir),
+               "http": HttpClient(f"http://127.0.0.1:{port}"),
+               "zenoh": ZenohClient([endpoint], mode="peer")}
+    out = []
+    try:
+        for name, client in clients.items():
+            client.create_session("bench", None, "dpso", None, seed)
+            times = []
+            for k, frame in enumerate(data):
+                t0 = time.perf_counter()
+                client.localize("bench", frame, t=float(k))
+                times.append(1e3 * (time.perf_counter() - t0))
+            client.delete_session("bench")
+            warm = np.array(times[10:])  # the first frames pay for global convergence
+            out.append(LatencyBench(name, len(warm), float(np.percentile(warm, 50)),
+                                    float(np.percentile(warm, 99)), float(warm.mean())))
+    finally:
+        for client in clients.values():
+            client.close()
+        server.should_exit = True
+        th.join(timeout=20)
+    return out

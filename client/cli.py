@@ -279,6 +279,29 @@ def _route_positions(client: object, map_name: str | None, rnd: object) -> np.nd
     return rnd.xy  # type: ignore[attr-defined]
 
 
+@bench_app.command("latency")
+def bench_latency_cmd(
+    round_dir: Annotated[Path, typer.Argument(help="round whose frames are sent")],
+    maps_dir: Annotated[Path, typer.Option(help="maps the server loads")] = Path("maps"),
+    frames: int = 200,
+) -> None:
+    """p50/p99 per-frame latency in process, over HTTP and over Zenoh (real server)."""
+    from client.bench import bench_latency
+
+    for b in bench_latency(str(maps_dir), str(round_dir), frames):
+        typer.echo(f"{b.transport:10s} {b.frames} frames: p50 {b.p50_ms:6.1f} ms, "
+                   f"p99 {b.p99_ms:6.1f} ms, mean {b.mean_ms:6.1f} ms")
+
+
+def _register_experiment() -> None:
+    from client.experiment_cli import experiment
+
+    app.command("experiment")(experiment)
+
+
+_register_experiment()
+
+
 def main() -> None:
     app()
 

