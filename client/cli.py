@@ -264,19 +264,66 @@ def replay_cmd(
 
 
 def _route_positions(client: object, map_name: str | None, rnd: object) -> np.ndarray:
-    """The map's image positions for the plot (HTTP/local), else the round's own positions."""
-    from client.transports import HttpClient, LocalClient
+    """The map's image positions for the route plot; the round's own when not available."""
+    from client.transports import HttpClient, LocalClient, SwarmlocError
+    from service.errors import ServiceError
 
-    if isinstance(client, HttpClient | LocalClient) and (map_name or isinstance(
-            client, LocalClient)):
-        try:
-            if isinstance(client, HttpClient):
-                return np.array(client.map_detail(map_name).positions)  # type: ignore[arg-type]
+    try:
+        if isinstance(client, HttpClient) and map_name:
+            return np.array(client.map_detail(map_name).positions)
+        if isinstance(client, LocalClient):
             svc = client.service
             return svc.get_map(map_name or svc.default_map).positions
-        except Exception:  # the plot falls back to the round's own positions
-            pass
+    except (SwarmlocError, ServiceError):
+        pass
     return rnd.xy  # type: ignore[attr-defined]
+
+
+@app.command("eval-split")
+def eval_split(
+    round_dir: Path,
+    width: Annotated[int, typer.Option(help="working width (keep the camera's aspect)")] = 320,
+    height: int = 240,
+    estimator: str = "dpso",
+    seed: int = 0,
+) -> None:
+    """One traversal: map from the even frames, localize the odd frames (real-data check).
+
+    Prints the share of odd frames whose best-matching map image is an adjacent even frame,
+    and the estimator's error when the odd frames are replayed in order."""
+    from client.dataset import DatasetError, read_round
+    from client.experiments import SimilarityTable, run
+    from service.features import SiftParams, extract
+    from service.route_map import build_map
+
+    try:
+        rnd = read_round(round_dir)
+    except DatasetError as exc:
+        _fail(str(exc))
+    params = SiftParams(width=width, height=height)
+    even = list(range(0, len(rnd), 2))
+    odd = list(range(1, len(rnd), 2))
+    m = build_map(rnd.name, [rnd.load_image(i) for i in even], rnd.reference_xy[even],
+                  [rnd.images[i] for i in even], params)
+    feats = [extract(rnd.load_image(i), params) for i in odd]
+    adjacent = 0
+    for k, f in enumerate(feats):
+        best = int(np.argmax(m.similarity(f.descriptors, range(m.n_images))))
+        adjacent += abs(best - (k + 0.5)) <= 0.5 + 1e-9  # even neighbours of odd frame 2k+1
+    from client.dataset import Round
+
+    query = Round(rnd.name, rnd.path, tuple(rnd.images[i] for i in odd), rnd.xy[odd],
+                  rnd.t[odd] if rnd.t is not None else None,
+                  rnd.truth_xy[odd] if rnd.truth_xy is not None else None, rnd.origin)
+    res = run(m, SimilarityTable(m, feats), query, estimator, None, seed=seed)
+    pr = m.meta["pruning"]
+    typer.echo(f"{rnd.name}: map of {m.n_images} even frames ({width}x{height}, pruning removed "
+               f"{100 * pr['removed_fraction']:.0f} %), {len(odd)} odd query frames")
+    typer.echo(f"best match is an adjacent even frame for {adjacent}/{len(odd)} query frames")
+    e = res.errors
+    typer.echo(f"{estimator} replay of the odd frames: mean error {e.mean():.2f} m, median "
+               f"{np.median(e):.2f} m, last half {e[len(e) // 2:].mean():.2f} m, "
+               f"{res.comparisons.mean():.1f} comparisons/frame; final status {res.status[-1]}")
 
 
 @bench_app.command("latency")

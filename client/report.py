@@ -202,7 +202,8 @@ def plot(runs: list[ReplayRun], route_xy: np.ndarray, out: Path) -> list[Path]:
     ax.plot(run.errors, "k-", lw=0.9, label="position error")
     ax.set_xlabel("frame")
     ax.set_ylabel("error (m)")
-    ax.set_yscale("symlog", linthresh=5)
+    top = float(np.percentile(run.errors, 99)) if len(run.errors) else 1.0
+    ax.set_ylim(0, max(10.0, 1.1 * top))  # rare far-off frames are cut, not squashing the rest
     ax.legend(loc="upper right", fontsize=8)
     paths.append(out / "error.png")
     fig.savefig(paths[-1], dpi=110, bbox_inches="tight")

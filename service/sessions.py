@@ -131,10 +131,7 @@ class LocalizationService:
     def ensure_session(self, robot_id: str) -> Session:
         """The robot's session, created with the default map and estimator if missing."""
         if robot_id not in self._sessions:
-            try:
-                self.put_session(robot_id, SessionConfig())
-            except Unavailable:
-                raise
+            self.put_session(robot_id, SessionConfig())
         return self.session(robot_id)
 
     def sessions(self) -> list[SessionInfo]:
