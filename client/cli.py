@@ -341,9 +341,10 @@ def bench_latency_cmd(
 
 
 def _register_experiment() -> None:
-    from client.experiment_cli import experiment
+    from client.experiment_cli import experiment, sweep
 
     app.command("experiment")(experiment)
+    app.command("sweep")(sweep)
 
 
 _register_experiment()

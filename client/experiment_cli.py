@@ -94,3 +94,38 @@ def experiment(
                        f"{len(done)}/{len(rec_frames)} runs, median "
                        f"{np.median(done) if done else float('nan'):.0f} frames "
                        f"(each: {rec_frames})")
+
+
+def sweep(
+    dataset: Annotated[Path, typer.Argument(help="dataset with the rounds")],
+    param: Annotated[str, typer.Option(help="DPSO parameter to vary, e.g. lost_threshold")],
+    values: Annotated[str, typer.Option(help="comma-separated values, e.g. 0.05,0.035")],
+    map_round: Annotated[str, typer.Option("--map", help="round used as the map")] = "sunny1",
+    query: Annotated[str, typer.Option(help="comma-separated query rounds")] = "sunny2,cloudy1",
+    starts: int = 9,
+    warmup: int = 20,
+) -> None:
+    """DPSO mean error, share of frames in recovery and kidnap recovery for each value of one
+    parameter (how the choices in README 'Choices measured' were made)."""
+    m = _map_for(dataset / map_round, dataset / ".maps")
+    tables = {}
+    for q in [x for x in query.split(",") if x]:
+        rnd = read_round(dataset / q)
+        tables[q] = (rnd, SimilarityTable.from_round(m, rnd))
+    for raw in values.split(","):
+        value = float(raw) if "." in raw or "e" in raw else int(raw)
+        for q, (rnd, table) in tables.items():
+            n = len(rnd)
+            errs, rec, kid = [], [], []
+            for k in range(starts):
+                s = k * n // starts
+                res = run(m, table, rnd, "dpso", {param: value}, seed=s, start=s)
+                errs.append(res.errors[warmup:].mean())
+                rec.append(np.mean(np.array(res.status) == "recovering"))
+                kr = run(m, table, rnd, "dpso", {param: value}, seed=s, start=s, kidnap=True)
+                kid.append(frames_to_recover(kr))
+            done = [f for f in kid if f is not None]
+            typer.echo(f"{param}={value} {map_round} vs {q}: mean error {np.mean(errs):.2f} m, "
+                       f"recovering {100 * np.mean(rec):.1f} % of frames, kidnap recovery "
+                       f"median {np.median(done) if done else float('nan'):.0f} frames, "
+                       f"never recovered {len(kid) - len(done)}/{len(kid)}")

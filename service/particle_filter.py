@@ -71,11 +71,10 @@ class ParticleFilter(Estimator):
         self.x = self.x + self.v * dt  # Eq. 8 (velocity in m/s, one frame interval)
 
     def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
+        dt = self.frame_dt(t)
         if self._needs_init:
             self._initialize()
-            dt = self.frame_dt(t)
         else:
-            dt = self.frame_dt(t)
             self._predict(dt)
         f, m, _ = fitness(self.x)
         total = f.sum()
