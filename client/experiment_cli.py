@@ -31,6 +31,33 @@ def _map_for(round_dir: Path, cache_dir: Path) -> RouteMap:
     return m
 
 
+def _score(m: RouteMap, table: SimilarityTable, rnd, est: str, params: dict, starts: list[int],
+           seed: int, warmup: int) -> dict[str, list]:
+    """Per-run mean/median error, share within 5 m, comparisons, speed error, share of frames
+    recovering or lost, and frames to recover from a kidnapping (when asked)."""
+    out: dict[str, list] = {k: [] for k in ("err", "med", "w5", "comps", "speed", "bad")}
+    for k, s in enumerate(starts):
+        res = run(m, table, rnd, est, params, seed=seed + k, start=s)
+        e = res.errors[warmup:]
+        out["err"].append(e.mean())
+        out["med"].append(np.median(e))
+        out["w5"].append(np.mean(e <= 5))
+        out["comps"].append(res.comparisons[warmup:].mean())
+        tracking = np.array(res.status) == "tracking"
+        tracking[: 2 * warmup] = False
+        if tracking.any():
+            out["speed"].append(abs(np.median(res.speed[tracking]) / np.median(res.true_speed)
+                                    - 1))
+        out["bad"].append(np.mean(np.isin(res.status, ["recovering", "lost"])))
+    return out
+
+
+def _kidnap(m: RouteMap, table: SimilarityTable, rnd, params: dict, starts: list[int],
+            seed: int) -> list[int | None]:
+    return [frames_to_recover(run(m, table, rnd, "dpso", params, seed=seed + k, start=s,
+                                  kidnap=True)) for k, s in enumerate(starts)]
+
+
 def experiment(
     dataset: Annotated[Path, typer.Argument(help="dataset with the rounds")],
     map_round: Annotated[str, typer.Option("--map", help="round used as the map")] = "sunny1",
@@ -57,38 +84,24 @@ def experiment(
                    f"{'comp/frame':>10s} {'speed err':>9s} {'recov %':>7s} {'step ms':>8s}")
         rows = {}
         for name, (est, params) in CONFIGS.items():
-            errs, med, w5, comps, spd, rec = [], [], [], [], [], []
-            for k, s in enumerate(start_list):
-                res = run(m, table, rnd, est, params, seed=seed + k, start=s)
-                e = res.errors[warmup:]
-                errs.append(e.mean())
-                med.append(np.median(e))
-                w5.append(np.mean(e <= 5))
-                comps.append(res.comparisons[warmup:].mean())
-                tracking = np.array(res.status) == "tracking"
-                tracking[: 2 * warmup] = False
-                if tracking.any():
-                    spd.append(abs(np.median(res.speed[tracking]) / np.median(res.true_speed)
-                                   - 1))
-                rec.append(np.mean(np.isin(res.status, ["recovering", "lost"])))
+            sc = _score(m, table, rnd, est, params, start_list, seed, warmup)
             # estimator time per frame with real comparisons: a fresh table, nothing cached
             timed = run(m, SimilarityTable(m, table.queries), rnd, est, params, seed=seed,
                         start=start_list[0])
-            ms = [np.median(timed.step_ms[warmup:])]
-            rows[name] = (np.mean(errs), np.mean(comps))
-            typer.echo(f"{name:10s} {np.mean(errs):7.2f} ± {np.std(errs):4.2f} "
-                       f"{np.mean(med):7.2f} {100 * np.mean(w5):6.1f}% {np.mean(comps):10.1f} "
+            step_ms = float(np.median(timed.step_ms[warmup:]))
+            rows[name] = (np.mean(sc["err"]), np.mean(sc["comps"]))
+            spd = sc["speed"]
+            typer.echo(f"{name:10s} {np.mean(sc['err']):7.2f} ± {np.std(sc['err']):4.2f} "
+                       f"{np.mean(sc['med']):7.2f} {100 * np.mean(sc['w5']):6.1f}% "
+                       f"{np.mean(sc['comps']):10.1f} "
                        f"{100 * np.mean(spd) if spd else float('nan'):8.1f}% "
-                       f"{100 * np.mean(rec):6.1f}% {np.mean(ms):8.2f}")
+                       f"{100 * np.mean(sc['bad']):6.1f}% {step_ms:8.2f}")
         d_err, d_cmp = rows["DPSO-80"]
         typer.echo(f"DPSO-80 / PF-l-300: error x{d_err / rows['PF-l-300'][0]:.2f}, "
                    f"comparisons x{d_cmp / rows['PF-l-300'][1]:.2f}; DPSO-80 / PF-g-300: "
                    f"comparisons x{d_cmp / rows['PF-g-300'][1]:.2f}")
         if kidnap:
-            rec_frames = []
-            for k, s in enumerate(start_list):
-                res = run(m, table, rnd, "dpso", {}, seed=seed + k, start=s, kidnap=True)
-                rec_frames.append(frames_to_recover(res))
+            rec_frames = _kidnap(m, table, rnd, {}, start_list, seed)
             done = [f for f in rec_frames if f is not None]
             typer.echo(f"kidnapped DPSO-80: back within 5 m (5 frames in a row) in "
                        f"{len(done)}/{len(rec_frames)} runs, median "
@@ -116,16 +129,11 @@ def sweep(
         value = float(raw) if "." in raw or "e" in raw else int(raw)
         for q, (rnd, table) in tables.items():
             n = len(rnd)
-            errs, rec, kid = [], [], []
-            for k in range(starts):
-                s = k * n // starts
-                res = run(m, table, rnd, "dpso", {param: value}, seed=s, start=s)
-                errs.append(res.errors[warmup:].mean())
-                rec.append(np.mean(np.array(res.status) == "recovering"))
-                kr = run(m, table, rnd, "dpso", {param: value}, seed=s, start=s, kidnap=True)
-                kid.append(frames_to_recover(kr))
+            start_list = [k * n // starts for k in range(starts)]
+            sc = _score(m, table, rnd, "dpso", {param: value}, start_list, 0, warmup)
+            kid = _kidnap(m, table, rnd, {param: value}, start_list, 0)
             done = [f for f in kid if f is not None]
-            typer.echo(f"{param}={value} {map_round} vs {q}: mean error {np.mean(errs):.2f} m, "
-                       f"recovering {100 * np.mean(rec):.1f} % of frames, kidnap recovery "
+            typer.echo(f"{param}={value} {map_round} vs {q}: mean error {np.mean(sc['err']):.2f} "
+                       f"m, recovering {100 * np.mean(sc['bad']):.1f} % of frames, kidnap recovery "
                        f"median {np.median(done) if done else float('nan'):.0f} frames, "
                        f"never recovered {len(kid) - len(done)}/{len(kid)}")

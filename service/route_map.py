@@ -21,6 +21,7 @@ import os
 import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -93,13 +94,14 @@ class RouteMap:
     def delta(self) -> float:
         return float(self.meta["delta"])
 
-    @property
+    @cached_property
     def sift_params(self) -> SiftParams:
         p = {k: v for k, v in self.meta["feature"].items() if k != "type"}
         return SiftParams(**p)
 
-    @property
+    @cached_property
     def frame(self) -> LocalFrame | None:
+        """The geodetic frame (built once: a pyproj transformer is not cheap)."""
         o = self.meta.get("origin")
         return LocalFrame(o["lat"], o["lon"]) if o else None
 

@@ -101,13 +101,17 @@ def test_fitness_shares_comparisons_between_particles(small_map) -> None:
 
     fit = FrameFitness(small_map, sim, penalty_sigma_m=2.0)
     pos = np.repeat(small_map.positions[[3, 7]], 10, axis=0)
-    f, _m, _ids = fit(pos)
+    f, m, _ = fit(pos)
     assert fit.comparisons == 2 and len(calls) == 1
     np.testing.assert_allclose(f, 0.5)  # at an image position the penalty is 1
+    np.testing.assert_allclose(m, 0.5)
+    off = small_map.positions[[3]] + np.array([[0.0, 2.0]])  # about sigma off the route
     far = small_map.positions[[3]] + np.array([[0.0, 50.0]])
-    f2, _, _ = fit(np.vstack([pos, far]))
-    assert f2[-1] < 0.5 * np.exp(-0.5 * (40 / 2.0) ** 2) + 1e-9 or f2[-1] < 1e-6
-    assert fit.comparisons <= 3
+    f2, _, _ = fit(np.vstack([pos, off, far]))
+    _, d_off = small_map.nearest(off)
+    assert f2[-2] == pytest.approx(0.5 * np.exp(-0.5 * (d_off[0] / 2.0) ** 2))
+    assert f2[-1] < 1e-6  # tens of metres from every map image
+    assert len(calls) <= 2 and fit.comparisons <= 4  # ids already compared are not redone
 
 
 def test_low_variance_resampling_keeps_proportions() -> None:
