@@ -200,6 +200,8 @@ def plot(runs: list[ReplayRun], route_xy: np.ndarray, out: Path) -> list[Path]:
             ax.axvspan(start - 0.5, start + n - 0.5, color=c, lw=0,
                        label=s if start == _episodes(np.array(status) == s)[0][0] else None)
     ax.plot(run.errors, "k-", lw=0.9, label="position error")
+    if run.kidnap:
+        ax.axvline(len(run.errors) // 2, color="tab:blue", ls="--", lw=1, label="kidnapping")
     ax.set_xlabel("frame")
     ax.set_ylabel("error (m)")
     top = float(np.percentile(run.errors, 99)) if len(run.errors) else 1.0
