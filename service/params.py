@@ -100,14 +100,15 @@ class DPSOParams(CommonParams):
     adapt_high: float = 0.6
     adapt_step: float = 0.1  # ... by changing v0 by 10 % per iteration
     # recovery raises v0 and q_r and lowers phi2 "towards" their limits (Sec. 5) by this
-    # relative step per frame: v0 reaches v0_max ~9 frames after the loss. Measured over
-    # 10 %, 20 % and 35 % on two routes (README, "Choices measured"): 20 % recovers fastest
-    # from kidnapping without scattering the swarm in ambiguous stretches
-    recovery_step: float = 0.2
+    # relative step per frame: v0 reaches v0_max ~5 frames after the loss. The paper gives no
+    # rate; `swarmloc sweep` over 0.1 / 0.2 / 0.35 and `swarmloc experiment` on two worlds,
+    # sunny and cloudy queries (README, "Choices measured"): 0.35 recovers from kidnapping
+    # fastest; its cross-condition error is within run-to-run noise of 0.2 (5.1 vs 4.8 m)
+    recovery_step: float = 0.35
     # good frames in a row that end the recovery phase ("as soon as the best matches increase
-    # in quality again"), symmetric with lost_frames. Measured on two routes (README): with 1,
-    # one spurious match at the wrong place ends the search and the ramp starts over (kidnap
-    # recovery medians 32-93 frames); with 3 they are 27-41 frames
+    # in quality again"), symmetric with lost_frames: with 1, one spurious match at the wrong
+    # place ends the search and the ramp starts over. Measured with `swarmloc sweep`: 3 had
+    # the faster kidnap recovery and lower cross-condition error averaged over two worlds
     recovered_frames: int = 3
     # smallest axis range used for delta_i (m): a straight route would otherwise have a zero
     # range across it and no lateral exploration at all
