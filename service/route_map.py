@@ -209,6 +209,13 @@ def _canonical(header: dict) -> bytes:
                       sort_keys=True, separators=(",", ":")).encode()
 
 
+def _raw(arr: np.ndarray) -> memoryview | bytes:
+    """The array's bytes without copying a (memory-mapped) contiguous array."""
+    if arr.nbytes == 0:
+        return b""
+    return memoryview(np.ascontiguousarray(arr)).cast("B")
+
+
 def _pad(n: int) -> int:
     return (-n) % _ALIGN
 
@@ -228,7 +235,7 @@ def save_map(m: RouteMap, path: str | Path) -> Path:
     header = {**m.meta, "name": m.name, "format_version": FORMAT_VERSION, "arrays": layout}
     digest = hashlib.sha256(_canonical(header))
     for arr in arrays.values():
-        digest.update(arr.tobytes())
+        digest.update(_raw(arr))
     header["checksum"] = digest.hexdigest()
     head = json.dumps(header).encode()
     prefix = MAGIC + struct.pack("<Q", len(head)) + head
@@ -313,7 +320,7 @@ def load_map(path: str | Path, verify: bool = True) -> RouteMap:
     if verify:
         digest = hashlib.sha256(_canonical(header))
         for arr in arrays.values():
-            digest.update(np.asarray(arr).tobytes())
+            digest.update(_raw(arr))
         if digest.hexdigest() != header.get("checksum"):
             raise MapError(f"{path}: checksum mismatch, the file is corrupted; rebuild the map")
     positions = np.asarray(arrays["positions"])

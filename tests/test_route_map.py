@@ -126,3 +126,15 @@ def test_map_from_geographic_round(tmp_path: Path, sunny1) -> None:
     assert loaded.frame is not None
     back = loaded.frame.to_geo(loaded.positions)
     np.testing.assert_allclose(back, latlon, atol=1e-7)
+
+
+def test_map_of_featureless_images_roundtrips(tmp_path: Path) -> None:
+    from service.route_map import build_map
+
+    blank = [np.full((240, 320), 128, np.uint8)] * 3
+    m = build_map("blank", blank, np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]),
+                  ["a.png", "b.png", "c.png"])
+    loaded = load_map(save_map(m, tmp_path / "blank"))
+    assert loaded.n_images == 3 and loaded.offsets[-1] == 0
+    assert loaded.similarity(np.ones((5, 128), np.float32) / np.sqrt(128), [0, 1]).tolist() \
+        == [0.0, 0.0]
