@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from client.transports import Client
 from client.world import Pose, World
 from service.features import extract, match_batch, similarity_bfmatcher
 from service.route_map import prune
@@ -70,55 +71,35 @@ def bench_latency(maps_dir: str, round_dir: str, frames: int = 200, seed: int = 
                   ) -> list[LatencyBench]:
     """Per-frame latency as a robot sees it, 320x240 PNG frames, against a real server
     (uvicorn + Zenoh bridge on loopback) and in process (no transport) for reference."""
-    import socket
-    import threading
-
-    import uvicorn
-
     from client.dataset import read_round
     from client.transports import HttpClient, LocalClient, ZenohClient
-    from service.http_api import create_app
+    from service.server import free_port, running_server
     from service.sessions import LocalizationService
     from service.settings import Settings
-    from service.zenoh_bridge import ZenohBridge
-
-    def free_port() -> int:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            return s.getsockname()[1]
 
     rnd = read_round(round_dir)
     data = [rnd.image_path(i % len(rnd)).read_bytes() for i in range(frames)]
-    port, zport = free_port(), free_port()
-    endpoint = f"tcp/127.0.0.1:{zport}"
-    settings = Settings(maps_dir=maps_dir, host="127.0.0.1", port=port, zenoh_listen=[endpoint],
-                        zenoh_multicast_scouting=False)
-    service = LocalizationService(settings)
-    server = uvicorn.Server(uvicorn.Config(create_app(service, lifespan_hooks=[
-        ZenohBridge(service)]), host="127.0.0.1", port=port, log_level="warning"))
-    th = threading.Thread(target=server.run, daemon=True)
-    th.start()
-    while not server.started:
-        time.sleep(0.05)
-    clients = {"in-process": LocalClient(maps_dir),
-               "http": HttpClient(f"http://127.0.0.1:{port}"),
-               "zenoh": ZenohClient([endpoint], mode="peer")}
-    out = []
-    try:
-        for name, client in clients.items():
-            client.create_session("bench", None, "dpso", None, seed)
-            times = []
-            for k, frame in enumerate(data):
-                t0 = time.perf_counter()
-                client.localize("bench", frame, t=float(k))
-                times.append(1e3 * (time.perf_counter() - t0))
-            client.delete_session("bench")
-            warm = np.array(times[10:])  # the first frames pay for global convergence
-            out.append(LatencyBench(name, len(warm), float(np.percentile(warm, 50)),
-                                    float(np.percentile(warm, 99)), float(warm.mean())))
-    finally:
-        for client in clients.values():
-            client.close()
-        server.should_exit = True
-        th.join(timeout=20)
-    return out
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    settings = Settings(maps_dir=maps_dir, host="127.0.0.1", port=free_port(),
+                        zenoh_listen=[endpoint], zenoh_multicast_scouting=False)
+    with running_server(LocalizationService(settings)) as url:
+        clients = {"in-process": LocalClient(maps_dir), "http": HttpClient(url),
+                   "zenoh": ZenohClient([endpoint], mode="peer")}
+        try:
+            return [_time_frames(name, c, data, seed) for name, c in clients.items()]
+        finally:
+            for c in clients.values():
+                c.close()
+
+
+def _time_frames(name: str, client: Client, data: list[bytes], seed: int) -> LatencyBench:
+    client.create_session("bench", None, "dpso", None, seed)
+    times = []
+    for k, frame in enumerate(data):
+        t0 = time.perf_counter()
+        client.localize("bench", frame, t=float(k))
+        times.append(1e3 * (time.perf_counter() - t0))
+    client.delete_session("bench")
+    warm = np.array(times[10:])  # the first frames pay for global convergence
+    return LatencyBench(name, len(warm), float(np.percentile(warm, 50)),
+                        float(np.percentile(warm, 99)), float(warm.mean()))

@@ -102,19 +102,27 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
         spd.append(e.speed_mps)
         scores.append(e.score)
     true_xy = truth[seq]
-    step_len = np.linalg.norm(np.diff(true_xy, axis=0), axis=1)
-    true_speed = np.concatenate([[step_len[0] if len(step_len) else 0.0], step_len]) / dt
     return RunResult(estimator, seq, np.array(est), true_xy, np.array(comps), status,
-                     np.array(spd), true_speed, np.array(scores), np.array(ms))
+                     np.array(spd), true_speed(true_xy, dt), np.array(scores), np.array(ms))
 
 
-def frames_to_recover(res: RunResult, within_m: float = 5.0, hold: int = 5) -> int | None:
-    """Iterations after the kidnapping (middle of the run) until the error stays within
-    ``within_m`` for ``hold`` frames; None if it never does."""
-    err = res.errors
-    k0 = len(err) // 2
-    ok = err[k0:] <= within_m
+def true_speed(xy: np.ndarray, dt: float) -> np.ndarray:
+    """Speed (m/s) between consecutive iterations; the first repeats the second."""
+    step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    return np.concatenate([step[:1] if len(step) else [0.0], step]) / dt
+
+
+def frames_until_within(err: np.ndarray, since: int, within_m: float = 5.0, hold: int = 5
+                        ) -> int | None:
+    """Iterations from ``since`` until the error stays within ``within_m`` for ``hold``
+    frames in a row; None if it never does."""
+    ok = err[since:] <= within_m
     for i in range(len(ok) - hold + 1):
         if ok[i : i + hold].all():
             return i
     return None
+
+
+def frames_to_recover(res: RunResult, within_m: float = 5.0, hold: int = 5) -> int | None:
+    """Iterations after the kidnapping (middle of the run) until back within ``within_m``."""
+    return frames_until_within(res.errors, len(res.errors) // 2, within_m, hold)

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from client.dataset import Round
-from client.experiments import frame_sequence
+from client.experiments import frame_sequence, true_speed
 from client.transports import Client
 from service.models import Estimate
 
@@ -48,8 +48,7 @@ class ReplayRun:
 
     @property
     def true_speed(self) -> np.ndarray:
-        step = np.linalg.norm(np.diff(self.true_xy, axis=0), axis=1)
-        return np.concatenate([step[:1], step]) / self.dt
+        return true_speed(self.true_xy, self.dt)
 
 
 def replay(client: Client, rnd: Round, cfg: ReplayConfig, robot_id: str = "replay",

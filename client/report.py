@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from client.dataset import Round
+from client.experiments import frames_until_within
 from client.replay import ReplayConfig, ReplayRun
 
 SCHEMA = "swarmloc-replay/1"
@@ -29,16 +30,6 @@ def _episodes(flags: np.ndarray) -> list[tuple[int, int]]:
     if start is not None:
         out.append((start, len(flags) - start))
     return out
-
-
-def frames_until_within(err: np.ndarray, since: int, within_m: float = 5.0, hold: int = 5
-                        ) -> int | None:
-    """Iterations from ``since`` until the error stays within ``within_m`` for ``hold`` frames."""
-    ok = err[since:] <= within_m
-    for i in range(len(ok) - hold + 1):
-        if ok[i : i + hold].all():
-            return i
-    return None
 
 
 def run_metrics(run: ReplayRun) -> dict[str, Any]:

@@ -68,6 +68,7 @@ class Estimator:
         self._converged = False
         self._last_t: float | None = None
         self._dt_ema: float | None = None
+        self.reset_motion()
 
     # ---- placement ----------------------------------------------------------------------
     def reset(self, near: tuple[float, float] | None = None, radius: float | None = None) -> None:
@@ -82,6 +83,7 @@ class Estimator:
         self._converged = False
         self._last_t = None
         self._dt_ema = None
+        self.reset_motion()
 
     def sample_positions(self, n: int) -> np.ndarray:
         if self._init_near is not None:
@@ -114,10 +116,35 @@ class Estimator:
         if t is not None and self._last_t is not None and t > self._last_t:
             dt = t - self._last_t
         self._last_t = t if t is not None else None
-        self._dt_ema = dt if self._dt_ema is None else 0.875 * self._dt_ema + 0.125 * dt
+        a = self.params.ema_alpha
+        self._dt_ema = dt if self._dt_ema is None else (1 - a) * self._dt_ema + a * dt
         return dt
 
-    def update_status(self, best_m: float, recovering: bool = False) -> tuple[Status, bool]:
+    # ---- motion (speed and heading) -----------------------------------------------------
+    def reset_motion(self) -> None:
+        self._point_prev: np.ndarray | None = None
+        self.ema_step: np.ndarray | None = None  # metres per frame, vector
+
+    def track_motion(self, point: np.ndarray) -> None:
+        """EMA (alpha = ema_alpha) of the per-frame displacement of the tracked point.
+
+        The EMA runs over the displacement *vector*, so jitter of the point averages out
+        instead of adding to the speed (an EMA of its norm would be biased upwards).
+        """
+        if self._point_prev is not None:
+            d = point - self._point_prev
+            a = self.params.ema_alpha
+            self.ema_step = d.copy() if self.ema_step is None else (1 - a) * self.ema_step + a * d
+        self._point_prev = np.array(point, float)
+
+    def motion(self, dt: float) -> tuple[float, float]:
+        """(speed m/s, heading rad) of the tracked point."""
+        if self.ema_step is None:
+            return 0.0, 0.0
+        speed = float(np.linalg.norm(self.ema_step)) / (self._dt_ema or dt)
+        return speed, math.atan2(self.ema_step[1], self.ema_step[0])
+
+    def update_status(self, best_m: float) -> tuple[Status, bool]:
         p = self.params
         if best_m < p.lost_threshold:
             self._bad += 1
@@ -128,8 +155,6 @@ class Estimator:
         if self._good >= p.converge_frames:
             self._converged = True
         lost = self._bad >= p.lost_frames
-        if recovering:
-            return Status.RECOVERING, lost
         if lost:
             return Status.LOST, True
         return (Status.TRACKING if self._converged else Status.INITIALIZING), False

@@ -61,7 +61,7 @@ def create_app(service: LocalizationService, *, expire_every_s: float | None = N
                   description="Visual localization of robots against SIFT route maps with "
                               "Dynamic Particle Swarm Optimization (Kronfeld, Weiss, Zell).")
     app.state.service = service
-    limiter = anyio.CapacityLimiter(settings.workers or (len(_cpus()) or 2) * 2)
+    limiter = anyio.CapacityLimiter(settings.frame_workers)
 
     async def auth(request: Request) -> None:
         token = settings.auth_token
@@ -193,12 +193,3 @@ async def _expire_loop(service: LocalizationService, period: float) -> None:
     while True:
         await asyncio.sleep(period)
         service.expire_idle()
-
-
-def _cpus() -> list[int]:
-    import os
-
-    try:
-        return list(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return list(range(os.cpu_count() or 2))

@@ -37,7 +37,6 @@ class Localizer:
                  params: dict[str, Any] | None = None, seed: int = 0) -> None:
         self.map = route_map
         self.estimator_name = estimator
-        self.param_overrides = dict(params or {})
         self.seed = seed
         self.estimator = make_estimator(route_map, estimator, params,
                                         np.random.default_rng(seed))

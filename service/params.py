@@ -63,6 +63,9 @@ class CommonParams(_Params):
     converge_frames: int = 3
     # frame interval assumed when frames carry no timestamps (s); the papers' 1 image/s
     default_dt_s: float = 1.0
+    # EMA weight (journal footnote 1, alpha = 1/8) for the tracked velocity (speed, heading)
+    # and the frame interval; DPSO's self-adaptation reads the same EMA
+    ema_alpha: float = 0.125
     # initial placement (global start, our choice): particles around randomly drawn map
     # image positions with this spread (m) -- localisation is only possible near map images,
     # and uniform placement over the bounding box would waste most particles off the route.
@@ -95,7 +98,6 @@ class DPSOParams(CommonParams):
     high_energy_ratio: float = 0.1  # h_r, particles allowed high_energy_factor * v0
     high_energy_factor: float = 3.0
     phi2_min: float = 0.01  # recovery limit of phi2
-    ema_alpha: float = 0.125  # EMA of the swarm-centre speed, alpha = 1/8
     adapt_low: float = 0.4  # keep EMA(v_sw) / v0 within [adapt_low, adapt_high] ...
     adapt_high: float = 0.6
     adapt_step: float = 0.1  # ... by changing v0 by 10 % per iteration

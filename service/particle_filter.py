@@ -34,13 +34,10 @@ class ParticleFilter(Estimator):
         super().__init__(index, params, rng)
         if motion not in ("gauss", "linear"):
             raise ValueError(f"unknown motion model {motion!r}")
-        self.motion = motion
+        self.motion_model = motion
         self.name = "pf-g" if motion == "gauss" else "pf-l"
         self.x = np.zeros((params.n_particles, 2))
         self.v = np.zeros((params.n_particles, 2))
-        self._est_prev: np.ndarray | None = None
-        self._ema_speed: float | None = None
-        self._ema_dir = np.zeros(2)
 
     def particles(self) -> np.ndarray | None:
         return None if self._needs_init else self.x
@@ -53,14 +50,12 @@ class ParticleFilter(Estimator):
         self.x = self.sample_positions(n)
         ang = self.rng.uniform(0, 2 * math.pi, n)
         self.v = self.params.v_init_mps * np.column_stack([np.cos(ang), np.sin(ang)])
-        self._est_prev = None
-        self._ema_speed = None
-        self._ema_dir = np.zeros(2)
+        self.reset_motion()
         self._needs_init = False
 
     def _predict(self, dt: float) -> None:
         p, rng, n = self.params, self.rng, self.params.n_particles
-        if self.motion == "gauss":
+        if self.motion_model == "gauss":
             self.x = self.x + rng.normal(0.0, p.sigma_gauss_m, (n, 2))
             return
         rot = rng.normal(0.0, math.radians(p.sigma_rot_deg), n)  # Eq. 7
@@ -82,16 +77,10 @@ class ParticleFilter(Estimator):
         est = w @ self.x
         cov = weighted_covariance(self.x, w, 0.5 * self._spacing)
         spread = float(np.mean(np.linalg.norm(self.x - self.x.mean(axis=0), axis=1)))
-        if self._est_prev is not None:
-            d = est - self._est_prev
-            a = 0.125
-            sp = float(np.linalg.norm(d)) / dt
-            self._ema_speed = sp if self._ema_speed is None else (1 - a) * self._ema_speed + a * sp
-            self._ema_dir = (1 - a) * self._ema_dir + a * d
-        self._est_prev = est
+        self.track_motion(est)
         status, lost = self.update_status(float(m.max()))
         idx = low_variance_resample(self.rng, w)
         self.x, self.v = self.x[idx], self.v[idx]
-        heading = math.atan2(self._ema_dir[1], self._ema_dir[0])
-        return StepResult(est, cov, heading, self._ema_speed or 0.0, status, lost,
+        speed, heading = self.motion(dt)
+        return StepResult(est, cov, heading, speed, status, lost,
                           float(m.max()), fitness.comparisons, spread)

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import socket
+import threading
+import time
+from collections.abc import Iterator
 
 import uvicorn
 from fastapi import FastAPI
@@ -28,3 +33,33 @@ def run(settings: Settings) -> None:
     app = build_app(settings)
     log.info("maps loaded from %s: %s", settings.maps_dir, sorted(app.state.service.maps))
     uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def running_server(service: LocalizationService, zenoh: bool = True,
+                   timeout_s: float = 20.0) -> Iterator[str]:
+    """uvicorn (and the Zenoh bridge) for ``service`` in a background thread; yields the base
+    URL and stops the server on exit. Used by the latency benchmark and the tests."""
+    s = service.settings
+    hooks = [ZenohBridge(service)] if zenoh else []
+    server = uvicorn.Server(uvicorn.Config(create_app(service, lifespan_hooks=hooks),
+                                           host=s.host, port=s.port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + timeout_s
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            server.should_exit = True
+            raise RuntimeError(f"the server did not start on {s.host}:{s.port}")
+        time.sleep(0.05)
+    try:
+        yield f"http://{s.host}:{s.port}"
+    finally:
+        server.should_exit = True
+        thread.join(timeout=timeout_s)

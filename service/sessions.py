@@ -8,6 +8,7 @@ rejected frame never changes the session.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -26,7 +27,6 @@ from service.settings import Settings
 @dataclass
 class Session:
     robot_id: str
-    config: SessionConfig
     localizer: Localizer
     created: float
     last_used: float
@@ -96,8 +96,13 @@ class LocalizationService:
                          positions=m.positions.tolist(), image_names=m.image_names)
 
     # ---- sessions -----------------------------------------------------------------------
-    def put_session(self, robot_id: str, config: SessionConfig) -> tuple[SessionInfo, bool]:
-        """Create or replace a robot's session; True when it was created."""
+    def put_session(self, robot_id: str, config: SessionConfig, replace: bool = True
+                    ) -> tuple[SessionInfo, bool]:
+        """Create or (with ``replace``) replace a robot's session; True when it was created.
+
+        Without ``replace`` an existing session is kept: two transports creating the same
+        robot's session at once end with one session, not one silently replacing the other.
+        """
         _check_robot_id(robot_id)
         route_map = self.get_map(config.map or self.default_map)
         estimator = config.estimator or self.settings.default_estimator
@@ -111,12 +116,13 @@ class LocalizationService:
         now = time.time()
         with self._lock:
             created = robot_id not in self._sessions
+            if not created and not replace:
+                return self._sessions[robot_id].info(), False
             if created and len(self._sessions) >= self.settings.max_sessions:
                 self.metrics.rejected.labels("session_limit").inc()
                 raise Unavailable(f"session limit of {self.settings.max_sessions} reached; "
                                   "delete idle sessions or raise SWARMLOC_MAX_SESSIONS")
-            s = Session(robot_id, config.model_copy(update={"estimator": estimator}), loc,
-                        now, now)
+            s = Session(robot_id, loc, now, now)
             self._sessions[robot_id] = s
             self.metrics.sessions.set(len(self._sessions))
         return s.info(), created
@@ -131,7 +137,7 @@ class LocalizationService:
     def ensure_session(self, robot_id: str) -> Session:
         """The robot's session, created with the default map and estimator if missing."""
         if robot_id not in self._sessions:
-            self.put_session(robot_id, SessionConfig())
+            self.put_session(robot_id, SessionConfig(), replace=False)
         return self.session(robot_id)
 
     def sessions(self) -> list[SessionInfo]:
@@ -177,7 +183,7 @@ class LocalizationService:
         try:
             image = decode_frame(data, content_type, self.settings.max_body_bytes,
                                  self.settings.max_pixels)
-            if t is not None and not _finite(t):
+            if t is not None and not math.isfinite(t):
                 raise InvalidParameters("timestamp t must be a finite number of seconds")
             features = s.localizer.extract(image)
             with s.lock:
@@ -196,10 +202,6 @@ class LocalizationService:
         self.metrics.comparisons.inc(est.comparisons)
         self.metrics.latency.labels(transport).observe(time.perf_counter() - t0)
         return est.model_copy(update={"robot_id": robot_id, "input_seq": input_seq})
-
-
-def _finite(v: float) -> bool:
-    return v == v and v not in (float("inf"), float("-inf"))
 
 
 def _check_robot_id(robot_id: str) -> None:

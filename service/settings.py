@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -23,10 +24,16 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(8 * 1024 * 1024, description="largest accepted frame body")
     max_pixels: int = Field(16_000_000, description="largest accepted image (width*height)")
     auth_token: str | None = Field(None, description="if set, HTTP needs 'Bearer <token>'")
-    workers: int = Field(0, description="frame-processing threads (0: number of CPUs)")
+    workers: int = Field(0, description="frame-processing threads (0: 2 x number of CPUs)")
     zenoh_enabled: bool = True
     zenoh_mode: Literal["peer", "client", "router"] = "peer"
     zenoh_connect: list[str] = Field(default_factory=list, description="e.g. tcp/10.0.0.2:7447")
     zenoh_listen: list[str] = Field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
     zenoh_multicast_scouting: bool = True
     zenoh_prefix: str = "swarmloc"
+
+    @property
+    def frame_workers(self) -> int:
+        """Threads that process frames, per transport (frames wait in OpenCV/BLAS most of
+        the time with the GIL released, so twice the CPUs keeps them busy)."""
+        return self.workers or 2 * (os.cpu_count() or 1)

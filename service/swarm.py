@@ -44,10 +44,7 @@ class DPSO(Estimator):
         self.v0, self.q_r, self.phi2 = p.v0, p.quantum_ratio, p.phi2
         self.recovering = False
         self._v0_before_recovery = p.v0
-        self._ema_vsw: float | None = None  # EMA of the centre speed, axis-range units
-        self._ema_speed_m: float | None = None  # same in metres per iteration
-        self._ema_dir = np.zeros(2)
-        self._centre_prev: np.ndarray | None = None
+        self.reset_motion()
 
     def particles(self) -> np.ndarray | None:
         return None if self._needs_init else self.x
@@ -78,8 +75,12 @@ class DPSO(Estimator):
         cov = weighted_covariance(self.x, f, 0.5 * self._spacing)
         centre = self.x.mean(axis=0)
         spread = float(np.mean(np.linalg.norm(self.x - centre, axis=1)))
+        # v_sw: speed of the swarm's centre of mass, the masses being the fitness (the
+        # "weighted swarm center" of Sec. 4). Quantum particles are redrawn around p^n with
+        # q_d = 15 % of the range every frame; in an unweighted centre that alone moves the
+        # centre by about a metre per frame.
         total = float(f.sum())
-        self._track_centre((f @ self.x) / total if total > 0 else centre)
+        self.track_motion((f @ self.x) / total if total > 0 else centre)
 
         status, lost = self.update_status(best_m)
         if lost and not self.recovering:  # recovery phase starts (Sec. 5)
@@ -98,34 +99,17 @@ class DPSO(Estimator):
             self._adapt_v0()
 
         self._move(p_n)
-        speed = (self._ema_speed_m or 0.0) / (self._dt_ema or dt)
-        heading = math.atan2(self._ema_dir[1], self._ema_dir[0])
+        speed, heading = self.motion(dt)
         return StepResult(p_n, cov, heading, speed, status, lost, best_m, fitness.comparisons,
                           spread)
-
-    def _track_centre(self, centre: np.ndarray) -> None:
-        """EMA (alpha = 1/8) of the velocity of the swarm's centre of mass; v_sw is its norm.
-
-        The masses are the particles' fitness (the "weighted swarm center" of Sec. 4): quantum
-        particles are redrawn around p^n every frame with q_d = 15 % of the axis range, and in
-        an unweighted centre that redraw alone moves the centre by about a metre per frame.
-        The EMA runs over the velocity vector, so remaining jitter averages out instead of
-        adding to the speed (an EMA of the norm would be biased upwards by it).
-        """
-        if self._centre_prev is not None:
-            dc = centre - self._centre_prev
-            a = self.params.ema_alpha
-            self._ema_dir = dc.copy() if self._ema_vsw is None else (1 - a) * self._ema_dir + a * dc
-            self._ema_speed_m = float(np.linalg.norm(self._ema_dir))
-            self._ema_vsw = float(np.linalg.norm(self._ema_dir / self.delta))
-        self._centre_prev = centre
 
     def _adapt_v0(self) -> None:
         """Hold v0 ~ 2 v_sw: change v0 by 10 % when EMA(v_sw) / v0 leaves [0.4, 0.6]."""
         p = self.params
-        if self._ema_vsw is None:
+        if self.ema_step is None:
             return
-        ratio = self._ema_vsw / self.v0
+        v_sw = float(np.linalg.norm(self.ema_step / self.delta))  # axis-range units per frame
+        ratio = v_sw / self.v0
         if ratio < p.adapt_low:
             self.v0 *= 1 - p.adapt_step
         elif ratio > p.adapt_high:

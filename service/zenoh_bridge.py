@@ -66,6 +66,11 @@ def parse_attachment(raw: bytes | None) -> dict[str, Any]:
     return meta
 
 
+def error_body(exc: ServiceError, robot: str, seq: int | None = None) -> dict[str, Any]:
+    """The JSON an error is reported with on every Zenoh channel (HTTP's status and message)."""
+    return {"error": exc.message, "status": exc.status, "robot_id": robot, "input_seq": seq}
+
+
 def _frame_args(meta: dict[str, Any]) -> tuple[float | None, int | None, PosePrior | None]:
     try:
         t = float(meta["t"]) if meta.get("t") is not None else None
@@ -85,7 +90,7 @@ class ZenohBridge:
         self.prefix = self.settings.zenoh_prefix.strip("/")
         self._session: zenoh.Session | None = None
         self._decls: list[Any] = []
-        self._pool = ThreadPoolExecutor(max_workers=self.settings.workers or 4,
+        self._pool = ThreadPoolExecutor(max_workers=self.settings.frame_workers,
                                         thread_name_prefix="zenoh-frames")
         self._slots: dict[str, _Frame | None] = {}
         self._busy: set[str] = set()
@@ -129,7 +134,7 @@ class ZenohBridge:
                               encoding=zenoh.Encoding.APPLICATION_JSON)
 
     def _localize(self, robot: str, frame: _Frame) -> dict[str, Any]:
-        seq = frame.meta.get("seq") if isinstance(frame.meta, dict) else None
+        seq = frame.meta.get("seq")
         try:
             t, seq, prior = _frame_args(frame.meta)
             session = self.service.ensure_session(robot)
@@ -137,11 +142,9 @@ class ZenohBridge:
                                              session, seq)
             return est.model_dump(mode="json")
         except ServiceError as exc:
-            return {"error": exc.message, "status": exc.status, "robot_id": robot,
-                    "input_seq": seq}
+            return error_body(exc, robot, seq)
         except Exception as exc:  # never let one robot's failure reach the others
-            return {"error": f"internal error: {exc}", "status": 500, "robot_id": robot,
-                    "input_seq": seq}
+            return error_body(ServiceError(f"internal error: {exc}"), robot, seq)
 
     # ---- frames (publish/subscribe) -----------------------------------------------------
     def _on_frame(self, sample: zenoh.Sample) -> None:
@@ -151,8 +154,7 @@ class ZenohBridge:
             meta = parse_attachment(sample.attachment.to_bytes() if sample.attachment else None)
         except ServiceError as exc:
             self.service.metrics.rejected.labels(type(exc).__name__).inc()
-            self._publish(robot, {"error": exc.message, "status": exc.status,
-                                  "robot_id": robot, "input_seq": None})
+            self._publish(robot, error_body(exc, robot))
             return
         with self._lock:
             if self._slots.get(robot) is not None:
@@ -184,8 +186,7 @@ class ZenohBridge:
                 meta = parse_attachment(att)
                 body = self._localize(robot, _Frame(data, meta))
             except ServiceError as exc:
-                body = {"error": exc.message, "status": exc.status, "robot_id": robot,
-                        "input_seq": None}
+                body = error_body(exc, robot)
             payload = json.dumps(body).encode()
             if "error" in body:
                 query.reply_err(payload, encoding=zenoh.Encoding.APPLICATION_JSON)
@@ -224,8 +225,7 @@ class ZenohBridge:
             query.reply(query.key_expr, json.dumps(reply).encode(),
                         encoding=zenoh.Encoding.APPLICATION_JSON)
         except (ServiceError, json.JSONDecodeError, UnicodeDecodeError, ValidationError) as exc:
-            status = exc.status if isinstance(exc, ServiceError) else 400
-            msg = exc.message if isinstance(exc, ServiceError) else f"bad control message: {exc}"
-            query.reply_err(json.dumps({"error": msg, "status": status,
-                                        "robot_id": robot}).encode(),
+            err = exc if isinstance(exc, ServiceError) else BadRequest(
+                f"bad control message: {exc}")
+            query.reply_err(json.dumps(error_body(err, robot)).encode(),
                             encoding=zenoh.Encoding.APPLICATION_JSON)

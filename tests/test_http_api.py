@@ -201,3 +201,17 @@ def test_openapi_spec_is_valid(client: TestClient) -> None:
     assert "/sessions/{robot_id}/frames" in spec["paths"]
     body = spec["paths"]["/sessions/{robot_id}/frames"]["post"]["requestBody"]["content"]
     assert set(body) == {"image/png", "image/jpeg"}
+
+
+def test_implicit_session_creation_never_replaces_one(maps_dir: Path) -> None:
+    from service.models import SessionConfig
+
+    svc = LocalizationService(Settings(maps_dir=maps_dir, zenoh_enabled=False))
+    _, created = svc.put_session("r", SessionConfig(seed=5))
+    loc = svc.session("r").localizer
+    assert svc.ensure_session("r").localizer is loc
+    _, created_again = svc.put_session("r", SessionConfig(seed=6), replace=False)
+    assert created and not created_again
+    assert svc.session("r").localizer is loc and loc.seed == 5
+    _, replaced_created = svc.put_session("r", SessionConfig(seed=6))
+    assert not replaced_created and svc.session("r").localizer.seed == 6

@@ -13,7 +13,7 @@ import pytest
 import zenoh
 
 from client.transports import HttpClient, LocalClient, SwarmlocError, ZenohClient
-from tests.conftest import free_port
+from service.server import free_port
 
 
 def _peer(endpoint: str) -> zenoh.Session:
