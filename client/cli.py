@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
+
+if TYPE_CHECKING:
+    from client.dataset import Round
 
 app = typer.Typer(help="swarmloc: visual localization service (SIFT maps + Dynamic PSO).",
                   no_args_is_help=True, pretty_exceptions_enable=False)
@@ -22,6 +25,16 @@ app.add_typer(bench_app, name="bench")
 def _fail(msg: str) -> None:
     typer.echo(f"error: {msg}", err=True)
     raise typer.Exit(2)
+
+
+def _read_round(path: Path) -> Round:
+    """Read a round, or exit with the validation message (file and line)."""
+    from client.dataset import DatasetError, read_round
+
+    try:
+        return read_round(path)
+    except DatasetError as exc:
+        _fail(str(exc))
 
 
 # ---- world ------------------------------------------------------------------------------
@@ -51,13 +64,9 @@ def world_sheet(
     """Write a contact sheet PNG of evenly spaced frames of a round."""
     import cv2
 
-    from client.dataset import DatasetError, read_round
     from client.world import contact_sheet
 
-    try:
-        rnd = read_round(round_dir)
-    except DatasetError as exc:
-        _fail(str(exc))
+    rnd = _read_round(round_dir)
     idx = np.linspace(0, len(rnd) - 1, min(count, len(rnd))).astype(int)
     sheet = contact_sheet([rnd.load_image(i) for i in idx], 4, [f"{rnd.images[i]}" for i in idx])
     cv2.imwrite(str(out), sheet)
@@ -72,11 +81,10 @@ def world_eval(
 ) -> None:
     """SIFT features per frame, pruning, and the fraction of query frames whose best-matching
     map image lies within RADIUS of the truth (symmetric ratio matching)."""
-    from client.dataset import read_round
     from service.features import extract
     from service.route_map import build_map
 
-    mr, qr = read_round(map_round), read_round(query_round)
+    mr, qr = _read_round(map_round), _read_round(query_round)
     m = build_map(mr.name, [mr.load_image(i) for i in range(len(mr))], mr.xy, list(mr.images))
     hits, n_feat = [], []
     for i in range(0, len(qr), every):
@@ -103,14 +111,10 @@ def map_build(
     """Build a map from a round: SIFT, neighbour pruning, atomic write."""
     from tqdm import tqdm
 
-    from client.dataset import DatasetError, read_round
     from service.features import SiftParams
     from service.route_map import build_map, save_map
 
-    try:
-        rnd = read_round(round_dir)
-    except DatasetError as exc:
-        _fail(str(exc))
+    rnd = _read_round(round_dir)
     images = (rnd.load_image(i) for i in tqdm(range(len(rnd)), desc="features", unit="img"))
     m = build_map(out.name.removesuffix(".swmap"), images, rnd.xy, list(rnd.images),
                   SiftParams(width=width, height=height), delta, rnd.origin,
@@ -224,15 +228,11 @@ def replay_cmd(
     robot_id: str = "replay",
 ) -> None:
     """Replay a round against a map; write report.json, report.md and plots; compare."""
-    from client.dataset import DatasetError, read_round
     from client.replay import ReplayConfig, replay
     from client.report import build_report, compare, write_report
     from client.transports import SwarmlocError, connect
 
-    try:
-        rnd = read_round(round_dir)
-    except DatasetError as exc:
-        _fail(str(exc))
+    rnd = _read_round(round_dir)
     cfg = ReplayConfig(map_name, estimator, _parse_params(param), seed, start, speed, kidnap,
                        length, repeat)
     try:
@@ -291,15 +291,11 @@ def eval_split(
 
     Prints the share of odd frames whose best-matching map image is an adjacent even frame,
     and the estimator's error when the odd frames are replayed in order."""
-    from client.dataset import DatasetError, read_round
     from client.experiments import SimilarityTable, run
     from service.features import SiftParams, extract
     from service.route_map import build_map
 
-    try:
-        rnd = read_round(round_dir)
-    except DatasetError as exc:
-        _fail(str(exc))
+    rnd = _read_round(round_dir)
     params = SiftParams(width=width, height=height)
     even = list(range(0, len(rnd), 2))
     odd = list(range(1, len(rnd), 2))
