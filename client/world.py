@@ -243,7 +243,6 @@ class Mover:
 class Scene:
     """Everything needed to render one day of the world under one condition."""
 
-    route: Route
     walls: SegmentSet
     atlas: Atlas
     mover_tex: list[tuple[int, int, float, float]]  # (x0, y0, width_m, height_m) per mover
@@ -475,7 +474,7 @@ class World:
         for _ in range(MIP_LEVELS - 1):
             pyramid.append(cv2.pyrDown(pyramid[-1]))
         sky = tx.sky_panorama(np.random.default_rng([self.seed, 5, *day.encode()]), cond.sunny)
-        return Scene(self.route, segs, atlas, mover_tex, pyramid, origin, sky, cond)
+        return Scene(segs, atlas, mover_tex, pyramid, origin, sky, cond)
 
     # ---- rendering ----------------------------------------------------------------------
     def _mover_segments(self, scene: Scene, movers: Iterable[Mover], t: float) -> SegmentSet | None:
