@@ -37,6 +37,24 @@ def _read_round(path: Path) -> Round:
         _fail(str(exc))
 
 
+FEATURE_TYPES = ("clahe-rootsift", "sift")
+FeaturesOpt = Annotated[str, typer.Option(
+    help="clahe-rootsift (default: contrast-normalised RootSIFT) or sift (the papers')")]
+PruneOpt = Annotated[bool, typer.Option(
+    help="the papers' neighbour pruning (drops the features that survive lighting changes)")]
+
+
+def feature_params(name: str, width: int = 320, height: int = 240):
+    """SiftParams of a feature type name (the CLI's --features)."""
+    from service.features import SiftParams
+
+    if name not in FEATURE_TYPES:
+        _fail(f"unknown feature type {name!r}; choose one of {list(FEATURE_TYPES)}")
+    if name == "sift":
+        return SiftParams.papers(width, height)
+    return SiftParams(width=width, height=height)
+
+
 # ---- world ------------------------------------------------------------------------------
 @world_app.command("render")
 def world_render(
@@ -44,14 +62,19 @@ def world_render(
     seed: int = 0,
     length: Annotated[float, typer.Option(help="loop length, m")] = 260.0,
     spacing: Annotated[float, typer.Option(help="distance between frames, m")] = 0.6,
-    rounds: Annotated[str, typer.Option(help="comma-separated subset, e.g. sunny1,cloudy1")] = "",
+    rounds: Annotated[str, typer.Option(
+        help="comma-separated subset, e.g. sunny1,cloudy1; also lowsun1-2, dusk1-2, night1-2"
+    )] = "",
 ) -> None:
     """Render rounds (default: sunny1-3, cloudy1-3) in the dataset format."""
     from client.world import DatasetSpec, render_dataset
 
     spec = DatasetSpec(seed=seed, length_m=length, spacing_m=spacing)
     only = [r for r in rounds.split(",") if r] or None
-    render_dataset(out, spec, progress=True, only=only)
+    try:
+        render_dataset(out, spec, progress=True, only=only)
+    except ValueError as exc:
+        _fail(str(exc))
     typer.echo(f"wrote {out}")
 
 
@@ -78,14 +101,17 @@ def world_eval(
     map_round: Path, query_round: Path,
     radius: Annotated[float, typer.Option(help="success radius, m")] = 3.0,
     every: Annotated[int, typer.Option(help="use every k-th query frame")] = 2,
+    features: FeaturesOpt = "clahe-rootsift",
+    prune: PruneOpt = False,
 ) -> None:
-    """SIFT features per frame, pruning, and the fraction of query frames whose best-matching
+    """Features per frame, pruning, and the fraction of query frames whose best-matching
     map image lies within RADIUS of the truth (symmetric ratio matching)."""
     from service.features import extract
     from service.route_map import build_map
 
     mr, qr = _read_round(map_round), _read_round(query_round)
-    m = build_map(mr.name, [mr.load_image(i) for i in range(len(mr))], mr.xy, list(mr.images))
+    m = build_map(mr.name, [mr.load_image(i) for i in range(len(mr))], mr.xy, list(mr.images),
+                  feature_params(features), prune_features=prune)
     hits, n_feat = [], []
     for i in range(0, len(qr), every):
         f = extract(qr.load_image(i), m.sift_params)
@@ -102,27 +128,39 @@ def world_eval(
 # ---- maps -------------------------------------------------------------------------------
 @map_app.command("build")
 def map_build(
-    round_dir: Path,
+    round_dirs: Annotated[list[Path], typer.Argument(
+        help="one round, or several traversals of one route (e.g. a sunny and a cloudy "
+             "round) merged into one multi-condition map")],
     out: Annotated[Path, typer.Option(help="map path, e.g. maps/NAME (.swmap is added)")],
     delta: Annotated[float, typer.Option(help="ratio-test threshold")] = 0.6,
     width: int = 320,
     height: int = 240,
+    features: FeaturesOpt = "clahe-rootsift",
+    prune: PruneOpt = False,
 ) -> None:
-    """Build a map from a round: SIFT, neighbour pruning, atomic write."""
+    """Build a map from one or more rounds: features, optional pruning, atomic write."""
     from tqdm import tqdm
 
-    from service.features import SiftParams
     from service.route_map import build_map, save_map
 
-    rnd = _read_round(round_dir)
-    images = (rnd.load_image(i) for i in tqdm(range(len(rnd)), desc="features", unit="img"))
-    m = build_map(out.name.removesuffix(".swmap"), images, rnd.xy, list(rnd.images),
-                  SiftParams(width=width, height=height), delta, rnd.origin,
-                  {"round": str(rnd.path), "name": rnd.name})
+    rounds = [_read_round(r) for r in round_dirs]
+    origin = rounds[0].origin
+    if any(r.origin != origin for r in rounds[1:]):
+        _fail("the rounds have different geodetic origins: give them one dataset.json origin")
+    jobs = [(r, i) for r in rounds for i in range(len(r))]
+    images = (r.load_image(i) for r, i in tqdm(jobs, desc="features", unit="img"))
+    m = build_map(out.name.removesuffix(".swmap"), images,
+                  np.concatenate([r.xy for r in rounds]),
+                  [f"{r.name}/{n}" if len(rounds) > 1 else n for r in rounds for n in r.images],
+                  feature_params(features, width, height), delta, origin,
+                  {"rounds": [{"round": str(r.path), "name": r.name} for r in rounds]},
+                  prune_features=prune,
+                  layers=np.concatenate([np.full(len(r), k) for k, r in enumerate(rounds)]))
     path = save_map(m, out)
     pr = m.meta["pruning"]
-    typer.echo(f"wrote {path}: {m.n_images} images, {pr['features_after']} features kept of "
-               f"{pr['features_before']} (pruning removed {100 * pr['removed_fraction']:.1f} %)")
+    typer.echo(f"wrote {path}: {m.n_images} images in {m.n_layers} layer(s), "
+               f"{pr['features_after']} features ({pr['features_after'] / m.n_images:.0f} per "
+               f"image; pruning removed {100 * pr['removed_fraction']:.1f} %)")
 
 
 @map_app.command("info")

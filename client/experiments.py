@@ -73,6 +73,8 @@ class RunResult:
     true_speed: np.ndarray  # m/s between consecutive iterations
     scores: np.ndarray
     step_ms: np.ndarray  # estimator time per frame, feature extraction excluded
+    accuracy_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # 68 % radius
+    lost: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -91,7 +93,7 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
     truth = rnd.reference_xy
     dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and n > 1 else 1.0
     loc = Localizer(route_map, estimator, params, seed)
-    est, comps, status, spd, scores, ms = [], [], [], [], [], []
+    est, comps, status, spd, scores, ms, acc, lost = [], [], [], [], [], [], [], []
     for it, q in enumerate(seq):
         t0 = time.perf_counter()
         e = loc.estimator.step(lambda ids, q=q: table.scores(int(q), ids), it * dt)
@@ -101,9 +103,12 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
         status.append(e.status.value)
         spd.append(e.speed_mps)
         scores.append(e.score)
+        acc.append(e.accuracy_m)
+        lost.append(e.lost)
     true_xy = truth[seq]
     return RunResult(estimator, seq, np.array(est), true_xy, np.array(comps), status,
-                     np.array(spd), true_speed(true_xy, dt), np.array(scores), np.array(ms))
+                     np.array(spd), true_speed(true_xy, dt), np.array(scores), np.array(ms),
+                     np.array(acc), np.array(lost, bool))
 
 
 def true_speed(xy: np.ndarray, dt: float) -> np.ndarray:

@@ -6,8 +6,10 @@ panorama. A frame is rendered by casting one ray per image column against every 
 keeping the nearest few hits per column (so a hedge in front of a facade, or a tree crown, shows
 what is behind it), and painting far to near with mip-mapped texture look-ups.
 
-Two lighting conditions: ``sunny`` (hard orientation-dependent shading, ground shadows of every
-wall, shadow bands on facades) and ``cloudy`` (flat light, other gamma and white balance).
+Lighting conditions: ``sunny`` (hard orientation-dependent shading, ground shadows of every
+wall, shadow bands on facades), ``cloudy`` (flat light, other gamma and white balance),
+``lowsun`` (a low western sun: long shadows, hard warm light), ``dusk`` (dim, flat, noisy) and
+``night`` (almost dark: noise over faint structure, the case no map can match).
 Parked cars belong to a *day*: rounds of one day share them, other days have other cars.
 Every round has its own lateral offset, heading and pitch jitter, moving pedestrians and cars,
 and sensor noise. Everything is deterministic by seed; nothing is read from disk or network.
@@ -60,11 +62,20 @@ class Condition:
     gamma: float
     contrast: float
     white_balance: float  # luminance gain per unit of a material's warm/cool tint
+    noise: float = 2.2  # sensor noise std (grey levels of 255)
+    gain: float = 1.0  # brightness of the final image (below 1: under-exposed)
 
 
 CONDITIONS: dict[str, Condition] = {
     "sunny": Condition("sunny", True, 130.0, 38.0, 0.42, 0.85, 1.0, 1.15, -0.06),
     "cloudy": Condition("cloudy", False, 0.0, 90.0, 0.82, 0.0, 1.35, 0.7, 0.18),
+    # late afternoon: the sun low in the west, shadows six times as long as their walls,
+    # hard contrast and warm light (the hard lighting pair is lowsun map vs cloudy round)
+    "lowsun": Condition("lowsun", True, 200.0, 9.0, 0.22, 1.1, 0.85, 1.35, -0.16, 2.5),
+    # dusk: flat, dim and noisy, the camera's gain up
+    "dusk": Condition("dusk", False, 0.0, 90.0, 0.5, 0.0, 1.7, 0.5, 0.28, 5.0, 0.55),
+    # night: almost no light; what the camera sees is noise over faint structure
+    "night": Condition("night", False, 0.0, 90.0, 0.08, 0.0, 2.2, 0.12, 0.0, 9.0, 0.3),
 }
 
 
@@ -644,10 +655,10 @@ class World:
         img = np.clip(img * exposure, 0, 1)
         mean = float(img.mean())
         img = np.clip(0.5 + (img - mean) * cond.contrast + 0.5 * (0.48 - mean), 0, 1) ** cond.gamma
-        img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.55)
+        img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.55) * cond.gain
         if noise_seed is not None:
             rng = np.random.default_rng(noise_seed)
-            img = img + rng.normal(0, 2.2 / 255, img.shape)
+            img = img + rng.normal(0, cond.noise / 255, img.shape)
         return np.clip(np.round(img * 255), 0, 255).astype(np.uint8)
 
     # ---- rounds -------------------------------------------------------------------------
@@ -743,6 +754,12 @@ class DatasetSpec:
         RoundSpec(f"{cond}{k}", cond, cond, i)
         for i, (cond, k) in enumerate([(c, k) for c in ("sunny", "cloudy") for k in (1, 2, 3)])
     ])
+    # rendered only when named: the harder lighting (lowsun vs cloudy), dusk and night
+    extra_rounds: list[RoundSpec] = field(default_factory=lambda: [
+        RoundSpec(f"{cond}{k}", cond, cond, 6 + i)
+        for i, (cond, k) in enumerate([(c, k) for c in ("lowsun", "dusk", "night")
+                                       for k in (1, 2)])
+    ])
 
 
 def render_dataset(out_dir: str | Path, spec: DatasetSpec, progress: bool = False,
@@ -750,8 +767,11 @@ def render_dataset(out_dir: str | Path, spec: DatasetSpec, progress: bool = Fals
     out_dir = Path(out_dir)
     world = World(spec.seed, spec.length_m, spec.spacing_m)
     wanted = set(only) if only else None
-    for r in spec.rounds:
-        if wanted is None or r.name in wanted:
+    known = {r.name for r in spec.rounds + spec.extra_rounds}
+    if wanted and wanted - known:
+        raise ValueError(f"unknown round(s) {sorted(wanted - known)}; known: {sorted(known)}")
+    for r in spec.rounds + spec.extra_rounds:
+        if (r in spec.rounds and wanted is None) or (wanted is not None and r.name in wanted):
             world.render_round(out_dir / r.name, r.index, r.condition, r.day, progress=progress)
     write_dataset_meta(out_dir, {
         "name": f"swarmloc-world-{spec.seed}",
@@ -759,7 +779,8 @@ def render_dataset(out_dir: str | Path, spec: DatasetSpec, progress: bool = Fals
         "generator": {"seed": spec.seed, "length_m": spec.length_m,
                       "spacing_m": spec.spacing_m, "route_length_m": world.route.length},
         "rounds": {r.name: {"condition": r.condition, "day": r.day, "index": r.index}
-                   for r in spec.rounds},
+                   for r in spec.rounds + spec.extra_rounds
+                   if (out_dir / r.name).is_dir()},
         "camera": world.camera.__dict__,
     })
     return out_dir

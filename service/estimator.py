@@ -23,6 +23,15 @@ class Status(StrEnum):
 
 
 @dataclass(frozen=True)
+class Hypothesis:
+    """A competing position (m) with its share of the support of all hypotheses."""
+
+    x: float
+    y: float
+    weight: float
+
+
+@dataclass(frozen=True)
 class StepResult:
     position: np.ndarray  # (2,) metres
     covariance: np.ndarray  # (2, 2) m^2
@@ -33,6 +42,7 @@ class StepResult:
     score: float  # best similarity m among the compared images
     comparisons: int  # distinct map images compared for this frame
     spread_m: float  # mean distance of particles to their centre (swarm diversity)
+    hypotheses: tuple[Hypothesis, ...] = ()  # sub-swarms, best first (multi-swarm DPSO)
 
     @property
     def accuracy_m(self) -> float:
@@ -89,6 +99,10 @@ class Estimator:
         if self._init_near is not None:
             c, r = self._init_near
             return disc_sample(self.rng, c, r, n)
+        return self.sample_map_positions(n)
+
+    def sample_map_positions(self, n: int) -> np.ndarray:
+        """Positions around randomly drawn map images (localisation needs a map image near)."""
         ids = self.rng.integers(0, len(self._map_positions), n)
         return self._map_positions[ids] + self.rng.normal(0, self.params.init_spread_m, (n, 2))
 

@@ -1,4 +1,13 @@
-"""SIFT extraction and the papers' symmetric ratio-test image similarity m(A, B).
+"""Local features (SIFT, optionally CLAHE + RootSIFT) and the papers' similarity m(A, B).
+
+Extraction: SIFT keypoints on the grayscale frame at the map's working size. Two options go
+beyond the papers because they survive a change of light (README, "Features across
+lighting"): CLAHE (contrast-limited adaptive histogram equalisation) before detection, and
+RootSIFT (Arandjelovic & Zisserman 2012: the element-wise square root of the L1-normalised
+descriptor, so the angle between RootSIFT vectors is the Hellinger distance of the SIFT
+histograms). Descriptors are quantised to uint8 codes (plain SIFT is integer-valued already;
+RootSIFT is scaled by ``ROOT_SCALE``), which is what a map stores; matching uses the unit
+vectors of those codes, so a map built in memory and the same map loaded from disk match alike.
 
 Journal Sec. 4: the distance between unit descriptors is their angle (arccos of the scalar
 product); a in M_AB iff angle(a, b1) / angle(a, b2) < delta for its nearest and second-nearest
@@ -16,17 +25,20 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
 
 DEFAULT_DELTA = 0.6  # ratio threshold delta (journal Sec. 4)
 _PAD_SCORE = -4.0
+# RootSIFT components are sqrt(L1 share) <= ~0.35 in practice; x512 uses ~7 of the 8 bits
+ROOT_SCALE = 512.0
 
 
 @dataclass(frozen=True)
 class SiftParams:
-    """OpenCV SIFT settings and the working image size frames are resized to."""
+    """OpenCV SIFT settings, the contrast normalisation and the working image size."""
 
     width: int = 320
     height: int = 240
@@ -34,20 +46,41 @@ class SiftParams:
     contrast_threshold: float = 0.04
     edge_threshold: float = 10.0
     sigma: float = 1.6
+    clahe: bool = True  # CLAHE before detection (not in the papers)
+    clahe_clip: float = 2.0  # OpenCV clipLimit
+    clahe_tile: int = 8  # tiles per image side
+    root: bool = True  # RootSIFT descriptors (not in the papers)
 
     def as_dict(self) -> dict:
         return {"type": "sift", **asdict(self)}
 
+    @classmethod
+    def papers(cls, width: int = 320, height: int = 240) -> SiftParams:
+        """Plain SIFT as in the papers (no contrast normalisation, no RootSIFT)."""
+        return cls(width=width, height=height, clahe=False, root=False)
+
 
 @dataclass(frozen=True)
 class Features:
-    """Keypoint positions (N, 2) in working-size pixels and unit descriptors (N, D) float32."""
+    """Keypoint positions (N, 2) in working-size pixels and descriptor codes (N, D) uint8."""
 
     keypoints: np.ndarray
-    descriptors: np.ndarray
+    codes: np.ndarray
 
     def __len__(self) -> int:
-        return len(self.descriptors)
+        return len(self.codes)
+
+    @cached_property
+    def descriptors(self) -> np.ndarray:
+        """Unit float32 descriptors (the codes' directions), what the similarity compares."""
+        return unit_descriptors(self.codes)
+
+
+def unit_descriptors(codes: np.ndarray) -> np.ndarray:
+    """L2-normalised float32 rows of uint8 codes (a zero row stays zero)."""
+    d = np.asarray(codes, np.float32)
+    norms = np.linalg.norm(d, axis=1, keepdims=True)
+    return d / np.maximum(norms, 1e-12)
 
 
 def to_working_size(image: np.ndarray, params: SiftParams) -> np.ndarray:
@@ -68,6 +101,9 @@ def extract(image: np.ndarray, params: SiftParams | None = None) -> Features:
     """SIFT keypoints and L2-normalised descriptors of a frame (resized to the working size)."""
     params = params or SiftParams()
     gray = to_working_size(image, params)
+    if params.clahe:
+        tiles = (params.clahe_tile, params.clahe_tile)
+        gray = cv2.createCLAHE(clipLimit=params.clahe_clip, tileGridSize=tiles).apply(gray)
     sift = cv2.SIFT_create(  # cheap to create; one per call keeps threads independent
         nfeatures=params.n_features,
         contrastThreshold=params.contrast_threshold,
@@ -76,13 +112,15 @@ def extract(image: np.ndarray, params: SiftParams | None = None) -> Features:
     )
     kps, desc = sift.detectAndCompute(gray, None)
     if desc is None or len(kps) == 0:
-        return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32))
-    desc = desc.astype(np.float32)
-    norms = np.linalg.norm(desc, axis=1, keepdims=True)
-    keep = norms[:, 0] > 0
-    desc = desc[keep] / norms[keep]
+        return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8))
+    desc = np.asarray(desc, np.float32)
+    if params.root:
+        total = desc.sum(axis=1, keepdims=True)
+        desc = np.sqrt(desc / np.maximum(total, 1e-12)) * ROOT_SCALE
+    codes = np.clip(np.rint(desc), 0, 255).astype(np.uint8)
+    keep = codes.any(axis=1)
     pts = np.array([kp.pt for kp in kps], np.float32)[keep]
-    return Features(pts, desc)
+    return Features(pts, codes[keep])
 
 
 def _angles(dots: np.ndarray) -> np.ndarray:

@@ -4,7 +4,9 @@
 
 i_M(x) is the map image nearest to x, m the image similarity and zeta a Gaussian penalty of the
 distance to that image's position. Particles sharing a nearest image share one comparison; the
-number of distinct images compared in a frame is the papers' "comparisons per image".
+number of distinct images compared in a frame is the papers' "comparisons per image". In a map
+merged from several traversals (layers), a particle is compared with the nearest image of each
+layer and keeps the best m * zeta; every image compared counts.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ class MapIndex(Protocol):
 
     def nearest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
+    def nearest_per_layer(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
 
 class FrameFitness:
     """Eq. 3 for one frame, with a per-frame comparison cache and counter."""
@@ -40,9 +44,8 @@ class FrameFitness:
         """Distinct map images compared for this frame so far."""
         return len(self._ids)
 
-    def __call__(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(fitness, similarity m, nearest image id) for each particle position."""
-        ids, dist = self._index.nearest(positions)
+    def scores_of(self, ids: np.ndarray) -> np.ndarray:
+        """m(frame, image) for map image ids, comparing each distinct new id once."""
         uniq, inv = np.unique(ids, return_inverse=True)
         new = np.setdiff1d(uniq, self._ids, assume_unique=True)
         if len(new):
@@ -50,6 +53,18 @@ class FrameFitness:
             self._scores = np.concatenate([self._scores, self._similarity(new)])
             order = np.argsort(self._ids)
             self._ids, self._scores = self._ids[order], self._scores[order]
-        m = self._scores[np.searchsorted(self._ids, uniq)][inv]
-        zeta = np.exp(-(dist**2) * self._inv_two_sigma2)
-        return m * zeta, m, ids
+        return self._scores[np.searchsorted(self._ids, uniq)][inv].reshape(np.shape(ids))
+
+    @property
+    def compared(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, m) of every map image compared in this frame so far."""
+        return self._ids, self._scores
+
+    def __call__(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(fitness, similarity m, nearest image id) for each particle position."""
+        ids, dist = self._index.nearest_per_layer(positions)  # (n, layers)
+        m = self.scores_of(ids)
+        f = m * np.exp(-(dist**2) * self._inv_two_sigma2)
+        k = np.argmax(f, axis=1)[:, None]
+        return (np.take_along_axis(f, k, 1)[:, 0], np.take_along_axis(m, k, 1)[:, 0],
+                np.take_along_axis(ids, k, 1)[:, 0])

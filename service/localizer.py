@@ -8,7 +8,8 @@ import numpy as np
 
 from service.estimator import Estimator, StepResult
 from service.features import Features, extract
-from service.models import Estimate
+from service.models import Estimate, Hypothesis
+from service.multi_swarm import MultiSwarmDPSO
 from service.params import DPSOParams, PFParams, params_for
 from service.particle_filter import ParticleFilter
 from service.route_map import RouteMap
@@ -22,7 +23,9 @@ def make_estimator(route_map: RouteMap, name: str, params: dict[str, Any] | None
     p = params_for(name, params)
     if name == "dpso":
         assert isinstance(p, DPSOParams)
-        return DPSO(route_map, p, rng)
+        if p.variant == "paper":
+            return DPSO(route_map, p, rng)
+        return MultiSwarmDPSO(route_map, p, rng)
     assert isinstance(p, PFParams)
     return ParticleFilter(route_map, p, rng, "gauss" if name == "pf-g" else "linear")
 
@@ -87,4 +90,6 @@ class Localizer:
             pose_covariance=pose_cov.ravel().tolist(), accuracy_m=res.accuracy_m,
             nearest_image=nid, nearest_image_name=self.map.image_names[nid],
             spread_m=res.spread_m,
+            hypotheses=[Hypothesis(x=h.x, y=h.y, weight=h.weight)
+                        for h in res.hypotheses],
         )

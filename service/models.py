@@ -10,6 +10,14 @@ StatusName = Literal["initializing", "tracking", "recovering", "lost"]
 EstimatorName = Literal["dpso", "pf-g", "pf-l"]
 
 
+class Hypothesis(BaseModel):
+    """A competing position hypothesis (a DPSO sub-swarm)."""
+
+    x: float = Field(description="m east")
+    y: float = Field(description="m north")
+    weight: float = Field(description="share of the support of all hypotheses, 0-1")
+
+
 class Estimate(BaseModel):
     """One localization result: what a ROS 2 bridge needs for PoseWithCovarianceStamped."""
 
@@ -37,6 +45,10 @@ class Estimate(BaseModel):
     nearest_image: int = Field(description="id of the map image nearest to the estimate")
     nearest_image_name: str
     spread_m: float = Field(description="mean distance of the particles to their centre, m")
+    hypotheses: list[Hypothesis] = Field(
+        default_factory=list,
+        description="competing places the swarm holds (best first; the estimate follows the "
+                    "first); more than one means the place is ambiguous")
     robot_id: str | None = None
     input_seq: int | None = Field(None, description="sequence number sent with the frame")
 

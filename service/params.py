@@ -115,6 +115,26 @@ class DPSOParams(CommonParams):
     # smallest axis range used for delta_i (m): a straight route would otherwise have a zero
     # range across it and no lateral exploration at all
     min_axis_range_m: float = 20.0
+    # ---- beyond the papers (service/multi_swarm.py; README "Localization across lighting")
+    # "swarmloc": multi-swarm DPSO with motion prior, path evidence, scouts and relative lost
+    # detection; "paper": the journal's DPSO as published (absolute 5 % trigger, one swarm)
+    variant: str = "swarmloc"
+    # carry particles by the tracked velocity while tracking: dropped (measured: the inertia
+    # omega = 0.99 already carries the motion; both together overshoot, error x1.2-1.9)
+    motion_prior: bool = False
+    evidence_decay: float = 0.8  # lambda of A <- lambda A + f (about 5 frames of memory)
+    species_radius_m: float = 5.0  # particles within this of a seed form its sub-swarm
+    max_species: int = 4  # sub-swarms (hypotheses) at most
+    dissolve_ratio: float = 0.5  # a sub-swarm below this share of the best one's support
+    hypothesis_ratio: float = 0.1  # hypotheses reported down to this share of the best
+    scout_ratio: float = 0.03  # particles redrawn at random map images every frame ...
+    scout_ratio_recovery: float = 0.1  # ... and while recovering
+    quantum_track_sigma_m: float = 2.0  # Eq. 6 spread while tracking (m); papers' q_d else
+    distinct_ratio: float = 3.0  # best match / background for a frame to count as good
+    distinct_floor_m: float = 0.004  # ... and at least this similarity (4 of 1,000 features)
+    distinct_far_m: float = 10.0  # images farther than this from the best form the background
+    estimate_floor_m: float = 0.5  # std added to the estimate's covariance (m)
+    covariance_scale: float = 1.0  # calibration of the covariance (68 % radius = accuracy_m)
 
     def validate(self) -> None:
         super().validate()
@@ -127,6 +147,15 @@ class DPSOParams(CommonParams):
             raise ParamError("need 0 < v0_min <= v0 <= v0_max")
         if not 0 < self.adapt_low < self.adapt_high:
             raise ParamError("need 0 < adapt_low < adapt_high")
+        if self.variant not in DPSO_VARIANTS:
+            raise ParamError(f"variant must be one of {list(DPSO_VARIANTS)}")
+        if not 0 <= self.evidence_decay < 1 or self.max_species < 1:
+            raise ParamError("need 0 <= evidence_decay < 1 and max_species >= 1")
+        if self.species_radius_m <= 0 or self.covariance_scale <= 0:
+            raise ParamError("species_radius_m and covariance_scale must be > 0")
+        for name in ("dissolve_ratio", "hypothesis_ratio", "scout_ratio", "scout_ratio_recovery"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ParamError(f"{name} must be in [0, 1]")
 
 
 @dataclass(frozen=True)
@@ -146,6 +175,7 @@ class PFParams(CommonParams):
 
 
 ESTIMATORS = ("dpso", "pf-g", "pf-l")
+DPSO_VARIANTS = ("swarmloc", "paper")
 
 
 def params_for(estimator: str, overrides: dict[str, Any] | None = None) -> CommonParams:

@@ -4,12 +4,14 @@ File layout (``NAME.swmap``), all little-endian:
 
     MAGIC (8 bytes) | header length (uint64) | header JSON (utf-8) | padding to 64 | arrays
 
-The header holds the format version, the metadata (feature type and parameters, delta, working
-image size, geodetic origin, build date, pruning statistics, source) and, for every array, its
-dtype, shape and byte offset. ``checksum`` is the SHA-256 of the header without that field
-(canonical JSON) followed by every data byte, so a flipped bit anywhere is caught on load.
-Arrays are 64-byte aligned and opened with ``numpy.memmap``: a map opens without copying its
-descriptors into memory.
+Format version 2 stores descriptors as uint8 codes (SIFT is integer-valued; RootSIFT is
+quantised, see service/features.py) and the layer (traversal) of every image, for maps merged
+from several traversals. The header holds the format version, the metadata (feature type and
+parameters, delta, working image size, geodetic origin, build date, pruning statistics,
+source) and, for every array, its dtype, shape and byte offset. ``checksum`` is the SHA-256
+of the header without that field (canonical JSON) followed by every data byte, so a flipped
+bit anywhere is caught on load. Arrays are 64-byte aligned and opened with ``numpy.memmap``:
+a map opens without copying its descriptors into memory.
 """
 
 from __future__ import annotations
@@ -27,11 +29,17 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.features import DEFAULT_DELTA, Features, SiftParams, match_batch
+from service.features import (
+    DEFAULT_DELTA,
+    Features,
+    SiftParams,
+    match_batch,
+    unit_descriptors,
+)
 from service.geo import LocalFrame
 
 MAGIC = b"SWMAP\x00\r\n"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 SUFFIX = ".swmap"
 _ALIGN = 64
 
@@ -64,27 +72,43 @@ def prune(features: list[Features], delta: float = DEFAULT_DELTA
             kept.append(f)
             continue
         mask = match_batch(f.descriptors, neighbours, delta).matched.any(axis=0)
-        kept.append(Features(f.keypoints[mask], f.descriptors[mask]))
+        kept.append(Features(f.keypoints[mask], f.codes[mask]))
     before = sum(len(f) for f in features)
     return kept, PruneStats(before, sum(len(f) for f in kept))
 
 
 @dataclass
 class RouteMap:
-    """A loaded map: image positions, pruned descriptors (memory-mapped) and a KD-tree."""
+    """A loaded map: image positions, descriptor codes (memory-mapped) and KD-trees.
+
+    A map merged from several traversals of one route (conditions) has one *layer* per
+    traversal; ``nearest_per_layer`` answers the nearest image of every layer, so a particle
+    is compared with its place's image from each condition.
+    """
 
     name: str
     meta: dict
     positions: np.ndarray  # (n, 2) metres east/north
     image_names: list[str]
-    descriptors: np.ndarray  # (total, D) float32, memory-mapped
+    codes: np.ndarray  # (total, D) uint8 descriptor codes, memory-mapped
     offsets: np.ndarray  # (n + 1,) row offsets of each image's descriptors
     keypoints: np.ndarray  # (total, 2) float32
     path: Path | None = None
+    layers: np.ndarray | None = None  # (n,) traversal index of each image; None: one
 
     def __post_init__(self) -> None:
+        n = len(self.positions)
+        if self.layers is None:
+            self.layers = np.zeros(n, np.int64)
         self._tree = cKDTree(self.positions)
-        self._sets: list[np.ndarray | None] = [None] * len(self.positions)
+        self._layer_ids = [np.flatnonzero(self.layers == k) for k in range(self.n_layers)]
+        self._layer_trees = ([self._tree] if self.n_layers == 1 else
+                             [cKDTree(self.positions[ids]) for ids in self._layer_ids])
+        self._sets: list[np.ndarray | None] = [None] * n
+
+    @property
+    def n_layers(self) -> int:
+        return int(self.layers.max()) + 1 if self.layers is not None and len(self.layers) else 1
 
     @property
     def n_images(self) -> int:
@@ -118,10 +142,11 @@ class RouteMap:
         return float(np.median(np.linalg.norm(np.diff(self.positions, axis=0), axis=1)))
 
     def features_of(self, image_id: int) -> np.ndarray:
-        """Pruned descriptors of one map image (a view into the memory map)."""
+        """Unit descriptors of one map image (from its codes; kept after the first use)."""
         cached = self._sets[image_id]
         if cached is None:
-            cached = self.descriptors[self.offsets[image_id] : self.offsets[image_id + 1]]
+            cached = unit_descriptors(self.codes[self.offsets[image_id]:
+                                                 self.offsets[image_id + 1]])
             self._sets[image_id] = cached
         return cached
 
@@ -129,6 +154,19 @@ class RouteMap:
         """Nearest map image id and its distance for each of many positions, in one call."""
         dist, idx = self._tree.query(np.asarray(positions, float).reshape(-1, 2))
         return idx.astype(np.int64), dist
+
+    def nearest_per_layer(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, distances), each (n, layers): the nearest image of every layer."""
+        pts = np.asarray(positions, float).reshape(-1, 2)
+        if self.n_layers == 1:
+            ids, dist = self.nearest(pts)
+            return ids[:, None], dist[:, None]
+        out_i = np.empty((len(pts), self.n_layers), np.int64)
+        out_d = np.empty((len(pts), self.n_layers))
+        for k, (tree, ids) in enumerate(zip(self._layer_trees, self._layer_ids, strict=True)):
+            out_d[:, k], local = tree.query(pts)
+            out_i[:, k] = ids[local]
+        return out_i, out_d
 
     def similarity(self, frame_descriptors: np.ndarray, image_ids: Iterable[int]) -> np.ndarray:
         """m(frame, map image) for each id, batched (one matrix product)."""
@@ -140,6 +178,7 @@ class RouteMap:
             "name": self.name,
             "n_images": self.n_images,
             "n_features": int(self.offsets[-1]),
+            "n_layers": self.n_layers,
             "bounds": [self.bounds[0].tolist(), self.bounds[1].tolist()],
             "spacing_m": self.spacing,
             **{k: v for k, v in self.meta.items() if k not in ("arrays", "checksum")},
@@ -156,8 +195,16 @@ def build_map(
     origin: tuple[float, float] | None = None,
     source: dict | None = None,
     extract: Callable[[np.ndarray, SiftParams], Features] | None = None,
+    prune_features: bool = False,
+    layers: np.ndarray | None = None,
 ) -> RouteMap:
-    """Extract, prune and assemble a map in memory (``save_map`` writes it)."""
+    """Extract, (optionally) prune and assemble a map in memory (``save_map`` writes it).
+
+    ``prune_features``: the papers' neighbour pruning (Sec. 6), off by default: it throws
+    away the features that survive a change of light (README, "Features across lighting").
+    ``layers``: traversal index per image for a map merged from several traversals; pruning
+    compares neighbours within a traversal.
+    """
     from service.features import extract as sift_extract
 
     params = params or SiftParams()
@@ -168,13 +215,27 @@ def build_map(
         raise MapError("images, positions and names must have the same length")
     if len(feats) == 0:
         raise MapError("a map needs at least one image")
-    pruned, stats = prune(feats, delta)
-    counts = np.array([len(f) for f in pruned], np.int64)
+    layer_arr = (np.zeros(len(feats), np.int64) if layers is None
+                 else np.asarray(layers, np.int64))
+    if len(layer_arr) != len(feats) or layer_arr.min() < 0:
+        raise MapError("layers must give a non-negative traversal index per image")
+    kept = feats
+    stats = PruneStats(sum(len(f) for f in feats), sum(len(f) for f in feats))
+    if prune_features:
+        kept = list(feats)
+        before = after = 0
+        for k in np.unique(layer_arr):
+            idx = np.flatnonzero(layer_arr == k)
+            part, st = prune([feats[i] for i in idx], delta)
+            for i, f in zip(idx, part, strict=True):
+                kept[i] = f
+            before, after = before + st.features_before, after + st.features_after
+        stats = PruneStats(before, after)
+    counts = np.array([len(f) for f in kept], np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    dim = feats[0].descriptors.shape[1] if feats else 128
-    desc = (np.concatenate([f.descriptors for f in pruned]) if offsets[-1]
-            else np.zeros((0, dim), np.float32)).astype(np.float32)
-    kps = (np.concatenate([f.keypoints for f in pruned]) if offsets[-1]
+    codes = (np.concatenate([f.codes for f in kept]) if offsets[-1]
+             else np.zeros((0, 128), np.uint8)).astype(np.uint8)
+    kps = (np.concatenate([f.keypoints for f in kept]) if offsets[-1]
            else np.zeros((0, 2), np.float32)).astype(np.float32)
     meta = {
         "format_version": FORMAT_VERSION,
@@ -184,13 +245,15 @@ def build_map(
         "origin": {"lat": origin[0], "lon": origin[1]} if origin else None,
         "build_date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "pruning": {
+            "enabled": prune_features,
             "features_before": stats.features_before,
             "features_after": stats.features_after,
             "removed_fraction": round(stats.removed_fraction, 4),
         },
         "source": source or {},
     }
-    return RouteMap(name, meta, positions, list(image_names), desc, offsets, kps)
+    return RouteMap(name, meta, positions, list(image_names), codes, offsets, kps,
+                    layers=layer_arr)
 
 
 def _arrays(m: RouteMap) -> dict[str, np.ndarray]:
@@ -198,9 +261,10 @@ def _arrays(m: RouteMap) -> dict[str, np.ndarray]:
     return {
         "positions": np.ascontiguousarray(m.positions, "<f8"),
         "offsets": np.ascontiguousarray(m.offsets, "<i8"),
-        "descriptors": np.ascontiguousarray(m.descriptors, "<f4"),
+        "codes": np.ascontiguousarray(m.codes, np.uint8),
         "keypoints": np.ascontiguousarray(m.keypoints, "<f4"),
         "image_names": names,
+        "layers": np.ascontiguousarray(m.layers, "<i8"),
     }
 
 
@@ -304,7 +368,7 @@ def load_map(path: str | Path, verify: bool = True) -> RouteMap:
     arrays: dict[str, np.ndarray] = {}
     try:
         layout = header["arrays"]
-        for key in ("positions", "offsets", "descriptors", "keypoints", "image_names"):
+        for key in ("positions", "offsets", "codes", "keypoints", "image_names", "layers"):
             spec = layout[key]
             begin = data_start + int(spec["offset"])
             if begin + int(spec["nbytes"]) > size:
@@ -326,17 +390,19 @@ def load_map(path: str | Path, verify: bool = True) -> RouteMap:
     positions = np.asarray(arrays["positions"])
     offsets = np.asarray(arrays["offsets"])
     n = len(positions)
+    layers = np.asarray(arrays["layers"])
     if positions.ndim != 2 or positions.shape[1] != 2 or len(offsets) != n + 1 or \
-            offsets[-1] != len(arrays["descriptors"]) or np.any(np.diff(offsets) < 0):
-        raise MapError(f"{path}: inconsistent arrays (positions/offsets/descriptors)")
+            offsets[-1] != len(arrays["codes"]) or np.any(np.diff(offsets) < 0) or \
+            len(layers) != n or (n and layers.min() < 0):
+        raise MapError(f"{path}: inconsistent arrays (positions/offsets/codes/layers)")
     try:
         names = json.loads(bytes(arrays["image_names"]).decode())
     except (UnicodeDecodeError, json.JSONDecodeError):
         raise MapError(f"{path}: image names are corrupted") from None
     meta = {k: v for k, v in header.items() if k not in ("name",)}
     name = str(header.get("name", path.stem))
-    return RouteMap(name, meta, positions, names, arrays["descriptors"], offsets,
-                    arrays["keypoints"], path)
+    return RouteMap(name, meta, positions, names, arrays["codes"], offsets,
+                    arrays["keypoints"], path, layers)
 
 
 def list_maps(directory: str | Path) -> list[Path]:

@@ -53,15 +53,18 @@ def test_dpso_accuracy_and_comparisons_vs_particle_filters(small_map, table, sun
 
 def test_kidnapped_dpso_recovers(small_map, table, sunny2, starts) -> None:
     n = len(sunny2)
-    frames = []
+    frames: list[int | None] = []
+    admitted: list[bool] = []
     for s in starts:
         res = run(small_map, table, sunny2, "dpso", None, seed=s, start=s, kidnap=True,
                   length=2 * n)
-        after = res.status[n:]
-        assert "recovering" in after[:15]  # the loss is detected within a few frames
         frames.append(frames_to_recover(res))
+        wrong = res.errors[n:] > 10  # the swarm still believes the old place
+        admitted.extend(np.isin(np.array(res.status[n:])[wrong], ["recovering", "lost"]))
     assert all(f is not None for f in frames)
-    assert np.median(frames) <= 60
+    assert np.median(frames) <= 30
+    # while it is wrong, it says so (the relative lost detection), more often than not
+    assert len(admitted) == 0 or np.mean(admitted) >= 0.5
 
 
 def test_speed_estimate_of_tracking_swarm(small_map, table, sunny2, starts) -> None:
@@ -73,11 +76,13 @@ def test_speed_estimate_of_tracking_swarm(small_map, table, sunny2, starts) -> N
         assert abs(ratio - 1) < 0.2
 
 
-@pytest.mark.parametrize("estimator", ["dpso", "pf-g", "pf-l"])
-def test_same_seed_same_estimates_bit_for_bit(small_map, table, sunny2, estimator) -> None:
-    a = run(small_map, table, sunny2, estimator, None, seed=5, start=10, length=40)
-    b = run(small_map, table, sunny2, estimator, None, seed=5, start=10, length=40)
-    c = run(small_map, table, sunny2, estimator, None, seed=6, start=10, length=40)
+@pytest.mark.parametrize(("estimator", "params"), [
+    ("dpso", None), ("dpso", {"variant": "paper"}), ("pf-g", None), ("pf-l", None)])
+def test_same_seed_same_estimates_bit_for_bit(small_map, table, sunny2, estimator,
+                                              params) -> None:
+    a = run(small_map, table, sunny2, estimator, params, seed=5, start=10, length=40)
+    b = run(small_map, table, sunny2, estimator, params, seed=5, start=10, length=40)
+    c = run(small_map, table, sunny2, estimator, params, seed=6, start=10, length=40)
     assert np.array_equal(a.est_xy, b.est_xy)
     assert np.array_equal(a.speed, b.speed)
     assert not np.array_equal(a.est_xy, c.est_xy)
@@ -129,3 +134,27 @@ def test_parameter_overrides_are_validated() -> None:
         params_for("pf-l", {"n_particles": 0})
     with pytest.raises(ParamError, match="unknown estimator"):
         params_for("kalman")
+
+
+def test_variants_are_selectable(small_map) -> None:
+    from service.multi_swarm import MultiSwarmDPSO
+    from service.swarm import DPSO
+
+    assert type(Localizer(small_map, "dpso").estimator) is MultiSwarmDPSO
+    assert type(Localizer(small_map, "dpso", {"variant": "paper"}).estimator) is DPSO
+    with pytest.raises(ParamError, match="variant"):
+        params_for("dpso", {"variant": "papers"})
+
+
+def test_estimate_reports_competing_hypotheses(small_map, table, sunny2) -> None:
+    loc = Localizer(small_map, "dpso", None, seed=2)
+    seen = []
+    for it in range(12):
+        res = loc.estimator.step(lambda ids, q=it: table.scores(q, ids), float(it))
+        seen.append(res.hypotheses)
+    # at a global start several places compete; the estimate follows the best-supported one
+    assert max(len(h) for h in seen) >= 2
+    for hyps in seen:
+        if hyps:
+            assert abs(sum(h.weight for h in hyps) - 1) < 1e-9
+            assert hyps[0].weight == max(h.weight for h in hyps)

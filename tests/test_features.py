@@ -68,3 +68,39 @@ def test_frames_of_other_sizes_are_resized() -> None:
     f = extract(big, params)
     assert f.keypoints[:, 0].max() < 320 and f.keypoints[:, 1].max() < 240
     np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)
+
+
+def test_rootsift_codes_are_the_square_root_of_the_l1_histogram(sunny1) -> None:
+    img = sunny1.load_image(4)
+    plain = extract(img, SiftParams(clahe=False, root=False))
+    root = extract(img, SiftParams(clahe=False, root=True))
+    assert plain.codes.dtype == root.codes.dtype == np.uint8
+    np.testing.assert_array_equal(plain.keypoints, root.keypoints)
+    d = plain.codes.astype(np.float64)  # OpenCV's SIFT is integer-valued: codes are exact
+    expect = np.sqrt(d / d.sum(axis=1, keepdims=True))
+    got = root.descriptors.astype(np.float64)
+    assert np.abs(got - expect).max() < 0.02  # quantisation of the codes only
+    # the angle between RootSIFT vectors is the Hellinger distance of the histograms
+    np.testing.assert_allclose(np.linalg.norm(root.descriptors, axis=1), 1.0, atol=1e-5)
+
+
+def test_clahe_finds_more_features_in_flat_light(cloudy1) -> None:
+    img = cloudy1.load_image(10)
+    assert len(extract(img, SiftParams())) > 1.2 * len(extract(img, SiftParams.papers()))
+
+
+def test_default_features_match_across_lighting_better(sunny1, cloudy1) -> None:
+    """The true place stands out more with CLAHE + RootSIFT than with the papers' SIFT."""
+    ratios = {}
+    for name, params in (("papers", SiftParams.papers()), ("default", SiftParams())):
+        r = []
+        for i in range(5, len(cloudy1), 15):
+            q = extract(cloudy1.load_image(i), params).descriptors
+            d = np.linalg.norm(sunny1.xy - cloudy1.truth_xy[i], axis=1)
+            near, far = int(np.argmin(d)), np.flatnonzero(d > 15)[::6]
+            sets = [extract(sunny1.load_image(j), params).descriptors
+                    for j in [near, *far.tolist()]]
+            s = match_batch(q, sets).scores
+            r.append(s[0] / max(float(np.median(s[1:])), 1e-3))
+        ratios[name] = float(np.median(r))
+    assert ratios["default"] > ratios["papers"]

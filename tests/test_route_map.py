@@ -23,8 +23,7 @@ def test_pruning_keeps_features_seen_in_a_neighbour(sunny1) -> None:
 
 def test_pruning_edge_images_use_one_neighbour() -> None:
     rng = np.random.default_rng(0)
-    a = rng.random((20, 128)).astype(np.float32) ** 3
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    a = np.rint(255 * rng.random((20, 128)) ** 3).astype(np.uint8)
     kp = np.zeros((20, 2), np.float32)
     f = [Features(kp, a), Features(kp[:10], a[:10])]
     pruned, _ = prune(f)
@@ -32,14 +31,49 @@ def test_pruning_edge_images_use_one_neighbour() -> None:
 
 
 def test_map_roundtrip_is_memory_mapped(small_map, sunny1) -> None:
-    assert isinstance(small_map.descriptors, np.memmap)
-    assert small_map.n_images == len(sunny1)
+    assert isinstance(small_map.codes, np.memmap) and small_map.codes.dtype == np.uint8
+    assert small_map.n_images == len(sunny1) and small_map.n_layers == 1
     np.testing.assert_allclose(small_map.positions, sunny1.xy)
     assert small_map.image_names == list(sunny1.images)
     meta = small_map.meta
-    assert meta["format_version"] == 1 and meta["delta"] == 0.6
+    assert meta["format_version"] == 2 and meta["delta"] == 0.6
     assert meta["image_size"] == [320, 240] and meta["feature"]["type"] == "sift"
+    assert meta["feature"]["clahe"] and meta["feature"]["root"]  # the default features
+    assert not meta["pruning"]["enabled"]
     assert len(meta["checksum"]) == 64 and meta["pruning"]["features_after"] > 0
+
+
+def test_loaded_map_matches_like_the_map_in_memory(small_map, sunny1, sunny2) -> None:
+    from service.route_map import build_map
+
+    idx = list(range(0, 12))
+    mem = build_map("m", [sunny1.load_image(i) for i in idx], sunny1.xy[idx],
+                    [sunny1.images[i] for i in idx])
+    f = extract(sunny2.load_image(5))
+    ids = np.arange(12)
+    np.testing.assert_array_equal(mem.similarity(f.descriptors, ids),
+                                  small_map.similarity(f.descriptors, ids))
+
+
+def test_multi_condition_map_compares_each_layer(tmp_path: Path, sunny1, cloudy1) -> None:
+    from service.fitness import FrameFitness
+    from service.route_map import build_map
+
+    idx = list(range(20, 30))
+    imgs = [sunny1.load_image(i) for i in idx] + [cloudy1.load_image(i) for i in idx]
+    xy = np.concatenate([sunny1.xy[idx], cloudy1.xy[idx]])
+    m = build_map("two", imgs, xy, [f"s{i}" for i in idx] + [f"c{i}" for i in idx],
+                  layers=np.repeat([0, 1], len(idx)))
+    loaded = load_map(save_map(m, tmp_path / "two"))
+    assert loaded.n_layers == 2 and loaded.layers.tolist() == [0] * 10 + [1] * 10
+    ids, dist = loaded.nearest_per_layer(sunny1.xy[idx[:3]])
+    assert ids.shape == (3, 2) and (ids[:, 0] < 10).all() and (ids[:, 1] >= 10).all()
+    # a cloudy frame: both layers are compared, the cloudy image of its place wins
+    f = extract(cloudy1.load_image(25))
+    fit = FrameFitness(loaded, lambda i: loaded.similarity(f.descriptors, i), 2.0)
+    _, m_best, best = fit(cloudy1.xy[[25]])
+    assert fit.comparisons == 2 and best[0] >= 10
+    assert m_best[0] == loaded.similarity(f.descriptors, [best[0]])[0]
 
 
 def test_nearest_many_positions(small_map) -> None:
@@ -70,7 +104,7 @@ def _copy(small_map, tmp_path: Path) -> Path:
 def test_corrupted_maps_are_refused(small_map, tmp_path: Path) -> None:
     path = _copy(small_map, tmp_path)
     raw = bytearray(path.read_bytes())
-    # a flipped byte deep in the descriptors
+    # a flipped byte deep in the descriptor codes
     flipped = tmp_path / "flipped.swmap"
     b = bytearray(raw)
     b[len(b) - 5000] ^= 0xFF
@@ -83,7 +117,7 @@ def test_corrupted_maps_are_refused(small_map, tmp_path: Path) -> None:
     with pytest.raises(MapError, match="truncated"):
         load_map(trunc)
     # wrong version, with a consistent header otherwise (same length: only the digit changes)
-    needle = b'"format_version": 1'
+    needle = b'"format_version": 2'
     assert raw.count(needle) == 1
     wrong = tmp_path / "wrong.swmap"
     wrong.write_bytes(bytes(raw).replace(needle, b'"format_version": 9'))

@@ -1,0 +1,198 @@
+"""Multi-swarm DPSO: the papers' future work (journal Sec. 8), built for changing light.
+
+The swarm moves as in the papers (Eqs. 4-6, self-adaptive v0, recovery boost), with these
+changes, each measured in README "Localization across lighting":
+
+- **Motion prior.** While tracking, every particle is carried by the tracked velocity of the
+  estimate before the frame is evaluated, so the swarm stays on the robot and stays tight.
+- **Evidence along paths.** Each particle accumulates its fitness with a decay
+  (A <- lambda A + f, in the spirit of sequence matching); redrawn particles start from zero.
+  The attractor of a sub-swarm is its particle with the most accumulated evidence, so one
+  spurious match cannot pull the swarm away unless the evidence persists.
+- **Sub-swarms (speciation).** Particles are grouped each frame around seeds taken in order of
+  accumulated evidence (species PSO, Li 2004; Parrott & Li 2006 for moving optima): a particle
+  within ``species_radius_m`` of a seed belongs to its species and is attracted to it. Each
+  species is a hypothesis; its support is the evidence of its seed. The estimate follows the
+  best-supported species; the others are reported as ``hypotheses``. A species whose support
+  falls below ``dissolve_ratio`` of the best is dissolved and its particles become scouts.
+- **Scouts.** A few particles with the least evidence are redrawn at random map images every
+  frame (more while recovering). They are the background the lost detection measures against,
+  and the way the swarm discovers a place it is not searching.
+- **The estimate** is the fitness-weighted centre of the best species, not one particle; its
+  covariance is that species' spread, scaled to a calibrated 68 % radius.
+- **Lost detection** is relative (service/lost_detection.py): recovery starts when no match
+  stands out for ``lost_frames`` frames, not when matches are merely weak.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.estimator import Hypothesis, Status, StepResult, weighted_covariance
+from service.fitness import FrameFitness, MapIndex
+from service.lost_detection import DistinctnessMonitor
+from service.params import DPSOParams
+from service.swarm import DPSO
+
+
+def speciate(x: np.ndarray, evidence: np.ndarray, radius: float, max_species: int
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(seed index per species, species label per particle; -1 = no species).
+
+    Seeds are taken in decreasing evidence; a particle joins the first seed within ``radius``.
+    """
+    order = np.argsort(-evidence, kind="stable")
+    label = np.full(len(x), -1, np.int64)
+    seeds: list[int] = []
+    r2 = radius * radius
+    for i in order:
+        if len(seeds) >= max_species:
+            break
+        if label[i] >= 0:
+            continue
+        d2 = np.einsum("ij,ij->i", x - x[i], x - x[i])
+        free = (label < 0) & (d2 <= r2)
+        label[free] = len(seeds)
+        seeds.append(int(i))
+    return np.asarray(seeds, np.int64), label
+
+
+class MultiSwarmDPSO(DPSO):
+    """DPSO with a motion prior, path evidence, sub-swarms, scouts and relative lost detection."""
+
+    name = "dpso"
+
+    def __init__(self, index: MapIndex, params: DPSOParams, rng: np.random.Generator) -> None:
+        super().__init__(index, params, rng)
+        self.evidence = np.zeros(params.n_particles)
+        self.monitor = DistinctnessMonitor(params.distinct_ratio, params.distinct_floor_m,
+                                           params.distinct_far_m, params.ema_alpha)
+
+    def _initialize(self) -> None:
+        super()._initialize()
+        self.evidence = np.zeros(self.params.n_particles)
+        self.monitor.reset()
+
+    def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
+        if self._needs_init:
+            self._initialize()
+        p = self.params
+        dt = self.frame_dt(t)
+        if p.motion_prior and self.ema_step is not None and self._converged \
+                and not self.recovering:
+            self.x = np.clip(self.x + self.ema_step, self.lower, self.upper)  # motion prior
+        f, _, _ = fitness(self.x)
+        self.evidence = p.evidence_decay * self.evidence + f
+        # sub-swarms around the best particles of this frame (their attractors, as p^n in the
+        # papers); a sub-swarm's support is the most evidence any of its particles carries
+        seeds, label = speciate(self.x, f, p.species_radius_m, p.max_species)
+        support = np.array([self.evidence[label == s].max() for s in range(len(seeds))])
+        best_s = int(np.argmax(support))
+        members = label == best_s
+        w = f[members] if f[members].sum() > 0 else self.evidence[members]
+        pos = weighted_centre(self.x[members], w)
+        cov = weighted_covariance(self.x[members], w, p.estimate_floor_m) * p.covariance_scale
+        spread = float(np.mean(np.linalg.norm(self.x - pos, axis=1)))
+        hypotheses = self._hypotheses(seeds, label, support, f, best_s)
+
+        ids, scores = fitness.compared
+        ev = self.monitor.judge(np.asarray(self.index.positions)[ids], scores, pos,
+                                p.species_radius_m)
+        status, lost = self._update_evidence_status(ev.good)
+        self.track_motion(pos)
+        if lost and not self.recovering:
+            self.recovering = True
+            self._v0_before_recovery = self.v0
+        elif self.recovering and self._good >= p.recovered_frames:
+            self.recovering = False
+            self.v0, self.q_r, self.phi2 = self._v0_before_recovery, p.quantum_ratio, p.phi2
+        if self.recovering:
+            a = p.recovery_step
+            self.v0 = min(self.v0 * (1 + a), p.v0_max)
+            self.q_r = min(self.q_r * (1 + a), p.quantum_ratio_max)
+            self.phi2 = max(self.phi2 * (1 - a), p.phi2_min)
+            status = Status.RECOVERING
+        else:
+            self._adapt_v0()
+
+        attractor = self.x[seeds][np.where(label >= 0, label, best_s)]
+        weak = (label >= 0) & (support[label.clip(0)] < p.dissolve_ratio * support[best_s])
+        self._move_species(attractor, self.x[seeds[best_s]].copy(), weak)
+        speed, heading = self.motion(dt)
+        return StepResult(pos, cov, heading, speed, status, lost or self.recovering, ev.best_m,
+                          fitness.comparisons, spread, hypotheses)
+
+    def _update_evidence_status(self, good: bool) -> tuple[Status, bool]:
+        p = self.params
+        if good:
+            self._good += 1
+            self._bad = 0
+        else:
+            self._bad += 1
+            self._good = 0
+        if self._good >= p.converge_frames:
+            self._converged = True
+        if self._bad >= p.lost_frames:
+            return Status.LOST, True
+        return (Status.TRACKING if self._converged else Status.INITIALIZING), False
+
+    def _hypotheses(self, seeds: np.ndarray, label: np.ndarray, support: np.ndarray,
+                    f: np.ndarray, best_s: int) -> tuple[Hypothesis, ...]:
+        p = self.params
+        keep = [s for s in np.argsort(-support) if support[s] >= p.hypothesis_ratio
+                * support[best_s] and support[s] > 0][: p.max_species]
+        total = float(sum(support[s] for s in keep)) or 1.0
+        out = []
+        for s in keep:
+            mem = label == s
+            w = f[mem] if f[mem].sum() > 0 else self.evidence[mem]
+            c = weighted_centre(self.x[mem], w)
+            out.append(Hypothesis(float(c[0]), float(c[1]), float(support[s] / total)))
+        return tuple(out)
+
+    def _move_species(self, attractor: np.ndarray, p_n: np.ndarray, weak: np.ndarray) -> None:
+        """Eqs. 4-5 towards each particle's species seed; Eq. 6 quantum particles around the
+        best seed; scouts (weak species and the least evidence) redrawn at map images."""
+        p, rng, n = self.params, self.rng, self.params.n_particles
+        r0 = rng.uniform(-1.0, 1.0, (n, 2))
+        r2 = rng.uniform(0.0, 1.0, (n, 2))
+        v = p.omega * self.v + p.phi0 * r0 * self.delta * self.v0 \
+            + self.phi2 * r2 * (attractor - self.x)
+        norm = np.linalg.norm(v / self.delta, axis=1)
+        limit = self.v0 * np.where(self.high_energy, p.high_energy_factor, 1.0)
+        v *= np.minimum(1.0, limit / np.maximum(norm, 1e-12))[:, None]
+        x = self.x + v
+        # Eq. 6 around the best seed: local while tracking, the papers' q_d while recovering
+        k = min(round(self.q_r * n), n - int(self.high_energy.sum()))
+        sigma = self.delta * p.quantum_sigma if self.recovering else \
+            np.full(2, p.quantum_track_sigma_m)
+        x[:k] = p_n + sigma * rng.normal(0.0, 1.0, (k, 2))
+        v[:k] = 0.0
+        fresh = np.zeros(n, bool)
+        fresh[:k] = True
+        # particles of dissolved sub-swarms join the best one (redrawn like quantum particles)
+        joiners = weak & ~fresh
+        nj = int(joiners.sum())
+        if nj:
+            x[joiners] = p_n + sigma * rng.normal(0.0, 1.0, (nj, 2))
+            v[joiners] = 0.0
+        fresh |= joiners
+        # scouts: the particles with the least evidence, redrawn at random map images
+        n_scouts = round((p.scout_ratio_recovery if self.recovering else p.scout_ratio) * n)
+        candidates = np.flatnonzero(~fresh)
+        scouts = candidates[np.argsort(self.evidence[candidates], kind="stable")[:n_scouts]]
+        if len(scouts):
+            x[scouts] = self.sample_map_positions(len(scouts))
+            v[scouts] = 0.0
+        fresh[scouts] = True
+        below, above = x < self.lower, x > self.upper
+        x = np.where(below, 2 * self.lower - x, np.where(above, 2 * self.upper - x, x))
+        x = np.clip(x, self.lower, self.upper)
+        v = np.where(below | above, -v, v)
+        self.x, self.v = x, v
+        self.evidence = np.where(fresh, 0.0, self.evidence)
+
+
+def weighted_centre(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    total = float(w.sum())
+    return (w @ x) / total if total > 0 else x.mean(axis=0)
