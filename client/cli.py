@@ -215,6 +215,8 @@ def serve(
     zenoh_listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint")] = None,
     zenoh_connect: Annotated[list[str] | None, typer.Option(help="Zenoh connect endpoint")]
     = None,
+    ros2: Annotated[bool | None, typer.Option(
+        help="speak ROS 2 CDR messages on Zenoh too [SWARMLOC_ROS2_ENABLED]")] = None,
 ) -> None:
     """Run the localization service (HTTP + Zenoh). Flags override SWARMLOC_* variables."""
     from service.server import run
@@ -223,7 +225,8 @@ def serve(
     overrides = {k: v for k, v in {
         "host": host, "port": port, "maps_dir": maps_dir, "default_map": default_map,
         "default_estimator": default_estimator, "auth_token": token, "zenoh_enabled": zenoh,
-        "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect}.items() if v is not None}
+        "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect,
+        "ros2_enabled": ros2}.items() if v is not None}
     settings = Settings(**overrides)
     if demo:
         from client.demo import ensure_demo_map
