@@ -13,6 +13,7 @@ Two key formats (``Settings.ros2_key_format``):
   leading slash, the robot namespace as its first chunks: ``robot1/camera/image_raw/compressed``.
 - ``rmw_zenoh`` (its design document): ``<domain_id>/<topic>/<dds type name>/<type hash>``,
   e.g. ``0/robot1/swarmloc/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/RIHS01_..``;
+  (Humble's rmw_zenoh puts ``TypeHashNotSupported`` where the hash goes);
   publications carry rmw_zenoh's attachment (int64 LE sequence number, int64 LE source
   timestamp in ns, one byte GID length = 16, 16 GID bytes).
 
@@ -53,6 +54,7 @@ KeyFormat = Literal["ros2dds", "rmw_zenoh"]
 _CHANNELS = {"mono8": 1, "rgb8": 3, "bgr8": 3}
 _UNKNOWN_VAR = 1e6
 _UNIFORM_YAW_VAR = math.pi**2 / 3  # variance of a heading uniform on the circle
+HUMBLE_TYPE_HASH = "TypeHashNotSupported"  # rmw_zenoh on Humble has no type hashes
 _ATTACHMENT = struct.Struct("<qqB16s")  # rmw_zenoh: seq, source timestamp (ns), GID len, GID
 
 
@@ -337,8 +339,10 @@ class Ros2Endpoints:
         s = settings
 
         def topic(template: str, typename: str) -> TopicKey:
+            type_hash = HUMBLE_TYPE_HASH if s.ros2_distro == "humble" \
+                else self.codec.type_hash(typename)
             return TopicKey(template, typename, s.ros2_key_format, s.ros2_domain_id,
-                            self.codec.type_hash(typename), s.ros2_default_robot)
+                            type_hash, s.ros2_default_robot)
 
         self.frames = [topic(tpl, typ) for tpl, typ in
                        ((s.ros2_compressed_image_topic, COMPRESSED_IMAGE),

@@ -37,6 +37,9 @@ class Settings(BaseSettings):
         "ros2dds", description="zenoh-bridge-ros2dds keys, or rmw_zenoh's "
         "<domain>/<topic>/<type>/<hash> keys with its attachment")
     ros2_domain_id: int = Field(0, ge=0, description="ROS_DOMAIN_ID (rmw_zenoh keys only)")
+    ros2_distro: Literal["humble", "jazzy"] = Field(
+        "jazzy", description="rmw_zenoh type hash in published keys: RIHS01 (jazzy and "
+        "later) or Humble's 'TypeHashNotSupported'")
     ros2_compressed_image_topic: str = Field(
         "{robot}/camera/image_raw/compressed",
         description="sensor_msgs/CompressedImage frames in ('' disables)")

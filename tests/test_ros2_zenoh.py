@@ -21,6 +21,7 @@ from service.ros2 import (
     POSE,
     STATUS,
     Codec,
+    Ros2Endpoints,
     Stamp,
     TopicKey,
     initial_pose_radius,
@@ -345,6 +346,12 @@ def test_rmw_zenoh_keys_and_attachment_follow_its_design_document() -> None:
     assert att[16] == 16 and att[17:] == gid
     assert parse_rmw_attachment(att) == (7, 1_700_000_000_000_000_123, gid)
     assert parse_rmw_attachment(b'{"t": 1}') is None
+    # Humble's rmw_zenoh has no type hashes: its keys end in TypeHashNotSupported
+    for distro, tail in (("humble", "TypeHashNotSupported"), ("jazzy", codec.type_hash(POSE))):
+        ends = Ros2Endpoints(Settings(ros2_key_format="rmw_zenoh", ros2_distro=distro),
+                             None, None, None)
+        assert ends.pose_key.key("r1") == ("0/r1/swarmloc/pose/geometry_msgs::msg::dds_::"
+                                           f"PoseWithCovarianceStamped_/{tail}")
 
 
 def test_rmw_zenoh_session_end_to_end(tmp_path_factory, small_map, sunny2) -> None:
