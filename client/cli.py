@@ -198,6 +198,22 @@ def bench_similarity_cmd(k: int = 20, repeats: int = 7) -> None:
                f"identical match counts: {b.counts_equal}")
 
 
+@bench_app.command("ros2")
+def bench_ros2_cmd(repeats: int = 200) -> None:
+    """Per-frame cost of the ROS 2 layer: CDR in (rosbags) and the answer out (needs the
+    'ros' extra)."""
+    from client.bench import bench_ros2
+
+    b = bench_ros2(repeats=repeats)
+    typer.echo(f"CompressedImage in (320x240 JPEG, {b.jpeg_bytes} B): {b.compressed_in_ms:7.3f} "
+               "ms (median)")
+    typer.echo(f"Image mono8 in:                 {b.image_in_ms:7.3f} ms")
+    typer.echo(f"Image bgr8 in (to gray):        {b.bgr_in_ms:7.3f} ms")
+    typer.echo(f"PoseWithCovarianceStamped out:  {b.pose_out_ms:7.3f} ms")
+    typer.echo(f"DiagnosticStatus out:           {b.status_out_ms:7.3f} ms")
+    typer.echo(f"SIFT on the same frame:         {b.extract_ms:7.3f} ms")
+
+
 # ---- service ----------------------------------------------------------------------------
 @app.command("serve")
 def serve(

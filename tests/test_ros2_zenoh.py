@@ -390,3 +390,14 @@ def test_rmw_zenoh_session_end_to_end(tmp_path_factory, small_map, sunny2) -> No
     finally:
         s.close()
         gen.close()
+
+
+def test_rosbags_is_imported_only_when_ros2_is_used() -> None:
+    import subprocess
+    import sys
+
+    code = ("import sys, service.server, service.zenoh_bridge, client.cli, client.transports; "
+            "print('rosbags' in sys.modules, 'service.ros2' in sys.modules)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert res.stdout.split() == ["False", "False"]
