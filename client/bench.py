@@ -103,3 +103,57 @@ def _time_frames(name: str, client: Client, data: list[bytes], seed: int) -> Lat
     warm = np.array(times[10:])  # the first frames pay for global convergence
     return LatencyBench(name, len(warm), float(np.percentile(warm, 50)),
                         float(np.percentile(warm, 99)), float(warm.mean()))
+
+
+@dataclass
+class Ros2Bench:
+    jpeg_bytes: int
+    compressed_in_ms: float  # CDR CompressedImage -> validated bytes
+    image_in_ms: float  # CDR mono8 Image -> grayscale pixels
+    bgr_in_ms: float  # CDR bgr8 Image -> grayscale pixels
+    pose_out_ms: float  # Estimate -> CDR PoseWithCovarianceStamped
+    status_out_ms: float  # Estimate -> CDR DiagnosticStatus
+    extract_ms: float  # SIFT on the same frame, for scale
+
+
+def bench_ros2(seed: int = 0, repeats: int = 200) -> Ros2Bench:
+    """What the ROS 2 layer adds per frame: CDR decoding of a 320x240 frame (rosbags) and
+    encoding of the answer, beside the frame's SIFT extraction."""
+    import cv2
+
+    from service.models import Estimate
+    from service.ros2 import COMPRESSED_IMAGE, IMAGE, Codec, Stamp
+
+    codec = Codec()
+    t = codec.types
+    world = World(seed)
+    poses, times, _ = world.round_trajectory(0)
+    img = world.render(Pose(*poses[5]), "sunny", t=float(times[5]), noise_seed=5)
+    jpeg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].ravel()
+    header = t["std_msgs/msg/Header"](
+        stamp=t["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="camera")
+    comp = codec.serialize(t[COMPRESSED_IMAGE](header=header, format="jpeg", data=jpeg),
+                           COMPRESSED_IMAGE)
+    h, w = img.shape
+
+    def raw(enc: str, pixels: np.ndarray) -> bytes:
+        return codec.serialize(t[IMAGE](header=header, height=h, width=w, encoding=enc,
+                                        is_bigendian=0, step=pixels.size // h,
+                                        data=pixels.ravel()), IMAGE)
+
+    mono, bgr = raw("mono8", img), raw("bgr8", np.dstack([img, img, img]))
+    big = 1 << 30
+    est = Estimate(seq=1, stamp=1.0, frame_id="map", estimator="dpso", x=1.0, y=2.0,
+                   heading=0.5, speed=1.0, status="tracking", lost=False, score=0.2,
+                   comparisons=20, covariance=[[1.0, 0.0], [0.0, 1.0]],
+                   pose_covariance=[0.0] * 36, accuracy_m=1.5, nearest_image=0,
+                   nearest_image_name="00000.png", spread_m=1.0)
+    body = est.model_dump(mode="json")
+    return Ros2Bench(
+        len(jpeg),
+        _median_ms(lambda: codec.frame(comp, COMPRESSED_IMAGE, big, big), repeats),
+        _median_ms(lambda: codec.frame(mono, IMAGE, big, big), repeats),
+        _median_ms(lambda: codec.frame(bgr, IMAGE, big, big), repeats),
+        _median_ms(lambda: codec.pose(est, Stamp(1, 0), "map", 0.3), repeats),
+        _median_ms(lambda: codec.status("robot1", body), repeats),
+        _median_ms(lambda: extract(img), 15))

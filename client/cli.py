@@ -17,7 +17,9 @@ app = typer.Typer(help="swarmloc: visual localization service (SIFT maps + Dynam
 world_app = typer.Typer(help="Synthetic route world.", no_args_is_help=True)
 map_app = typer.Typer(help="Route maps.", no_args_is_help=True)
 bench_app = typer.Typer(help="Benchmarks (print numbers).", no_args_is_help=True)
+dataset_app = typer.Typer(help="Datasets: import recordings.", no_args_is_help=True)
 app.add_typer(world_app, name="world")
+app.add_typer(dataset_app, name="dataset")
 app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
 
@@ -125,6 +127,49 @@ def world_eval(
                f"{radius:g} m of the truth for {100 * np.mean(hits):.1f} % of {len(hits)} frames")
 
 
+# ---- datasets ---------------------------------------------------------------------------
+ImageTopic = Annotated[str | None, typer.Option(
+    help="rosbag2: sensor_msgs/CompressedImage or Image topic")]
+GpsTopic = Annotated[str | None, typer.Option(help="rosbag2: sensor_msgs/NavSatFix topic")]
+PoseTopic = Annotated[str | None, typer.Option(
+    help="rosbag2: nav_msgs/Odometry, PoseStamped or PoseWithCovarianceStamped topic")]
+MinDistance = Annotated[float, typer.Option(
+    help="rosbag2: keep an image every this many metres travelled (0: all)")]
+
+
+def _convert_bag(bag: Path, image_topic: str | None, out: Path, gps_topic: str | None,
+                 pose_topic: str | None, min_distance: float) -> None:
+    """Convert a rosbag2 recording to a round, or exit with what is wrong."""
+    if not image_topic:
+        _fail("a rosbag2 needs --image-topic (and --gps-topic or --pose-topic)")
+    from client.bag import BagError, convert_bag
+
+    try:
+        c = convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance)
+    except BagError as exc:
+        _fail(str(exc))
+    except ImportError as exc:
+        _fail(f"rosbag2 support needs the 'ros' extra: pip install 'swarmloc[ros]' ({exc})")
+    kind = f"lat/lon (origin {c.origin[0]:.7f}, {c.origin[1]:.7f} in " \
+        f"{out.parent / 'dataset.json'})" if c.origin else "x/y"
+    typer.echo(f"wrote {c.path}: {c.images} images along {c.length_m:.1f} m, positions "
+               f"{kind}; left out {c.outside} outside the positions' time span and "
+               f"{c.subsampled} by --min-distance")
+
+
+@dataset_app.command("from-bag")
+def dataset_from_bag(
+    bag: Annotated[Path, typer.Argument(help="rosbag2 directory, or a .mcap / .db3 file")],
+    image_topic: Annotated[str, typer.Option(help="sensor_msgs/CompressedImage or Image")],
+    out: Annotated[Path, typer.Option(help="round directory to write (must not exist)")],
+    gps_topic: GpsTopic = None,
+    pose_topic: PoseTopic = None,
+    min_distance: MinDistance = 0.0,
+) -> None:
+    """Convert a rosbag2 recording (sqlite3 or MCAP) into a round of the dataset format."""
+    _convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance)
+
+
 # ---- maps -------------------------------------------------------------------------------
 @map_app.command("build")
 def map_build(
@@ -191,6 +236,22 @@ def bench_similarity_cmd(k: int = 20, repeats: int = 7) -> None:
                f"identical match counts: {b.counts_equal}")
 
 
+@bench_app.command("ros2")
+def bench_ros2_cmd(repeats: int = 200) -> None:
+    """Per-frame cost of the ROS 2 layer: CDR in (rosbags) and the answer out (needs the
+    'ros' extra)."""
+    from client.bench import bench_ros2
+
+    b = bench_ros2(repeats=repeats)
+    typer.echo(f"CompressedImage in (320x240 JPEG, {b.jpeg_bytes} B): {b.compressed_in_ms:7.3f} "
+               "ms (median)")
+    typer.echo(f"Image mono8 in:                 {b.image_in_ms:7.3f} ms")
+    typer.echo(f"Image bgr8 in (to gray):        {b.bgr_in_ms:7.3f} ms")
+    typer.echo(f"PoseWithCovarianceStamped out:  {b.pose_out_ms:7.3f} ms")
+    typer.echo(f"DiagnosticStatus out:           {b.status_out_ms:7.3f} ms")
+    typer.echo(f"SIFT on the same frame:         {b.extract_ms:7.3f} ms")
+
+
 # ---- service ----------------------------------------------------------------------------
 @app.command("serve")
 def serve(
@@ -208,6 +269,8 @@ def serve(
     zenoh_listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint")] = None,
     zenoh_connect: Annotated[list[str] | None, typer.Option(help="Zenoh connect endpoint")]
     = None,
+    ros2: Annotated[bool | None, typer.Option(
+        help="speak ROS 2 CDR messages on Zenoh too [SWARMLOC_ROS2_ENABLED]")] = None,
 ) -> None:
     """Run the localization service (HTTP + Zenoh). Flags override SWARMLOC_* variables."""
     from service.server import run
@@ -216,7 +279,8 @@ def serve(
     overrides = {k: v for k, v in {
         "host": host, "port": port, "maps_dir": maps_dir, "default_map": default_map,
         "default_estimator": default_estimator, "auth_token": token, "zenoh_enabled": zenoh,
-        "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect}.items() if v is not None}
+        "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect,
+        "ros2_enabled": ros2}.items() if v is not None}
     settings = Settings(**overrides)
     if demo:
         from client.demo import ensure_demo_map
@@ -242,7 +306,8 @@ def _parse_params(items: list[str] | None) -> dict:
 
 @app.command("replay")
 def replay_cmd(
-    round_dir: Path,
+    round_dir: Annotated[Path, typer.Argument(
+        help="round directory, or a rosbag2 (directory or .mcap / .db3 file)")],
     map_name: Annotated[str | None, typer.Option("--map", help="map name on the service")]
     = None,
     via: Annotated[str, typer.Option(help="http://HOST:PORT | zenoh[:ENDPOINT] | local[:DIR]")]
@@ -264,8 +329,40 @@ def replay_cmd(
     tolerance: Annotated[float, typer.Option(help="allowed relative regression")] = 0.1,
     token: Annotated[str | None, typer.Option(help="bearer token for HTTP")] = None,
     robot_id: str = "replay",
+    image_topic: ImageTopic = None,
+    gps_topic: GpsTopic = None,
+    pose_topic: PoseTopic = None,
+    min_distance: MinDistance = 0.0,
 ) -> None:
-    """Replay a round against a map; write report.json, report.md and plots; compare."""
+    """Replay a round (or a rosbag2) against a map; write report.json, report.md and plots;
+    compare with a baseline."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="swarmloc-bag-") as tmp:
+        from client.bag import is_bag
+
+        if is_bag(round_dir):  # converted on the fly to a round in a temporary directory
+            if gps_topic:  # lat/lon must be projected in the map's frame
+                from client.dataset import write_dataset_meta
+
+                origin = _map_origin(via, token, map_name)
+                if origin is None:
+                    _fail(f"cannot read the geodetic origin of map '{map_name}' over "
+                          f"'{via}'; convert the bag with 'swarmloc dataset from-bag' into "
+                          "the dataset of the map's round, then replay that round")
+                write_dataset_meta(tmp, {"origin": {"lat": origin[0], "lon": origin[1]}})
+            bag_round = Path(tmp) / round_dir.stem
+            _convert_bag(round_dir, image_topic, bag_round, gps_topic, pose_topic,
+                         min_distance)
+            round_dir = bag_round
+        _replay(round_dir, map_name, via, estimator, param, seed, start, speed, kidnap,
+                repeat, length, out, baseline, tolerance, token, robot_id)
+
+
+def _replay(round_dir: Path, map_name: str | None, via: str, estimator: str,
+            param: list[str] | None, seed: int, start: int, speed: float, kidnap: bool,
+            repeat: int, length: int | None, out: Path, baseline: Path | None,
+            tolerance: float, token: str | None, robot_id: str) -> None:
     from client.replay import ReplayConfig, replay
     from client.report import build_report, compare, write_report
     from client.transports import SwarmlocError, connect
@@ -299,6 +396,27 @@ def replay_cmd(
         if problems:
             raise typer.Exit(1)
         typer.echo(f"no regression against {baseline} (tolerance {tolerance:g})")
+
+
+def _map_origin(via: str, token: str | None, map_name: str | None
+                ) -> tuple[float, float] | None:
+    """(lat, lon) origin of the map, where the transport lists maps (HTTP, local)."""
+    from client.transports import SwarmlocError, connect
+
+    try:
+        client = connect(via, token)
+    except ValueError as exc:
+        _fail(str(exc))
+    try:
+        maps = client.maps()
+    except SwarmlocError:
+        return None
+    finally:
+        client.close()
+    name = map_name or (maps[0].name if len(maps) == 1 else "demo")  # the service default
+    match = [m for m in maps if m.name == name]
+    o = match[0].meta.get("origin") if len(match) == 1 else None
+    return (float(o["lat"]), float(o["lon"])) if o else None
 
 
 def _route_positions(client: object, map_name: str | None, rnd: object) -> np.ndarray:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -246,16 +247,20 @@ def read_dataset(path: str | Path) -> Dataset:
     )
 
 
-def _write_csv(path: Path, names: Sequence[str], xy: np.ndarray, t: np.ndarray | None) -> None:
+def _write_csv(path: Path, names: Sequence[str], xy: np.ndarray, t: np.ndarray | None,
+               geographic: bool = False) -> None:
     tmp = path.with_suffix(".csv.tmp")
+    cols, fmt = (["lat", "lon"], "{:.9f}") if geographic else (["x", "y"], "{:.4f}")
     with tmp.open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["image", "x", "y", "t"] if t is not None else ["image", "x", "y"])
+        w.writerow(["image", *cols, "t"] if t is not None else ["image", *cols])
         for k, name in enumerate(names):
-            row = [name, f"{xy[k, 0]:.4f}", f"{xy[k, 1]:.4f}"]
+            row = [name, fmt.format(xy[k, 0]), fmt.format(xy[k, 1])]
             if t is not None:
                 row.append(f"{t[k]:.3f}")
             w.writerow(row)
+        fh.flush()
+        os.fsync(fh.fileno())
     tmp.replace(path)
 
 
@@ -265,11 +270,13 @@ def write_round(
     xy: np.ndarray,
     t: np.ndarray | None = None,
     truth_xy: np.ndarray | None = None,
+    geographic: bool = False,
 ) -> None:
-    """Write poses.csv (and truth.csv) of a round whose images are already in ``path``."""
+    """Write poses.csv (and truth.csv) of a round whose images are already in ``path``;
+    ``geographic``: ``xy`` holds (lat, lon) degrees and the header is ``image,lat,lon``."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
-    _write_csv(path / POSES_FILE, names, np.asarray(xy, float), t)
+    _write_csv(path / POSES_FILE, names, np.asarray(xy, float), t, geographic)
     if truth_xy is not None:
         _write_csv(path / TRUTH_FILE, names, np.asarray(truth_xy, float), t)
 
@@ -277,4 +284,9 @@ def write_round(
 def write_dataset_meta(path: str | Path, meta: dict) -> None:
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
-    (path / DATASET_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+    tmp = path / (DATASET_FILE + ".tmp")
+    with tmp.open("w") as fh:
+        fh.write(json.dumps(meta, indent=2) + "\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    tmp.replace(path / DATASET_FILE)

@@ -14,6 +14,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from service.errors import Conflict, InvalidParameters, NotFound, Unavailable
 from service.imaging import decode_frame
 from service.localizer import Localizer
@@ -173,16 +175,19 @@ class LocalizationService:
         return gone
 
     # ---- frames -------------------------------------------------------------------------
-    def process_frame(self, robot_id: str, data: bytes, content_type: str | None,
+    def process_frame(self, robot_id: str, data: bytes | np.ndarray, content_type: str | None,
                       t: float | None = None, prior: PosePrior | None = None,
                       transport: str = "http", session: Session | None = None,
                       input_seq: int | None = None) -> Estimate:
-        """Decode, validate, extract and step one frame; raises ServiceError on bad input."""
+        """Decode, validate, extract and step one frame; raises ServiceError on bad input.
+
+        ``data`` is an encoded PNG/JPEG, or already validated 8-bit grayscale pixels (a ROS 2
+        sensor_msgs/Image, checked by service/ros2.py)."""
         t0 = time.perf_counter()
         s = session or self.session(robot_id)
         try:
-            image = decode_frame(data, content_type, self.settings.max_body_bytes,
-                                 self.settings.max_pixels)
+            image = data if isinstance(data, np.ndarray) else decode_frame(
+                data, content_type, self.settings.max_body_bytes, self.settings.max_pixels)
             if t is not None and not math.isfinite(t):
                 raise InvalidParameters("timestamp t must be a finite number of seconds")
             features = s.localizer.extract(image)

@@ -31,6 +31,34 @@ class Settings(BaseSettings):
     zenoh_listen: list[str] = Field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
     zenoh_multicast_scouting: bool = True
     zenoh_prefix: str = "swarmloc"
+    # ROS 2 over Zenoh (service/ros2.py): topic templates, {robot} = the robot's namespace
+    ros2_enabled: bool = Field(False, description="serve ROS 2 CDR messages on Zenoh too")
+    ros2_key_format: Literal["ros2dds", "rmw_zenoh"] = Field(
+        "ros2dds", description="zenoh-bridge-ros2dds keys, or rmw_zenoh's "
+        "<domain>/<topic>/<type>/<hash> keys with its attachment")
+    ros2_domain_id: int = Field(0, ge=0, description="ROS_DOMAIN_ID (rmw_zenoh keys only)")
+    ros2_distro: Literal["humble", "jazzy"] = Field(
+        "jazzy", description="rmw_zenoh type hash in published keys: RIHS01 (jazzy and "
+        "later) or Humble's 'TypeHashNotSupported'")
+    ros2_compressed_image_topic: str = Field(
+        "{robot}/camera/image_raw/compressed",
+        description="sensor_msgs/CompressedImage frames in ('' disables)")
+    ros2_image_topic: str = Field("{robot}/camera/image_raw",
+                                  description="sensor_msgs/Image frames in ('' disables)")
+    ros2_pose_topic: str = Field("{robot}/swarmloc/pose",
+                                 description="geometry_msgs/PoseWithCovarianceStamped out")
+    ros2_status_topic: str = Field("{robot}/swarmloc/status",
+                                   description="diagnostic_msgs/DiagnosticStatus out")
+    ros2_initialpose_topic: str = Field(
+        "{robot}/initialpose",
+        description="geometry_msgs/PoseWithCovarianceStamped in: reset near it ('' disables)")
+    ros2_default_robot: str = Field("robot", description="robot id when a topic template "
+                                    "has no {robot}")
+    ros2_frame_id: str | None = Field(None, description="frame_id of the poses "
+                                      "(default: the map name)")
+    ros2_speed_sigma_mps: float = Field(
+        0.3, gt=0, description="speed uncertainty behind the reported yaw variance: "
+        "atan(sigma / speed)^2, uniform (pi^2/3) below sigma")
 
     @property
     def frame_workers(self) -> int:

@@ -13,6 +13,9 @@ Keys (prefix ``swarmloc`` by default):
                                  ``{"action": "reset", "x", "y", "radius"}``,
                                  ``{"action": "delete"}`` or ``{"action": "get"}``.
 
+With ``ros2_enabled`` the same session also speaks ROS 2 (CDR messages on the keys of
+``zenoh-bridge-ros2dds`` or ``rmw_zenoh``): see service/ros2.py, imported only then.
+
 A session is created on the first frame with the default map if no control message made one.
 Frames that arrive while the robot's previous frame is still being processed wait in a
 one-frame slot: a newer frame replaces the waiting one (counted as dropped), so a robot always
@@ -22,11 +25,14 @@ gets the estimate of its newest frame and never a growing backlog.
 from __future__ import annotations
 
 import json
+import logging
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import zenoh
 from pydantic import ValidationError
 
@@ -34,6 +40,8 @@ from service.errors import BadRequest, InvalidParameters, ServiceError
 from service.models import PosePrior, SessionConfig
 from service.sessions import LocalizationService
 from service.settings import Settings
+
+log = logging.getLogger("swarmloc")
 
 
 def zenoh_config(settings: Settings) -> zenoh.Config:
@@ -50,8 +58,10 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
 
 @dataclass
 class _Frame:
-    data: bytes
+    data: bytes | np.ndarray  # encoded image, or grayscale pixels (ROS 2 sensor_msgs/Image)
     meta: dict[str, Any]
+    content_type: str | None = None
+    reply: Callable[[dict[str, Any]], None] | None = None  # also answer here (ROS 2)
 
 
 def parse_attachment(raw: bytes | None) -> dict[str, Any]:
@@ -106,6 +116,11 @@ class ZenohBridge:
             s.declare_queryable(f"{p}/*/localize", self._on_localize),
             s.declare_queryable(f"{p}/*/control", self._on_control),
         ]
+        if self.settings.ros2_enabled:
+            from service.ros2 import Ros2Endpoints
+
+            ros2 = Ros2Endpoints(self.settings, self.service, self.submit_frame, self._publish)
+            self._decls += ros2.declare(s)
         return self
 
     def close(self) -> None:
@@ -138,8 +153,8 @@ class ZenohBridge:
         try:
             t, seq, prior = _frame_args(frame.meta)
             session = self.service.ensure_session(robot)
-            est = self.service.process_frame(robot, frame.data, None, t, prior, "zenoh",
-                                             session, seq)
+            est = self.service.process_frame(robot, frame.data, frame.content_type, t, prior,
+                                             "zenoh", session, seq)
             return est.model_dump(mode="json")
         except ServiceError as exc:
             return error_body(exc, robot, seq)
@@ -156,10 +171,16 @@ class ZenohBridge:
             self.service.metrics.rejected.labels(type(exc).__name__).inc()
             self._publish(robot, error_body(exc, robot))
             return
+        self.submit_frame(robot, data, meta)
+
+    def submit_frame(self, robot: str, data: bytes | np.ndarray, meta: dict[str, Any],
+                     content_type: str | None = None,
+                     reply: Callable[[dict[str, Any]], None] | None = None) -> None:
+        """Queue a frame in the robot's one-frame slot (newest wins) and process it."""
         with self._lock:
             if self._slots.get(robot) is not None:
                 self.service.metrics.dropped.inc()  # a newer frame replaces the waiting one
-            self._slots[robot] = _Frame(data, meta)
+            self._slots[robot] = _Frame(data, meta, content_type, reply)
             if robot in self._busy:
                 return
             self._busy.add(robot)
@@ -173,7 +194,13 @@ class ZenohBridge:
                 if frame is None:
                     self._busy.discard(robot)
                     return
-            self._publish(robot, self._localize(robot, frame))
+            body = self._localize(robot, frame)
+            self._publish(robot, body)
+            if frame.reply is not None:
+                try:
+                    frame.reply(body)
+                except Exception:  # a failing ROS answer must not stop this robot's frames
+                    log.exception("ROS 2 answer for robot %s failed", robot)
 
     # ---- request/response ---------------------------------------------------------------
     def _on_localize(self, query: zenoh.Query) -> None:
