@@ -18,6 +18,8 @@ from service.settings import Settings
 from service.zenoh_bridge import ZenohBridge
 
 log = logging.getLogger("swarmloc")
+# open event streams (GET /events) never end by themselves: stop waiting for them after this
+SHUTDOWN_GRACE_S = 2.0
 
 
 def build_app(settings: Settings) -> FastAPI:
@@ -32,7 +34,8 @@ def run(settings: Settings) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     app = build_app(settings)
     log.info("maps loaded from %s: %s", settings.maps_dir, sorted(app.state.service.maps))
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info",
+                timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -49,7 +52,8 @@ def running_server(service: LocalizationService, zenoh: bool = True,
     s = service.settings
     hooks = [ZenohBridge(service)] if zenoh else []
     server = uvicorn.Server(uvicorn.Config(create_app(service, lifespan_hooks=hooks),
-                                           host=s.host, port=s.port, log_level="warning"))
+                                           host=s.host, port=s.port, log_level="warning",
+                                           timeout_graceful_shutdown=SHUTDOWN_GRACE_S))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + timeout_s

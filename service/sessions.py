@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from service.errors import Conflict, InvalidParameters, NotFound, Unavailable
+from service.events import EventHub
 from service.imaging import decode_frame
 from service.localizer import Localizer
 from service.metrics import Metrics
@@ -46,6 +47,7 @@ class LocalizationService:
                  metrics: Metrics | None = None) -> None:
         self.settings = settings
         self.metrics = metrics or Metrics()
+        self.events = EventHub(self.metrics)  # the estimate stream of GET /events
         self.maps: dict[str, RouteMap] = maps if maps is not None else {}
         self.load_errors: dict[str, str] = {}
         self._sessions: dict[str, Session] = {}
@@ -148,6 +150,7 @@ class LocalizationService:
             if self._sessions.pop(robot_id, None) is None:
                 raise NotFound(f"no session for robot '{robot_id}'")
             self.metrics.sessions.set(len(self._sessions))
+        self.events.remove(robot_id)
 
     def reset_session(self, robot_id: str, near: PosePrior | None) -> SessionInfo:
         s = self.session(robot_id)
@@ -170,6 +173,8 @@ class LocalizationService:
                 del self._sessions[rid]
             self.metrics.sessions.set(len(self._sessions))
         self.metrics.expired.inc(len(gone))
+        for rid in gone:
+            self.events.remove(rid)
         return gone
 
     # ---- frames -------------------------------------------------------------------------
@@ -195,13 +200,17 @@ class LocalizationService:
                 if t is not None:
                     s.last_t = t
                 s.last_used = time.time()
+                particles = self.events.particles_due(robot_id, s.localizer)
         except Exception as exc:
             self.metrics.rejected.labels(type(exc).__name__).inc()
             raise
         self.metrics.frames.labels(transport).inc()
         self.metrics.comparisons.inc(est.comparisons)
-        self.metrics.latency.labels(transport).observe(time.perf_counter() - t0)
-        return est.model_copy(update={"robot_id": robot_id, "input_seq": input_seq})
+        elapsed = time.perf_counter() - t0
+        self.metrics.latency.labels(transport).observe(elapsed)
+        est = est.model_copy(update={"robot_id": robot_id, "input_seq": input_seq})
+        self.events.publish(est, elapsed, particles)
+        return est
 
 
 def _check_robot_id(robot_id: str) -> None:
