@@ -34,6 +34,9 @@ export class Fleet {
       const inst = (m.seq - prev.seq) / (m.wall - prev.wall);
       r.fps = r.fps === null ? inst : (1 - FPS_ALPHA) * r.fps + FPS_ALPHA * inst;
     }
+    if (prev && m.seq === prev.seq && m.latency_ms === null) {
+      m.latency_ms = prev.latency_ms; // a reconnect's snapshot does not know the latency
+    }
     if (!prev || m.seq !== prev.seq) {
       r.trail.push(m.x, m.y);
       if (r.trail.length > 2 * TRAIL) r.trail.splice(0, r.trail.length - 2 * TRAIL);
