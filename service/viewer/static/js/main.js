@@ -19,7 +19,7 @@ const watched = new Set(); // robots whose particles are streamed, or "*"
 let selected = null;
 let mapName = null;
 let stream = null;
-const stats = { draws: 0, drawMs: 0, lastDrawMs: 0 };
+const stats = { draws: 0, drawMs: 0, lastDrawMs: 0, drawTimes: [] }; // for benchmarks
 
 function api(path) {
   return fetch(path, { headers: token ? { Authorization: `Bearer ${token}` } : {} })
@@ -78,6 +78,8 @@ function frame() {
     stats.lastDrawMs = performance.now() - t0;
     stats.drawMs = stats.draws ? 0.9 * stats.drawMs + 0.1 * stats.lastDrawMs : stats.lastDrawMs;
     stats.draws += 1;
+    stats.drawTimes.push(stats.lastDrawMs);
+    if (stats.drawTimes.length > 2000) stats.drawTimes.splice(0, 1000);
   }
   requestAnimationFrame(frame);
 }
