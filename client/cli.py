@@ -239,6 +239,10 @@ def replay_cmd(
         client = connect(via, token)
     except ValueError as exc:
         _fail(str(exc))
+    if via.startswith(("http://", "https://")):
+        typer.echo(f"watch it live: {via.rstrip('/')}/viewer"
+                   + (f"?map={map_name}" if map_name else "")
+                   + (" (add the token: &token=... or ?token=...)" if token else ""))
     try:
         runs = replay(client, rnd, cfg, robot_id, progress=True)
         route = _route_positions(client, map_name, rnd)

@@ -50,7 +50,7 @@ def _noise_png(seed: int) -> bytes:
 
 
 def screenshot(maps_dir: Path, round_dir: Path, out: Path, map_name: str | None = None,
-               robots: int = 6, frames: int = 16, width: int = 1280, height: int = 760) -> Path:
+               robots: int = 6, frames: int = 24, width: int = 1280, height: int = 760) -> Path:
     """A fleet on a real server, seen by the viewer: tracking robots, one recovering (its
     particles shown), one lost (PF-l), all fed real frames of ``round_dir`` over HTTP."""
     from client.dataset import read_round

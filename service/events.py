@@ -177,7 +177,10 @@ class EventHub:
         now = time.monotonic()
         if now - self._last_particles.get(robot_id, -math.inf) < self.particle_interval_s:
             return None
-        xy = localizer.estimator.particles()
+        try:
+            xy = localizer.estimator.particles()
+        except NotImplementedError:  # an estimator without particles: nothing to show
+            return None
         if xy is None:
             return None
         self._last_particles[robot_id] = now
