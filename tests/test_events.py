@@ -9,9 +9,10 @@ from collections.abc import Iterator
 import httpx
 import numpy as np
 import pytest
+from pydantic import BaseModel
 
 from client.transports import HttpClient, ZenohClient
-from service.events import EventHub
+from service.events import EventHub, estimate_message
 from service.metrics import Metrics
 from service.models import Estimate
 from service.server import free_port, running_server
@@ -27,6 +28,25 @@ def _estimate(robot: str, seq: int, x: float = 1.0) -> Estimate:
                     comparisons=12, covariance=[[1.0, 0.0], [0.0, 1.0]],
                     pose_covariance=[0.0] * 36, accuracy_m=1.5, nearest_image=3,
                     nearest_image_name="3.png", spread_m=1.0, robot_id=robot)
+
+
+class _Hypothesis(BaseModel):
+    x: float
+    y: float
+    weight: float
+
+
+class _EstimateWithHypotheses(Estimate):  # the field the estimators are getting
+    hypotheses: list[_Hypothesis]
+
+
+def test_hypotheses_are_streamed_when_the_estimate_has_them() -> None:
+    base = _estimate("a", 1).model_dump()
+    est = _EstimateWithHypotheses(**base, hypotheses=[_Hypothesis(x=1.234, y=5.0, weight=0.7),
+                                                      _Hypothesis(x=-3.0, y=2.0, weight=0.3)])
+    msg = json.loads(estimate_message(est, 1.0, None))
+    assert msg["hypotheses"] == [[1.23, 5.0, 0.7], [-3.0, 2.0, 0.3]]
+    assert "hypotheses" not in json.loads(estimate_message(_estimate("a", 1), 1.0, None))
 
 
 class _Estimator:
