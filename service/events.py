@@ -116,12 +116,20 @@ class Subscriber:
             self._signalled = True
         self._loop.call_soon_threadsafe(self._ready.set)
 
-    async def take(self, timeout: float) -> list[str]:
-        """Everything pending, in order (waits up to ``timeout``; [] when nothing came)."""
+    def close(self) -> None:
+        """End the stream (any thread): ``take`` returns None from now on."""
+        self.closed = True
+        self._loop.call_soon_threadsafe(self._ready.set)
+
+    async def take(self, timeout: float) -> list[str] | None:
+        """Everything pending, in order (waits up to ``timeout``; [] when nothing came, None
+        once the subscriber is closed)."""
         try:
             await asyncio.wait_for(self._ready.wait(), timeout)
         except TimeoutError:
             return []
+        if self.closed:
+            return None
         with self._lock:
             out = list(self._pending.values())
             self._pending = {}
@@ -203,6 +211,11 @@ class EventHub:
                     s.offer("p", robot, pmsg)
         self.metrics.events_published.inc()
 
+    def close(self) -> None:
+        """End every open stream (the server is shutting down)."""
+        for s in self._subs:
+            s.close()
+
     def remove(self, robot_id: str) -> None:
         """Tell every viewer that a robot's session is gone (deleted or expired)."""
         self._last_particles.pop(robot_id, None)
@@ -227,6 +240,8 @@ async def sse_stream(service: LocalizationService, map_name: str | None,
             yield _frame(initial)
         while True:
             msgs = await sub.take(keepalive_s)
+            if msgs is None:
+                return
             if msgs:
                 hub.metrics.events_sent.inc(len(msgs))
                 yield _frame(msgs)

@@ -173,3 +173,37 @@ def test_sse_stream_over_http_carries_both_transports(guarded_server, sunny2) ->
     finally:
         api.close()
         z.close()
+
+
+def test_shutdown_ends_open_streams_cleanly(tmp_path, small_map) -> None:
+    """Open streams end with a complete response when the server stops (not cut off)."""
+    import threading
+
+    from service.route_map import save_map
+
+    save_map(small_map, tmp_path / "small")
+    settings = Settings(maps_dir=tmp_path, host="127.0.0.1", port=free_port(),
+                        zenoh_enabled=False)
+    service = LocalizationService(settings)
+    outcome: dict = {}
+
+    def read(url: str) -> None:
+        try:
+            with httpx.stream("GET", f"{url}/events", timeout=30) as resp:
+                outcome["lines"] = list(resp.iter_lines())
+        except Exception as exc:  # a cut-off stream raises RemoteProtocolError here
+            outcome["error"] = exc
+
+    with running_server(service, zenoh=False) as url:
+        reader = threading.Thread(target=read, args=(url,))
+        reader.start()
+        deadline = 200
+        while service.events.subscribers == 0 and deadline:
+            threading.Event().wait(0.05)
+            deadline -= 1
+        assert service.events.subscribers == 1
+    reader.join(30)
+    assert not reader.is_alive()
+    assert "error" not in outcome, outcome.get("error")
+    assert outcome["lines"][0] == "retry: 2000"
+    assert service.events.subscribers == 0
