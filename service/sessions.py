@@ -127,6 +127,8 @@ class LocalizationService:
             s = Session(robot_id, loc, now, now)
             self._sessions[robot_id] = s
             self.metrics.sessions.set(len(self._sessions))
+        if not created:  # viewers drop the old session (it may have been on another map)
+            self.events.remove(robot_id)
         return s.info(), created
 
     def session(self, robot_id: str) -> Session:
