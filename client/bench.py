@@ -157,3 +157,128 @@ def bench_ros2(seed: int = 0, repeats: int = 200) -> Ros2Bench:
         _median_ms(lambda: codec.pose(est, Stamp(1, 0), "map", 0.3), repeats),
         _median_ms(lambda: codec.status("robot1", body), repeats),
         _median_ms(lambda: extract(img), 15))
+# ---- event stream -----------------------------------------------------------------------
+@dataclass
+class EventsBench:
+    condition: str
+    frames: int
+    frame_ms_p50: float  # process_frame (decode, SIFT, estimator, publish), median
+    hook_us_p50: float  # particles_due + publish alone, median
+    hook_us_mean: float  # the same, mean (includes the rate-limited particle snapshots)
+    messages: int  # event messages the viewer received
+    bytes_per_estimate: float
+
+
+class _SseViewer:
+    """A viewer on GET /events in a thread: reads and counts what arrives."""
+
+    def __init__(self, url: str, params: dict) -> None:
+        import threading
+
+        self.messages = 0
+        self.estimate_bytes = 0
+        self.estimates = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(url, params), daemon=True)
+        self._thread.start()
+
+    def _run(self, url: str, params: dict) -> None:
+        import json
+
+        import httpx
+
+        with httpx.stream("GET", f"{url}/events", params=params, timeout=60) as resp:
+            for line in resp.iter_lines():
+                if self._stop.is_set():
+                    return
+                if line.startswith("data:"):
+                    for m in json.loads(line[5:])["m"]:
+                        self.messages += 1
+                        if m["k"] == "e":
+                            self.estimates += 1
+                            self.estimate_bytes += len(json.dumps(m, separators=(",", ":")))
+
+    def close(self) -> None:
+        self._stop.set()
+
+
+def bench_events(maps_dir: str, round_dir: str, frames: int = 150, block: int = 25,
+                 hook_calls: int = 400, seed: int = 0) -> list[EventsBench]:
+    """Cost of the event stream per frame: no viewer, one viewer, one viewer with particles.
+
+    Frames go through ``LocalizationService.process_frame`` (the code both transports call,
+    with the stream's hook in it) of a real server whose /events is read by a real HTTP
+    client in a thread. Conditions alternate in blocks of ``block`` frames so drift hits
+    all of them alike. The hook alone (``particles_due`` + ``publish``) is timed apart,
+    ``hook_calls`` times per condition, one call per millisecond.
+    """
+    from client.dataset import read_round
+    from service.models import SessionConfig
+    from service.server import free_port, running_server
+    from service.sessions import LocalizationService
+    from service.settings import Settings
+
+    rnd = read_round(round_dir)
+    data = [rnd.image_path(i % len(rnd)).read_bytes() for i in range(frames)]
+    settings = Settings(maps_dir=maps_dir, host="127.0.0.1", port=free_port(),
+                        zenoh_enabled=False)
+    service = LocalizationService(settings)
+    hub = service.events
+    conditions = {"no viewer": None, "one viewer": {},
+                  "one viewer + particles": {"particles": "bench"}}
+    frame_ms: dict[str, list[float]] = {c: [] for c in conditions}
+    hook_us: dict[str, list[float]] = {c: [] for c in conditions}
+    received = dict.fromkeys(conditions, 0)
+    est_bytes = dict.fromkeys(conditions, 0.0)
+    with running_server(service, zenoh=False) as url:
+        service.put_session("bench", SessionConfig(estimator="dpso", seed=seed))
+        session = service.session("bench")
+        k = 0
+
+        def frame() -> float:
+            nonlocal k
+            t0 = time.perf_counter()
+            service.process_frame("bench", data[k % frames], None, float(k), session=session)
+            k += 1
+            return 1e3 * (time.perf_counter() - t0)
+
+        def hook() -> float:
+            est = session.localizer.last.model_copy(update={"robot_id": "bench"})
+            t0 = time.perf_counter()
+            with session.lock:
+                xy = hub.particles_due("bench", session.localizer)
+            hub.publish(est, 0.02, xy)
+            return 1e6 * (time.perf_counter() - t0)
+
+        frame()
+        rounds = max(1, frames // (block * len(conditions)))
+        for _ in range(rounds):
+            for name, params in conditions.items():
+                viewer = _SseViewer(url, params) if params is not None else None
+                if viewer is not None:
+                    _wait(lambda: hub.subscribers == 1)
+                for _ in range(block):
+                    frame_ms[name].append(frame())
+                    time.sleep(0.01)  # the event loop writes to the viewer meanwhile
+                for _ in range(hook_calls // rounds):
+                    hook_us[name].append(hook())
+                    time.sleep(0.001)
+                if viewer is not None:
+                    time.sleep(0.2)
+                    viewer.close()
+                    received[name] += viewer.messages
+                    if viewer.estimates:
+                        est_bytes[name] = viewer.estimate_bytes / viewer.estimates
+                    frame()  # the stream ends at its next message; the viewer sees it closed
+                    _wait(lambda: hub.subscribers == 0)
+    return [EventsBench(c, len(frame_ms[c]), float(np.median(frame_ms[c])),
+                        float(np.median(hook_us[c])), float(np.mean(hook_us[c])),
+                        received[c], est_bytes[c]) for c in conditions]
+
+
+def _wait(cond: Callable[[], bool], timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise RuntimeError("the event stream did not connect or close in time")
+        time.sleep(0.01)

@@ -374,6 +374,10 @@ def _replay(round_dir: Path, map_name: str | None, via: str, estimator: str,
         client = connect(via, token)
     except ValueError as exc:
         _fail(str(exc))
+    if via.startswith(("http://", "https://")):
+        typer.echo(f"watch it live: {via.rstrip('/')}/viewer"
+                   + (f"?map={map_name}" if map_name else "")
+                   + (" (add the token: &token=... or ?token=...)" if token else ""))
     try:
         runs = replay(client, rnd, cfg, robot_id, progress=True)
         route = _route_positions(client, map_name, rnd)
@@ -490,6 +494,66 @@ def bench_latency_cmd(
     for b in bench_latency(str(maps_dir), str(round_dir), frames):
         typer.echo(f"{b.transport:10s} {b.frames} frames: p50 {b.p50_ms:6.1f} ms, "
                    f"p99 {b.p99_ms:6.1f} ms, mean {b.mean_ms:6.1f} ms")
+
+
+@bench_app.command("events")
+def bench_events_cmd(
+    round_dir: Annotated[Path, typer.Argument(help="round whose frames are sent")],
+    maps_dir: Annotated[Path, typer.Option(help="maps the server loads")] = Path("maps"),
+    frames: int = 150,
+) -> None:
+    """Cost of the event stream (GET /events) per frame with no viewer and with one."""
+    from client.bench import bench_events
+
+    rows = bench_events(str(maps_dir), str(round_dir), frames)
+    for b in rows:
+        typer.echo(f"{b.condition:24s} {b.frames} frames: process_frame p50 "
+                   f"{b.frame_ms_p50:6.2f} ms; stream hook p50 {b.hook_us_p50:6.1f} us, mean "
+                   f"{b.hook_us_mean:6.1f} us; viewer got {b.messages} messages, "
+                   f"{b.bytes_per_estimate:.0f} B/estimate")
+    base = rows[0].frame_ms_p50
+    for b in rows[1:]:
+        typer.echo(f"{b.condition}: process_frame p50 {b.frame_ms_p50 - base:+.2f} ms "
+                   f"({100 * (b.frame_ms_p50 / base - 1):+.1f} %) against no viewer")
+
+
+@bench_app.command("viewer")
+def bench_viewer_cmd(
+    maps_dir: Annotated[Path, typer.Option(help="maps the server loads")] = Path("maps"),
+    map_name: Annotated[str | None, typer.Option("--map", help="map shown")] = None,
+    robots: int = 64,
+    fps: Annotated[float, typer.Option(help="estimates per robot per second")] = 5.0,
+    seconds: float = 10.0,
+) -> None:
+    """The viewer in headless Chromium under ROBOTS robots at FPS (synthetic estimates on the
+    real stream): animation-frame intervals, draw time, long tasks; without and with all
+    particles."""
+    from client.viewer_tools import bench_viewer
+
+    for particles in (False, True):
+        b = bench_viewer(maps_dir, map_name, robots, fps, seconds, particles)
+        typer.echo(f"{b.robots} robots x {b.fps:g}/s for {b.seconds:g} s"
+                   f"{' + all particles' if particles else ''}: published {b.published}, "
+                   f"page received {b.received} messages ({b.dropped} replaced by newer); "
+                   f"animation frame p50 {b.raf_ms_p50:.1f} ms p95 {b.raf_ms_p95:.1f} ms max "
+                   f"{b.raf_ms_max:.0f} ms; canvas draw p50 {b.draw_ms_p50:.2f} ms p95 "
+                   f"{b.draw_ms_p95:.2f} ms; long tasks (>50 ms) {b.long_tasks}")
+
+
+@app.command("viewer-screenshot")
+def viewer_screenshot_cmd(
+    round_dir: Annotated[Path, typer.Argument(help="round whose frames the robots send")],
+    out: Annotated[Path, typer.Option(help="PNG to write")] = Path("docs/viewer.png"),
+    maps_dir: Annotated[Path, typer.Option(help="maps the server loads")] = Path("maps"),
+    map_name: Annotated[str | None, typer.Option("--map", help="map shown")] = None,
+    robots: int = 6,
+) -> None:
+    """Write a PNG of the fleet viewer (headless Chromium) with robots streaming real frames:
+    the README's screenshot."""
+    from client.viewer_tools import screenshot
+
+    path = screenshot(maps_dir, round_dir, out, map_name, robots)
+    typer.echo(f"wrote {path} ({path.stat().st_size // 1024} KiB)")
 
 
 def _register_experiment() -> None:

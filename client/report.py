@@ -13,6 +13,7 @@ import numpy as np
 from client.dataset import Round
 from client.experiments import frames_until_within
 from client.replay import ReplayConfig, ReplayRun
+from client.report_html import render_html
 
 SCHEMA = "swarmloc-replay/1"
 BAD_STATUS = ("recovering", "lost")
@@ -156,7 +157,8 @@ def markdown(report: dict) -> str:
     if "kidnap_recover_frames_median" in s:
         lines.append(f"| kidnap: runs recovered, median frames | {s['kidnap_recovered']}/"
                      f"{s['runs']}, {f(s['kidnap_recover_frames_median'], '.0f')} |")
-    lines += ["", "![route](route.png)", "", "![error](error.png)", "",
+    lines += ["", "Play the run back in a browser: [report.html](report.html)",
+              "", "![route](route.png)", "", "![error](error.png)", "",
               "![comparisons](comparisons.png)", ""]
     return "\n".join(lines)
 
@@ -217,4 +219,6 @@ def write_report(report: dict, runs: list[ReplayRun], route_xy: np.ndarray, out:
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     (out / "report.md").write_text(markdown(report))
-    return [out / "report.json", out / "report.md", *plot(runs, route_xy, out)]
+    (out / "report.html").write_text(render_html(report, runs, route_xy))
+    return [out / "report.json", out / "report.md", out / "report.html",
+            *plot(runs, route_xy, out)]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import hmac
 from collections.abc import AsyncIterator
 from typing import Annotated
 
@@ -14,7 +13,9 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from service import __version__
-from service.errors import PayloadTooLarge, ServiceError, Unauthorized
+from service.auth import bearer_guard
+from service.errors import PayloadTooLarge, ServiceError
+from service.events import events_router
 from service.models import (
     ErrorBody,
     Estimate,
@@ -26,6 +27,7 @@ from service.models import (
     SessionInfo,
 )
 from service.sessions import LocalizationService
+from service.viewer import add_viewer
 
 _ERRORS = {code: {"model": ErrorBody} for code in (400, 401, 404, 409, 413, 415, 422, 503)}
 _IMAGE_BODY = {
@@ -63,18 +65,11 @@ def create_app(service: LocalizationService, *, expire_every_s: float | None = N
     app.state.service = service
     limiter = anyio.CapacityLimiter(settings.frame_workers)
 
-    async def auth(request: Request) -> None:
-        token = settings.auth_token
-        if not token:
-            return
-        header = request.headers.get("authorization", "")
-        scheme, _, given = header.partition(" ")
-        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip(), token):
-            service.metrics.rejected.labels("unauthorized").inc()
-            raise Unauthorized("missing or wrong bearer token: send 'Authorization: Bearer "
-                               "<SWARMLOC_AUTH_TOKEN>'")
-
+    auth = bearer_guard(settings, service.metrics)
     guarded = [Depends(auth)]
+    browser_auth = bearer_guard(settings, service.metrics, allow_query=True)
+    app.include_router(events_router(service, browser_auth))
+    add_viewer(app, browser_auth)
 
     @app.exception_handler(ServiceError)
     async def service_error(_: Request, exc: ServiceError) -> JSONResponse:

@@ -26,6 +26,17 @@ class Metrics:
                                "Stale Zenoh frames dropped (a newer one arrived first)",
                                registry=r)
         self.maps = Gauge("swarmloc_maps_loaded", "Maps loaded", registry=r)
+        self.event_subscribers = Gauge("swarmloc_event_subscribers",
+                                       "Viewers connected to GET /events", registry=r)
+        self.events_published = Counter("swarmloc_events_published_total",
+                                        "Estimates handed to the event stream (with viewers)",
+                                        registry=r)
+        self.events_sent = Counter("swarmloc_events_sent_total",
+                                   "Event messages written to viewers", registry=r)
+        self.events_dropped = Counter(
+            "swarmloc_events_dropped_total",
+            "Estimates replaced by a newer one of the same robot before a viewer got them",
+            registry=r)
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

@@ -18,6 +18,21 @@ from service.settings import Settings
 from service.zenoh_bridge import ZenohBridge
 
 log = logging.getLogger("swarmloc")
+# the longest uvicorn waits for open responses at shutdown
+SHUTDOWN_GRACE_S = 2.0
+
+
+class _Server(uvicorn.Server):
+    """uvicorn that ends the open event streams (GET /events) when it shuts down: they
+    never end by themselves, and uvicorn waits for open responses before it stops."""
+
+    def __init__(self, config: uvicorn.Config, service: LocalizationService) -> None:
+        super().__init__(config)
+        self._service = service
+
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        self._service.events.close()
+        await super().shutdown(sockets)
 
 
 def build_app(settings: Settings) -> FastAPI:
@@ -32,7 +47,9 @@ def run(settings: Settings) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     app = build_app(settings)
     log.info("maps loaded from %s: %s", settings.maps_dir, sorted(app.state.service.maps))
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
+    _Server(uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info",
+                           timeout_graceful_shutdown=SHUTDOWN_GRACE_S),
+            app.state.service).run()
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -48,8 +65,9 @@ def running_server(service: LocalizationService, zenoh: bool = True,
     URL and stops the server on exit. Used by the latency benchmark and the tests."""
     s = service.settings
     hooks = [ZenohBridge(service)] if zenoh else []
-    server = uvicorn.Server(uvicorn.Config(create_app(service, lifespan_hooks=hooks),
-                                           host=s.host, port=s.port, log_level="warning"))
+    server = _Server(uvicorn.Config(create_app(service, lifespan_hooks=hooks),
+                                    host=s.host, port=s.port, log_level="warning",
+                                    timeout_graceful_shutdown=SHUTDOWN_GRACE_S), service)
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + timeout_s

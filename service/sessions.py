@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from service.errors import Conflict, InvalidParameters, NotFound, Unavailable
+from service.events import EventHub
 from service.imaging import decode_frame
 from service.localizer import Localizer
 from service.metrics import Metrics
@@ -48,6 +49,7 @@ class LocalizationService:
                  metrics: Metrics | None = None) -> None:
         self.settings = settings
         self.metrics = metrics or Metrics()
+        self.events = EventHub(self.metrics)  # the estimate stream of GET /events
         self.maps: dict[str, RouteMap] = maps if maps is not None else {}
         self.load_errors: dict[str, str] = {}
         self._sessions: dict[str, Session] = {}
@@ -127,6 +129,8 @@ class LocalizationService:
             s = Session(robot_id, loc, now, now)
             self._sessions[robot_id] = s
             self.metrics.sessions.set(len(self._sessions))
+        if not created:  # viewers drop the old session (it may have been on another map)
+            self.events.remove(robot_id)
         return s.info(), created
 
     def session(self, robot_id: str) -> Session:
@@ -150,6 +154,7 @@ class LocalizationService:
             if self._sessions.pop(robot_id, None) is None:
                 raise NotFound(f"no session for robot '{robot_id}'")
             self.metrics.sessions.set(len(self._sessions))
+        self.events.remove(robot_id)
 
     def reset_session(self, robot_id: str, near: PosePrior | None) -> SessionInfo:
         s = self.session(robot_id)
@@ -172,6 +177,8 @@ class LocalizationService:
                 del self._sessions[rid]
             self.metrics.sessions.set(len(self._sessions))
         self.metrics.expired.inc(len(gone))
+        for rid in gone:
+            self.events.remove(rid)
         return gone
 
     # ---- frames -------------------------------------------------------------------------
@@ -200,13 +207,17 @@ class LocalizationService:
                 if t is not None:
                     s.last_t = t
                 s.last_used = time.time()
+                particles = self.events.particles_due(robot_id, s.localizer)
         except Exception as exc:
             self.metrics.rejected.labels(type(exc).__name__).inc()
             raise
         self.metrics.frames.labels(transport).inc()
         self.metrics.comparisons.inc(est.comparisons)
-        self.metrics.latency.labels(transport).observe(time.perf_counter() - t0)
-        return est.model_copy(update={"robot_id": robot_id, "input_seq": input_seq})
+        elapsed = time.perf_counter() - t0
+        self.metrics.latency.labels(transport).observe(elapsed)
+        est = est.model_copy(update={"robot_id": robot_id, "input_seq": input_seq})
+        self.events.publish(est, elapsed, particles)
+        return est
 
 
 def _check_robot_id(robot_id: str) -> None:

@@ -39,3 +39,18 @@ def test_ci_runs_the_readme_test_command() -> None:
     test_cmd = blocks[1].strip()
     ci = (ROOT / ".ci" / "run").read_text()
     assert test_cmd in ci
+
+
+def test_the_wheel_ships_the_viewer_files(tmp_path: Path) -> None:
+    """`pip install .` must serve /viewer: its static files are package data."""
+    import sys
+    import zipfile
+
+    res = subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "-q",
+                          "-w", str(tmp_path)], capture_output=True, text=True, check=False)
+    assert res.returncode == 0, res.stdout + res.stderr
+    names = set(zipfile.ZipFile(next(tmp_path.glob("swarmloc-*.whl"))).namelist())
+    static = ROOT / "service" / "viewer" / "static"
+    files = [p.relative_to(ROOT).as_posix() for p in static.rglob("*") if p.is_file()]
+    assert "service/viewer/static/index.html" in files and len(files) >= 7
+    assert set(files) <= names, sorted(set(files) - names)

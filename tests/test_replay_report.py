@@ -52,7 +52,7 @@ def test_report_files_and_plots(reports, tmp_path: Path, small_map) -> None:
     for name in ("route.png", "error.png", "comparisons.png"):
         img = cv2.imread(str(tmp_path / name))
         assert img is not None and img.shape[0] > 100 and img.std() > 5
-    assert len(files) == 5
+    assert len(files) == 6
 
 
 def test_baseline_catches_a_worse_configuration(reports, server, sunny2) -> None:

@@ -67,6 +67,7 @@ def test_multi_condition_map_compares_each_layer(tmp_path: Path, sunny1, cloudy1
     loaded = load_map(save_map(m, tmp_path / "two"))
     assert loaded.n_layers == 2 and loaded.layers.tolist() == [0] * 10 + [1] * 10
     ids, dist = loaded.nearest_per_layer(sunny1.xy[idx[:3]])
+    assert dist.shape == (3, 2) and (dist[:, 0] < 1.0).all()
     assert ids.shape == (3, 2) and (ids[:, 0] < 10).all() and (ids[:, 1] >= 10).all()
     # a cloudy frame: both layers are compared, the cloudy image of its place wins
     f = extract(cloudy1.load_image(25))
