@@ -106,7 +106,8 @@ def _time_frames(name: str, client: Client, data: list[bytes], seed: int) -> Lat
 
 
 def bench_build_latency(maps_dir: str, round_dir: str, frames: int = 150, fps: float = 5.0,
-                        seed: int = 0) -> tuple[list[LatencyBench], float, str]:
+                        seed: int = 0, duty: float = 0.5
+                        ) -> tuple[list[LatencyBench], float, str]:
     """Frame latency of one robot streaming over HTTP at ``fps``, first with no build, then
     while the service builds a map from ``round_dir`` (real server; the maps are copied to a
     temporary folder). Returns both latencies, the build's duration (s) and its final state."""
@@ -131,7 +132,7 @@ def bench_build_latency(maps_dir: str, round_dir: str, frames: int = 150, fps: f
             shutil.copy(f, maps / f.name)
         archive = zip_round(round_dir, Path(tmp) / "round.zip")
         settings = Settings(maps_dir=maps, host="127.0.0.1", port=free_port(),
-                            zenoh_enabled=False)
+                            zenoh_enabled=False, build_duty=duty)
         with running_server(LocalizationService(settings), zenoh=False) as url:
             client = HttpClient(url)
             try:

@@ -476,16 +476,19 @@ def bench_build_latency_cmd(
     = Path("maps"),
     frames: Annotated[int, typer.Option(help="frames without a build")] = 150,
     fps: Annotated[float, typer.Option(help="robot frame rate (0: back to back)")] = 5.0,
+    duty: Annotated[float, typer.Option(help="the build's duty cycle [SWARMLOC_BUILD_DUTY]")]
+    = 0.5,
 ) -> None:
     """Frame latency p50/p99 of a streaming robot (HTTP) without and during a map build."""
     from client.bench import bench_build_latency
 
-    benches, build_s, state = bench_build_latency(str(maps_dir), str(round_dir), frames, fps)
+    benches, build_s, state = bench_build_latency(str(maps_dir), str(round_dir), frames, fps,
+                                                  duty=duty)
     for b in benches:
         typer.echo(f"{b.transport:14s} {b.frames:4d} frames: p50 {b.p50_ms:6.1f} ms, "
                    f"p99 {b.p99_ms:6.1f} ms, mean {b.mean_ms:6.1f} ms")
     typer.echo(f"map build of {round_dir.name}: {state} in {build_s:.1f} s "
-               f"({fps:g} frames/s robot over HTTP)")
+               f"(duty {duty:g}; robot at {fps:g} frames/s over HTTP)")
 
 
 def _register_experiment() -> None:

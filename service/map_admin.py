@@ -161,6 +161,8 @@ class MapAdmin:
                 raise InvalidParameters(
                     f"the uploaded map is named '{m.name}' in its header, not '{name}'; upload "
                     f"it to /maps/{m.name} or rebuild it under the name '{name}'")
+            with staged.open("rb+") as fh:
+                os.fsync(fh.fileno())
             with self._lock:
                 self.check_preconditions(name, if_match, if_none_match)
                 final = self._file_of(name)
@@ -180,7 +182,12 @@ class MapAdmin:
         old = self.service.maps.get(name)
         if old is not None and old.path is not None and old.path.parent == self.directory:
             return old.path  # replace the file it was loaded from (its name may differ)
-        return self.directory / f"{name}{SUFFIX}"
+        path = self.directory / f"{name}{SUFFIX}"
+        other = [m.name for m in self.service.maps.values() if m.path == path]
+        if other:
+            raise Conflict(f"{path.name} holds the loaded map '{other[0]}'; delete that map "
+                           f"first or use another name than '{name}'")
+        return path
 
     def _register(self, m: RouteMap, source: str) -> bool:
         created = m.name not in self.service.maps

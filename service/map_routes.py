@@ -8,7 +8,6 @@ Bodies are streamed to a hidden temporary file in the maps directory under a siz
 from __future__ import annotations
 
 import contextlib
-import os
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Annotated, Any
@@ -45,7 +44,7 @@ def _check_type(request: Request, allowed: tuple[str, ...], what: str) -> None:
 
 
 async def _stage(request: Request, path: Path, limit: int, what: str) -> None:
-    """Stream the body into ``path`` (fsynced), refusing more than ``limit`` bytes."""
+    """Stream the body into ``path``, refusing more than ``limit`` bytes."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise PayloadTooLarge(f"{what} is {declared} bytes; the limit is {limit} bytes")
@@ -57,8 +56,6 @@ async def _stage(request: Request, path: Path, limit: int, what: str) -> None:
             if size > limit:
                 raise PayloadTooLarge(f"{what} is over the limit of {limit} bytes")
             await fh.write(chunk)
-        await fh.flush()
-        await anyio.to_thread.run_sync(os.fsync, fh.wrapped.fileno())
     if size == 0:
         raise BadRequest(f"empty body: send the {what}")
 

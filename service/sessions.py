@@ -110,7 +110,8 @@ class LocalizationService:
         robot's session at once end with one session, not one silently replacing the other.
         """
         _check_robot_id(robot_id)
-        route_map = self.get_map(config.map or self.default_map)
+        map_name = config.map or self.default_map
+        route_map = self.get_map(map_name)
         estimator = config.estimator or self.settings.default_estimator
         try:
             loc = Localizer(route_map, estimator, config.params, config.seed)
@@ -124,9 +125,8 @@ class LocalizationService:
             created = robot_id not in self._sessions
             if not created and not replace:
                 return self._sessions[robot_id].info(), False
-            if self.maps.get(route_map.name) is not route_map:
-                raise Conflict(f"map '{route_map.name}' was replaced or deleted meanwhile; "
-                               "retry")
+            if self.maps.get(map_name) is not route_map:
+                raise Conflict(f"map '{map_name}' was replaced or deleted meanwhile; retry")
             if created and len(self._sessions) >= self.settings.max_sessions:
                 self.metrics.rejected.labels("session_limit").inc()
                 raise Unavailable(f"session limit of {self.settings.max_sessions} reached; "
