@@ -362,13 +362,16 @@ def test_zenoh_map_operations_match_http(srv, map_files, small_round) -> None:
             srv.http.delete_map("alt")
         assert ez.value.status == eh.value.status == 409 and ez.value.message == eh.value.message
         assert z.delete_map("alt", force=True).ended_sessions == ["zbot"]
-        job = z.build_map_remote("zbuilt", zip_round(small_round,
-                                                     small_round.parent / "z.zip"))
+        buf = io.BytesIO()  # a .tar.gz this time
+        with tarfile.open(fileobj=buf, mode="w:gz") as tf:
+            tf.add(small_round, arcname="part")
+        job = z.build_map_remote("zbuilt", buf.getvalue())
         deadline = time.monotonic() + 120
         while job.state not in ("done", "failed") and time.monotonic() < deadline:
             time.sleep(0.1)
             job = z.job(job.id)
         assert job.state == "done" and z.map_info("zbuilt").checksum == job.checksum
+        assert job.done == job.total == 20
         with pytest.raises(SwarmlocError) as ez:
             z.job("nope")
         assert ez.value.status == 404
