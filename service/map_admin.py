@@ -163,6 +163,7 @@ class MapAdmin:
                     f"it to /maps/{m.name} or rebuild it under the name '{name}'")
             with staged.open("rb+") as fh:
                 os.fsync(fh.fileno())
+            staged.chmod(0o644)  # mkstemp made it private; maps are readable like save_map's
             with self._lock:
                 self.check_preconditions(name, if_match, if_none_match)
                 final = self._file_of(name)

@@ -89,16 +89,19 @@ class LocalizationService:
             raise NotFound(f"unknown map '{name}'; loaded maps: {sorted(self.maps)}") from None
 
     def map_summary(self, name: str) -> MapSummary:
-        s = self.get_map(name).summary()
+        return self._summary(self.get_map(name))
+
+    @staticmethod
+    def _summary(m: RouteMap) -> MapSummary:
+        s = m.summary()
         return MapSummary(name=s.pop("name"), n_images=s.pop("n_images"),
                           n_features=s.pop("n_features"), bounds=s.pop("bounds"),
-                          spacing_m=s.pop("spacing_m"), meta=s,
-                          checksum=self.maps[name].meta.get("checksum"),
+                          spacing_m=s.pop("spacing_m"), meta=s, checksum=m.meta.get("checksum"),
                           build_date=s.get("build_date"))
 
     def map_detail(self, name: str) -> MapDetail:
-        m = self.get_map(name)
-        return MapDetail(**self.map_summary(name).model_dump(),
+        m = self.get_map(name)  # one version for the summary and the positions
+        return MapDetail(**self._summary(m).model_dump(),
                          positions=m.positions.tolist(), image_names=m.image_names)
 
     # ---- sessions -----------------------------------------------------------------------
