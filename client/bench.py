@@ -108,9 +108,10 @@ def _time_frames(name: str, client: Client, data: list[bytes], seed: int) -> Lat
 def bench_build_latency(maps_dir: str, round_dir: str, frames: int = 150, fps: float = 5.0,
                         seed: int = 0, duty: float = 0.5
                         ) -> tuple[list[LatencyBench], float, str]:
-    """Frame latency of one robot streaming over HTTP at ``fps``, first with no build, then
-    while the service builds a map from ``round_dir`` (real server; the maps are copied to a
-    temporary folder). Returns both latencies, the build's duration (s) and its final state."""
+    """Frame latency of one robot streaming over HTTP at ``fps``: with no build, then while
+    the service builds a map from ``round_dir``, then with no build again (real server; the
+    maps are copied to a temporary folder). Returns the three latencies, the build's duration
+    (s) and its final state."""
     import shutil
     import tempfile
     from pathlib import Path
@@ -157,9 +158,11 @@ def bench_build_latency(maps_dir: str, round_dir: str, frames: int = 150, fps: f
                         job, polled = client.job(job.id), time.monotonic()
                 job = client.job(job.id)
                 build_s = (job.finished or 0.0) - (job.started or 0.0)
+                after = [frame() for _ in range(frames - 10)]  # brackets drifting load
             finally:
                 client.close()
-    return [_stats("no build", idle), _stats("during build", busy)], build_s, job.state
+    return ([_stats("no build", idle), _stats("during build", busy),
+             _stats("no build, after", after)], build_s, job.state)
 
 
 def _stats(name: str, times: list[float]) -> LatencyBench:

@@ -485,7 +485,7 @@ def bench_build_latency_cmd(
     benches, build_s, state = bench_build_latency(str(maps_dir), str(round_dir), frames, fps,
                                                   duty=duty)
     for b in benches:
-        typer.echo(f"{b.transport:14s} {b.frames:4d} frames: p50 {b.p50_ms:6.1f} ms, "
+        typer.echo(f"{b.transport:16s} {b.frames:4d} frames: p50 {b.p50_ms:6.1f} ms, "
                    f"p99 {b.p99_ms:6.1f} ms, mean {b.mean_ms:6.1f} ms")
     typer.echo(f"map build of {round_dir.name}: {state} in {build_s:.1f} s "
                f"(duty {duty:g}; robot at {fps:g} frames/s over HTTP)")
