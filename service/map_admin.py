@@ -52,6 +52,7 @@ if TYPE_CHECKING:
 TEMP_PREFIX = ".swarmloc-"  # hidden and without the .swmap suffix: never loaded as a map
 _NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
 _KEEP_JOBS = 100
+STALE_S = 24 * 3600.0
 
 
 def check_map_name(name: str) -> None:
@@ -109,6 +110,27 @@ class MapAdmin:
         self._jobs: dict[str, Job] = {}
         self._queue: queue.Queue[Job] = queue.Queue()
         self._worker: threading.Thread | None = None
+        self.remove_stale()
+
+    def remove_stale(self, older_than_s: float = STALE_S) -> list[str]:
+        """Remove temporary files and folders a crash left in the maps directory (only old
+        ones: another service on the same directory may be using fresh ones)."""
+        gone = []
+        if not self.directory.is_dir():
+            return gone
+        limit = time.time() - older_than_s
+        for p in self.directory.glob(f"{TEMP_PREFIX}*"):
+            try:
+                if p.lstat().st_mtime >= limit:
+                    continue
+                if p.is_dir():
+                    remove_tree(p)
+                else:
+                    p.unlink()
+                gone.append(p.name)
+            except OSError:
+                pass
+        return gone
 
     @property
     def directory(self) -> Path:

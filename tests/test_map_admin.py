@@ -403,3 +403,30 @@ def test_cli_push_pull_build_remote(srv, map_files, small_round, tmp_path: Path)
                    'swarmloc_map_loads_total{result="ok",source="build"}',
                    "swarmloc_map_deletes_total"):
         assert series in text, series
+
+
+def test_stale_temporaries_go_and_other_maps_files_stay(tmp_path: Path, small_map) -> None:
+    import dataclasses
+    import os
+
+    from service.errors import Conflict
+
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    save_map(small_map, maps / "x")  # x.swmap holds the map named "small"
+    old = maps / ".swarmloc-upload-1.part"
+    old.write_bytes(b"left by a crash")
+    os.utime(old, (time.time() - 2 * 86400,) * 2)
+    (maps / ".swarmloc-build-2").mkdir()
+    (maps / ".swarmloc-build-2" / "poses.csv").write_text("image,x,y\n")
+    os.utime(maps / ".swarmloc-build-2", (time.time() - 2 * 86400,) * 2)
+    fresh = maps / ".swarmloc-upload-3.part"  # another service's upload in progress
+    fresh.write_bytes(b"busy")
+    service = LocalizationService(Settings(maps_dir=maps, zenoh_enabled=False))
+    assert sorted(p.name for p in maps.iterdir()) == [fresh.name, "x.swmap"]
+    named_x = save_map(dataclasses.replace(small_map, name="x"), tmp_path / "up" / "x")
+    staged = service.admin.staging_file("upload")
+    staged.write_bytes(named_x.read_bytes())
+    with pytest.raises(Conflict, match=r"x\.swmap holds the loaded map 'small'"):
+        service.admin.install_upload("x", staged)
+    assert not staged.exists() and service.maps["small"].path == maps / "x.swmap"
