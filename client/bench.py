@@ -282,3 +282,69 @@ def _wait(cond: Callable[[], bool], timeout_s: float = 10.0) -> None:
         if time.monotonic() > deadline:
             raise RuntimeError("the event stream did not connect or close in time")
         time.sleep(0.01)
+
+
+def bench_build_latency(maps_dir: str, round_dir: str, frames: int = 150, fps: float = 5.0,
+                        seed: int = 0, duty: float = 0.5
+                        ) -> tuple[list[LatencyBench], float, str]:
+    """Frame latency of one robot streaming over HTTP at ``fps``: with no build, then while
+    the service builds a map from ``round_dir``, then with no build again (real server; the
+    maps are copied to a temporary folder). Returns the three latencies, the build's duration
+    (s) and its final state."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from client.dataset import read_round
+    from client.map_remote import zip_round
+    from client.transports import HttpClient
+    from service.server import free_port, running_server
+    from service.sessions import LocalizationService
+    from service.settings import Settings
+
+    rnd = read_round(round_dir)
+    data = [rnd.image_path(i).read_bytes() for i in range(len(rnd))]
+    period = 1.0 / fps if fps > 0 else 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        maps = Path(tmp) / "maps"
+        maps.mkdir()
+        for f in Path(maps_dir).glob("*.swmap"):
+            shutil.copy(f, maps / f.name)
+        archive = zip_round(round_dir, Path(tmp) / "round.zip")
+        settings = Settings(maps_dir=maps, host="127.0.0.1", port=free_port(),
+                            zenoh_enabled=False, build_duty=duty)
+        with running_server(LocalizationService(settings), zenoh=False) as url:
+            client = HttpClient(url)
+            try:
+                client.create_session("bench", None, "dpso", None, seed)
+                k = 0
+
+                def frame() -> float:
+                    nonlocal k
+                    t0 = time.perf_counter()
+                    client.localize("bench", data[k % len(data)], t=float(k))
+                    k += 1
+                    took = time.perf_counter() - t0
+                    time.sleep(max(0.0, period - took))
+                    return 1e3 * took
+
+                idle = [frame() for _ in range(frames)][10:]  # after global convergence
+                job = client.build_map_remote("bench-build", archive)
+                busy, polled = [], time.monotonic()
+                while job.state in ("queued", "running"):
+                    busy.append(frame())
+                    if time.monotonic() - polled > 1.0:
+                        job, polled = client.job(job.id), time.monotonic()
+                job = client.job(job.id)
+                build_s = (job.finished or 0.0) - (job.started or 0.0)
+                after = [frame() for _ in range(frames - 10)]  # brackets drifting load
+            finally:
+                client.close()
+    return ([_stats("no build", idle), _stats("during build", busy),
+             _stats("no build, after", after)], build_s, job.state)
+
+
+def _stats(name: str, times: list[float]) -> LatencyBench:
+    a = np.array(times)
+    return LatencyBench(name, len(a), float(np.percentile(a, 50)), float(np.percentile(a, 99)),
+                        float(a.mean()))

@@ -11,6 +11,7 @@ import typer
 
 if TYPE_CHECKING:
     from client.dataset import Round
+    from client.transports import HttpClient
 
 app = typer.Typer(help="swarmloc: visual localization service (SIFT maps + Dynamic PSO).",
                   no_args_is_help=True, pretty_exceptions_enable=False)
@@ -218,6 +219,138 @@ def map_info(path: Path) -> None:
     except MapError as exc:
         _fail(str(exc))
     typer.echo(json.dumps(m.summary(), indent=2))
+
+
+# ---- maps on a running service ----------------------------------------------------------
+def _remote(url: str, token: str | None) -> HttpClient:
+    from client.transports import HttpClient
+
+    return HttpClient(url, token)
+
+
+def _remote_fail(exc: Exception) -> None:
+    _fail(f"service error {getattr(exc, 'status', '?')}: {getattr(exc, 'message', exc)}")
+
+
+Url = Annotated[str, typer.Option("--to", help="service URL, e.g. http://127.0.0.1:8080")]
+Token = Annotated[str | None, typer.Option(help="bearer token [SWARMLOC_AUTH_TOKEN]",
+                                           envvar="SWARMLOC_AUTH_TOKEN")]
+
+
+@map_app.command("push")
+def map_push(
+    path: Path, to: Url,
+    name: Annotated[str | None, typer.Option(help="default: the name in the map's header")]
+    = None,
+    if_match: Annotated[str | None, typer.Option(help="replace only this version (ETag)")]
+    = None,
+    new: Annotated[bool, typer.Option(help="fail if the map exists (If-None-Match: *)")]
+    = False,
+    token: Token = None,
+) -> None:
+    """Upload a .swmap to a running service (new or replacing; no restart, no session lost)."""
+    from client.transports import SwarmlocError
+    from service.route_map import MapError, load_map
+
+    try:
+        local = load_map(path)
+    except MapError as exc:
+        _fail(str(exc))
+    client = _remote(to, token)
+    try:
+        summary, created = client.push_map(path, name or local.name, if_match,
+                                           "*" if new else None)
+    except SwarmlocError as exc:
+        _remote_fail(exc)
+    finally:
+        client.close()
+    typer.echo(f"{'created' if created else 'replaced'} map '{summary.name}' "
+               f"({summary.n_images} images), version {summary.checksum}")
+
+
+@map_app.command("pull")
+def map_pull(
+    name: str,
+    from_: Annotated[str, typer.Option("--from", help="service URL")],
+    out: Annotated[Path, typer.Option(help="file or folder")] = Path("."),
+    token: Token = None,
+) -> None:
+    """Download a map's current .swmap from a running service."""
+    from client.transports import SwarmlocError
+    from service.route_map import MapError, load_map
+
+    client = _remote(from_, token)
+    try:
+        path = client.pull_map(name, out)
+    except SwarmlocError as exc:
+        _remote_fail(exc)
+    finally:
+        client.close()
+    try:
+        m = load_map(path)
+    except MapError as exc:
+        _fail(f"downloaded file does not verify: {exc}")
+    typer.echo(f"wrote {path}: {m.n_images} images, version {m.meta['checksum']}")
+
+
+@map_app.command("delete")
+def map_delete(
+    name: str,
+    at: Annotated[str, typer.Option("--at", help="service URL")],
+    force: Annotated[bool, typer.Option(help="end the sessions on the map")] = False,
+    token: Token = None,
+) -> None:
+    """Delete a map on a running service (refused while sessions use it, unless --force)."""
+    from client.transports import SwarmlocError
+
+    client = _remote(at, token)
+    try:
+        res = client.delete_map(name, force)
+    except SwarmlocError as exc:
+        _remote_fail(exc)
+    finally:
+        client.close()
+    ended = f"; ended sessions {', '.join(res.ended_sessions)}" if res.ended_sessions else ""
+    typer.echo(f"deleted map '{name}'{ended}")
+
+
+@map_app.command("build-remote")
+def map_build_remote(
+    round_dir: Path, to: Url,
+    name: Annotated[str | None, typer.Option(help="map name (default: the round's name)")]
+    = None,
+    new: Annotated[bool, typer.Option(help="fail if the map exists (If-None-Match: *)")]
+    = False,
+    token: Token = None,
+) -> None:
+    """Zip a round, build its map on the service, follow the job with a progress bar."""
+    import tempfile
+
+    from tqdm import tqdm
+
+    from client.map_remote import follow_job, zip_round
+    from client.transports import SwarmlocError
+    from service.models import JobInfo
+
+    _read_round(round_dir)  # validation messages with file and line, before any upload
+    client = _remote(to, token)
+    with tempfile.TemporaryDirectory() as tmp:
+        archive = zip_round(round_dir, Path(tmp) / "round.zip")
+        try:
+            job = client.build_map_remote(name or round_dir.name, archive, "*" if new else None)
+            with tqdm(total=job.total, desc=f"build {job.map}", unit="img") as bar:
+                def show(j: JobInfo) -> None:
+                    bar.update(j.done - bar.n)
+                    bar.set_postfix_str(j.state)
+
+                job = follow_job(client, job, show)
+        except SwarmlocError as exc:
+            _remote_fail(exc)
+        finally:
+            client.close()
+    if job.state == "failed":
+        _fail(f"build job {job.id} failed ({job.status}): {job.error}")
+    typer.echo(f"built map '{job.map}' on {to}: {job.total} images, version {job.checksum}")
 
 
 # ---- benchmarks -------------------------------------------------------------------------
@@ -554,6 +687,26 @@ def viewer_screenshot_cmd(
 
     path = screenshot(maps_dir, round_dir, out, map_name, robots)
     typer.echo(f"wrote {path} ({path.stat().st_size // 1024} KiB)")
+@bench_app.command("build-latency")
+def bench_build_latency_cmd(
+    round_dir: Annotated[Path, typer.Argument(help="round: streamed as frames and built")],
+    maps_dir: Annotated[Path, typer.Option(help="maps the server loads (copied)")]
+    = Path("maps"),
+    frames: Annotated[int, typer.Option(help="frames without a build")] = 150,
+    fps: Annotated[float, typer.Option(help="robot frame rate (0: back to back)")] = 5.0,
+    duty: Annotated[float, typer.Option(help="the build's duty cycle [SWARMLOC_BUILD_DUTY]")]
+    = 0.5,
+) -> None:
+    """Frame latency p50/p99 of a streaming robot (HTTP) without and during a map build."""
+    from client.bench import bench_build_latency
+
+    benches, build_s, state = bench_build_latency(str(maps_dir), str(round_dir), frames, fps,
+                                                  duty=duty)
+    for b in benches:
+        typer.echo(f"{b.transport:16s} {b.frames:4d} frames: p50 {b.p50_ms:6.1f} ms, "
+                   f"p99 {b.p99_ms:6.1f} ms, mean {b.mean_ms:6.1f} ms")
+    typer.echo(f"map build of {round_dir.name}: {state} in {build_s:.1f} s "
+               f"(duty {duty:g}; robot at {fps:g} frames/s over HTTP)")
 
 
 def _register_experiment() -> None:

@@ -13,13 +13,23 @@ copy would advance the robot's estimator a second time.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any, Protocol
 
 import httpx
 import numpy as np
 
-from service.models import Estimate, MapDetail, MapSummary, PosePrior, SessionConfig, SessionInfo
+from service.models import (
+    Estimate,
+    JobInfo,
+    MapDeleted,
+    MapDetail,
+    MapSummary,
+    PosePrior,
+    SessionConfig,
+    SessionInfo,
+)
 
 
 class SwarmlocError(Exception):
@@ -73,6 +83,11 @@ def _raise_for(resp: httpx.Response) -> None:
     except ValueError:
         message = resp.text
     raise SwarmlocError(resp.status_code, message)
+
+
+def _conditions(if_match: str | None, if_none_match: str | None) -> dict[str, str]:
+    h = {"If-Match": if_match, "If-None-Match": if_none_match}
+    return {k: v if v == "*" else f'"{v.strip(chr(34))}"' for k, v in h.items() if v}
 
 
 def _frame_params(t: float | None, seq: int | None, prior: PosePrior | None) -> dict:
@@ -133,6 +148,63 @@ class HttpClient:
         resp = self._call("POST", f"/sessions/{robot_id}/frames", content=data,
                           params=_frame_params(t, seq, prior), headers={"Content-Type": ctype})
         return Estimate(**resp.json())
+
+    # ---- map lifecycle (PUT/DELETE /maps/NAME, POST /maps/NAME/build, GET /jobs/ID) ------
+    def push_map(self, path: str | Path, name: str, if_match: str | None = None,
+                 if_none_match: str | None = None) -> tuple[MapSummary, bool]:
+        """Upload a .swmap file (streamed); True when the map is new. The map's version
+        (``checksum``) is its ETag: pass it as ``if_match`` to replace only that version."""
+        headers = {"Content-Type": "application/octet-stream",
+                   **_conditions(if_match, if_none_match)}
+        with Path(path).open("rb") as fh:
+            resp = self._call("PUT", f"/maps/{name}", content=fh, headers=headers)
+        return MapSummary(**resp.json()), resp.status_code == 201
+
+    def pull_map(self, name: str, out: str | Path) -> Path:
+        """Download the map's current .swmap into ``out`` (a file or a folder), atomically."""
+        out = Path(out)
+        out = out / f"{name}.swmap" if out.is_dir() else out
+        tmp = out.with_name(f".{out.name}.part")
+        try:
+            with self._http.stream("GET", f"/maps/{name}/file") as resp:
+                if resp.status_code >= 400:
+                    resp.read()
+                    _raise_for(resp)
+                with tmp.open("wb") as fh:
+                    for chunk in resp.iter_bytes(1 << 20):
+                        fh.write(chunk)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+            os.replace(tmp, out)
+        except httpx.HTTPError as exc:
+            raise SwarmlocError(0, f"cannot reach the service: {exc}") from None
+        finally:
+            tmp.unlink(missing_ok=True)
+        return out
+
+    def delete_map(self, name: str, force: bool = False, if_match: str | None = None
+                   ) -> MapDeleted:
+        resp = self._call("DELETE", f"/maps/{name}", params={"force": force} if force else None,
+                          headers=_conditions(if_match, None))
+        return MapDeleted(**resp.json())
+
+    def build_map_remote(self, name: str, archive: str | Path | bytes,
+                         if_none_match: str | None = None) -> JobInfo:
+        """Post a zip/tar(.gz) of a round; the service builds the map as a job."""
+        headers = {"Content-Type": "application/octet-stream",
+                   **_conditions(None, if_none_match)}
+        if isinstance(archive, bytes):
+            resp = self._call("POST", f"/maps/{name}/build", content=archive, headers=headers)
+        else:
+            with Path(archive).open("rb") as fh:
+                resp = self._call("POST", f"/maps/{name}/build", content=fh, headers=headers)
+        return JobInfo(**resp.json())
+
+    def job(self, job_id: str) -> JobInfo:
+        return JobInfo(**self._call("GET", f"/jobs/{job_id}").json())
+
+    def jobs(self) -> list[JobInfo]:
+        return [JobInfo(**j) for j in self._call("GET", "/jobs").json()]
 
     def close(self) -> None:
         self._http.close()
@@ -207,7 +279,7 @@ class ZenohClient:
         self.prefix = prefix.strip("/")
         self.timeout = timeout
 
-    def _query(self, key: str, payload: bytes, attachment: bytes | None = None) -> dict:
+    def _query(self, key: str, payload: bytes, attachment: bytes | None = None) -> Any:
         replies = self._z.get(f"{self.prefix}/{key}", payload=payload, attachment=attachment,
                               timeout=self.timeout)
         for reply in replies:
@@ -250,6 +322,33 @@ class ZenohClient:
             meta["prior"] = prior.model_dump()
         body = self._query(f"{robot_id}/localize", _frame_bytes(image), json.dumps(meta).encode())
         return Estimate(**body)
+
+    # ---- map lifecycle ({prefix}/@maps/NAME, {prefix}/@jobs/ID) ------------------------
+    def _maps(self, name: str, payload: bytes = b"", **opts: Any) -> Any:
+        att = json.dumps({k: v for k, v in opts.items() if v is not None}).encode()
+        return self._query(f"@maps/{name}", payload, att)
+
+    def map_info(self, name: str) -> MapSummary:
+        return MapSummary(**self._maps(name, action="get"))
+
+    def push_map(self, path: str | Path, name: str, if_match: str | None = None,
+                 if_none_match: str | None = None) -> tuple[MapSummary, bool]:
+        body = self._maps(name, Path(path).read_bytes(), action="put", if_match=if_match,
+                          if_none_match=if_none_match)
+        created = body.pop("created")
+        return MapSummary(**body), created
+
+    def delete_map(self, name: str, force: bool = False, if_match: str | None = None
+                   ) -> MapDeleted:
+        return MapDeleted(**self._maps(name, action="delete", force=force, if_match=if_match))
+
+    def build_map_remote(self, name: str, archive: str | Path | bytes,
+                         if_none_match: str | None = None) -> JobInfo:
+        data = archive if isinstance(archive, bytes) else Path(archive).read_bytes()
+        return JobInfo(**self._maps(name, data, action="build", if_none_match=if_none_match))
+
+    def job(self, job_id: str) -> JobInfo:
+        return JobInfo(**self._query(f"@jobs/{job_id}", b""))
 
     def close(self) -> None:
         self._z.close()

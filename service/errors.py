@@ -30,6 +30,10 @@ class Conflict(ServiceError):
     status = 409
 
 
+class PreconditionFailed(ServiceError):
+    status = 412
+
+
 class PayloadTooLarge(ServiceError):
     status = 413
 

@@ -16,6 +16,7 @@ from service import __version__
 from service.auth import bearer_guard
 from service.errors import PayloadTooLarge, ServiceError
 from service.events import events_router
+from service.map_routes import map_router
 from service.models import (
     ErrorBody,
     Estimate,
@@ -103,8 +104,12 @@ def create_app(service: LocalizationService, *, expire_every_s: float | None = N
         return [service.map_summary(n) for n in sorted(service.maps)]
 
     @app.get("/maps/{map_id}", tags=["maps"], dependencies=guarded, responses=_ERRORS)
-    async def get_map(map_id: str) -> MapDetail:
-        return service.map_detail(map_id)
+    async def get_map(map_id: str, response: Response) -> MapDetail:
+        detail = service.map_detail(map_id)
+        response.headers["ETag"] = f'"{detail.checksum}"'
+        return detail
+
+    app.include_router(map_router(service, guarded))  # upload, build, replace, delete, jobs
 
     @app.put("/sessions/{robot_id}", tags=["sessions"], dependencies=guarded,
              responses={**_ERRORS, 201: {"model": SessionInfo}})

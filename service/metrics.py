@@ -37,6 +37,16 @@ class Metrics:
             "swarmloc_events_dropped_total",
             "Estimates replaced by a newer one of the same robot before a viewer got them",
             registry=r)
+        self.map_loads = Counter("swarmloc_map_loads_total", "Map files loaded and verified",
+                                 ["source", "result"], registry=r)  # startup|upload|build
+        self.map_uploads = Counter("swarmloc_map_uploads_total", "Map uploads (PUT /maps)",
+                                   ["result"], registry=r)  # created|replaced|rejected
+        self.map_builds = Counter("swarmloc_map_builds_total", "Map build jobs", ["result"],
+                                  registry=r)  # submitted|rejected|done|failed
+        self.map_build_seconds = Histogram(
+            "swarmloc_map_build_seconds", "Duration of map builds", registry=r,
+            buckets=(1, 2, 5, 10, 20, 30, 60, 120, 300, 600, 1800))
+        self.map_deletes = Counter("swarmloc_map_deletes_total", "Maps deleted", registry=r)
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

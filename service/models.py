@@ -95,6 +95,9 @@ class SessionInfo(BaseModel):
     created: float
     last_used: float
     last_estimate: Estimate | None = None
+    map_checksum: str | None = Field(
+        None, description="version of the map the session runs on (a replaced map keeps "
+        "serving its sessions until they are reset)")
 
 
 class MapSummary(BaseModel):
@@ -104,8 +107,34 @@ class MapSummary(BaseModel):
     bounds: list[list[float]]
     spacing_m: float
     meta: dict[str, Any]
+    checksum: str | None = Field(None, description="map version: SHA-256 of the file, the ETag")
+    build_date: str | None = None
 
 
 class MapDetail(MapSummary):
     positions: list[list[float]]
     image_names: list[str]
+
+
+JobState = Literal["queued", "running", "done", "failed"]
+
+
+class JobInfo(BaseModel):
+    """A map build running on the service (``POST /maps/{name}/build``)."""
+
+    id: str
+    map: str
+    state: JobState
+    done: int = Field(description="images whose features are extracted")
+    total: int = Field(description="images in the round")
+    error: str | None = Field(None, description="why a failed job failed")
+    status: int | None = Field(None, description="HTTP status of that failure")
+    checksum: str | None = Field(None, description="version of the map a done job installed")
+    created: float
+    started: float | None = None
+    finished: float | None = None
+
+
+class MapDeleted(BaseModel):
+    map: str
+    ended_sessions: list[str] = Field(description="sessions ended by ?force=true")

@@ -20,6 +20,7 @@ from service.errors import Conflict, InvalidParameters, NotFound, Unavailable
 from service.events import EventHub
 from service.imaging import decode_frame
 from service.localizer import Localizer
+from service.map_admin import MapAdmin
 from service.metrics import Metrics
 from service.models import Estimate, MapDetail, MapSummary, PosePrior, SessionConfig, SessionInfo
 from service.params import ParamError
@@ -41,7 +42,7 @@ class Session:
         return SessionInfo(robot_id=self.robot_id, map=loc.map.name,
                            estimator=loc.estimator_name, seed=loc.seed, params=loc.params,
                            frames=loc.seq, created=self.created, last_used=self.last_used,
-                           last_estimate=loc.last)
+                           last_estimate=loc.last, map_checksum=loc.map.meta.get("checksum"))
 
 
 class LocalizationService:
@@ -54,6 +55,7 @@ class LocalizationService:
         self.load_errors: dict[str, str] = {}
         self._sessions: dict[str, Session] = {}
         self._lock = threading.Lock()
+        self.admin = MapAdmin(self)  # upload / replace / delete / build without a restart
         if maps is None:
             self.load_maps(settings.maps_dir)
 
@@ -63,8 +65,10 @@ class LocalizationService:
             try:
                 m = load_map(path)
                 self.maps[m.name] = m
+                self.metrics.map_loads.labels("startup", "ok").inc()
             except MapError as exc:  # a broken map is reported, the others still load
                 self.load_errors[path.name] = str(exc)
+                self.metrics.map_loads.labels("startup", "failed").inc()
         self.metrics.maps.set(len(self.maps))
 
     @property
@@ -89,14 +93,19 @@ class LocalizationService:
             raise NotFound(f"unknown map '{name}'; loaded maps: {sorted(self.maps)}") from None
 
     def map_summary(self, name: str) -> MapSummary:
-        s = self.get_map(name).summary()
+        return self._summary(self.get_map(name))
+
+    @staticmethod
+    def _summary(m: RouteMap) -> MapSummary:
+        s = m.summary()
         return MapSummary(name=s.pop("name"), n_images=s.pop("n_images"),
                           n_features=s.pop("n_features"), bounds=s.pop("bounds"),
-                          spacing_m=s.pop("spacing_m"), meta=s)
+                          spacing_m=s.pop("spacing_m"), meta=s, checksum=m.meta.get("checksum"),
+                          build_date=s.get("build_date"))
 
     def map_detail(self, name: str) -> MapDetail:
-        m = self.get_map(name)
-        return MapDetail(**self.map_summary(name).model_dump(),
+        m = self.get_map(name)  # one version for the summary and the positions
+        return MapDetail(**self._summary(m).model_dump(),
                          positions=m.positions.tolist(), image_names=m.image_names)
 
     # ---- sessions -----------------------------------------------------------------------
@@ -108,7 +117,8 @@ class LocalizationService:
         robot's session at once end with one session, not one silently replacing the other.
         """
         _check_robot_id(robot_id)
-        route_map = self.get_map(config.map or self.default_map)
+        map_name = config.map or self.default_map
+        route_map = self.get_map(map_name)
         estimator = config.estimator or self.settings.default_estimator
         try:
             loc = Localizer(route_map, estimator, config.params, config.seed)
@@ -122,6 +132,8 @@ class LocalizationService:
             created = robot_id not in self._sessions
             if not created and not replace:
                 return self._sessions[robot_id].info(), False
+            if self.maps.get(map_name) is not route_map:
+                raise Conflict(f"map '{map_name}' was replaced or deleted meanwhile; retry")
             if created and len(self._sessions) >= self.settings.max_sessions:
                 self.metrics.rejected.labels("session_limit").inc()
                 raise Unavailable(f"session limit of {self.settings.max_sessions} reached; "
@@ -146,6 +158,11 @@ class LocalizationService:
             self.put_session(robot_id, SessionConfig(), replace=False)
         return self.session(robot_id)
 
+    def sessions_on_map(self, name: str) -> list[str]:
+        """Robots whose session runs on map ``name`` (any version of it)."""
+        return sorted(rid for rid, s in list(self._sessions.items())
+                      if s.localizer.map.name == name)
+
     def sessions(self) -> list[SessionInfo]:
         return [s.info() for s in list(self._sessions.values())]
 
@@ -159,6 +176,10 @@ class LocalizationService:
     def reset_session(self, robot_id: str, near: PosePrior | None) -> SessionInfo:
         s = self.session(robot_id)
         with s.lock:
+            current = self.maps.get(s.localizer.map.name)
+            if current is not None and current is not s.localizer.map:
+                old = s.localizer  # the map was replaced: a reset moves to the new version
+                s.localizer = Localizer(current, old.estimator_name, old.params, old.seed)
             if near is None:
                 s.localizer.reset()
             else:
@@ -197,8 +218,11 @@ class LocalizationService:
                 data, content_type, self.settings.max_body_bytes, self.settings.max_pixels)
             if t is not None and not math.isfinite(t):
                 raise InvalidParameters("timestamp t must be a finite number of seconds")
-            features = s.localizer.extract(image)
+            loc = s.localizer
+            features = loc.extract(image)
             with s.lock:
+                if s.localizer is not loc:  # reset onto a new map version meanwhile
+                    features = s.localizer.extract(image)
                 if t is not None and s.last_t is not None and t < s.last_t:
                     raise Conflict(f"frame timestamp {t} is older than the last processed "
                                    f"frame ({s.last_t}); send frames in time order")

@@ -23,6 +23,14 @@ class Settings(BaseSettings):
     session_idle_s: float = Field(600.0, description="idle sessions expire after this")
     max_body_bytes: int = Field(8 * 1024 * 1024, description="largest accepted frame body")
     max_pixels: int = Field(16_000_000, description="largest accepted image (width*height)")
+    max_map_bytes: int = Field(1 << 30, description="largest map upload (PUT /maps/NAME)")
+    max_archive_bytes: int = Field(2 << 30, description="largest round archive to build from")
+    max_archive_members: int = Field(100_000, description="most files in a round archive")
+    max_unpacked_bytes: int = Field(4 << 30, description="most bytes a round archive unpacks to")
+    max_archive_ratio: float = Field(100.0, description="largest unpacked/packed ratio "
+                                     "(beyond: a zip bomb)")
+    build_duty: float = Field(0.5, gt=0, le=1, description="share of the time a map build "
+                              "works; it sleeps the rest so robots keep their frame rate")
     auth_token: str | None = Field(None, description="if set, HTTP needs 'Bearer <token>'")
     workers: int = Field(0, description="frame-processing threads (0: 2 x number of CPUs)")
     zenoh_enabled: bool = True

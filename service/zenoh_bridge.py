@@ -37,6 +37,7 @@ import zenoh
 from pydantic import ValidationError
 
 from service.errors import BadRequest, InvalidParameters, ServiceError
+from service.map_zenoh import declare_map_queryables
 from service.models import PosePrior, SessionConfig
 from service.sessions import LocalizationService
 from service.settings import Settings
@@ -115,6 +116,7 @@ class ZenohBridge:
             s.declare_subscriber(f"{p}/*/frame", self._on_frame),
             s.declare_queryable(f"{p}/*/localize", self._on_localize),
             s.declare_queryable(f"{p}/*/control", self._on_control),
+            *declare_map_queryables(s, p, self.service, self._pool),  # {p}/@maps, {p}/@jobs
         ]
         if self.settings.ros2_enabled:
             from service.ros2 import Ros2Endpoints
