@@ -103,3 +103,158 @@ def _time_frames(name: str, client: Client, data: list[bytes], seed: int) -> Lat
     warm = np.array(times[10:])  # the first frames pay for global convergence
     return LatencyBench(name, len(warm), float(np.percentile(warm, 50)),
                         float(np.percentile(warm, 99)), float(warm.mean()))
+
+
+# ---- matcher: exact uint8 similarity vs the float path ---------------------------------------
+@dataclass
+class MatcherBench:
+    source: str
+    queries: int
+    k: int
+    frame_features: float
+    map_features: float
+    float_ms: float  # match_batch on float32 unit vectors, 1 BLAS thread (per comparison)
+    float_default_blas_ms: float  # the same with the process's default BLAS threads
+    fast_ms: float  # match_batch_u8, default backend (NumKong), prepared sets
+    fast_blas_ms: float  # match_batch_u8, float32 BLAS GEMM backend, 1 BLAS thread
+    float_2threads_ms: float  # two threads at once (throughput per comparison)
+    fast_2threads_ms: float
+    counts_identical: bool  # fast paths == exact reference, on every comparison
+    float_counts_identical: bool  # float path == exact reference
+    comparisons: int
+
+    @property
+    def speedup(self) -> float:
+        return self.float_ms / self.fast_ms
+
+
+def _rendered_matcher_sets(seed: int, k: int, places: int) -> tuple[list, list]:
+    """Cloudy query frames (round 1) and, per query, K sunny map frames (round 0): the ten
+    nearest frames around the place (as a swarm compares) and the rest from other places."""
+    from client.rootsift import rootsift_u8
+
+    world = World(seed)
+    poses0, t0, _ = world.round_trajectory(0)
+    poses1, t1, _ = world.round_trajectory(1)
+    n = min(len(poses0), len(poses1))
+    centres = [int(n * (p + 0.5) / places) for p in range(places)]
+    near = k // 2
+    cache: dict[int, np.ndarray] = {}
+
+    def map_frame(i: int) -> np.ndarray:
+        i %= n
+        if i not in cache:
+            cache[i] = rootsift_u8(world.render(Pose(*poses0[i]), "sunny", t=float(t0[i]),
+                                                noise_seed=i))
+        return cache[i]
+
+    queries, sets = [], []
+    for c in centres:
+        queries.append(rootsift_u8(world.render(Pose(*poses1[c]), "cloudy", t=float(t1[c]),
+                                                noise_seed=10_000 + c)))
+        idx = [c + 2 * (j - near // 2) for j in range(near)]
+        far = [o for o in centres if o != c]
+        idx += [far[j % len(far)] + 4 * (j // len(far)) for j in range(k - near)]
+        sets.append([map_frame(i) for i in idx])
+    return queries, sets
+
+
+def _photo_matcher_sets(photos: str, k: int, places: int) -> tuple[list, list]:
+    """Query photos spread over the sequence; per query, its K/2 nearest photos by index and
+    K/2 others spread over the sequence."""
+    from pathlib import Path
+
+    import cv2
+
+    from client.rootsift import rootsift_u8
+
+    paths = sorted(p for p in Path(photos).iterdir()
+                   if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    if len(paths) < k + 1:
+        raise ValueError(f"{photos}: need at least {k + 1} images, found {len(paths)}")
+    feats = [rootsift_u8(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)) for p in paths]
+    n = len(feats)
+    queries, sets = [], []
+    for p in range(places):
+        c = int(n * (p + 0.5) / places)
+        order = sorted((i for i in range(n) if i != c), key=lambda i: abs(i - c))
+        idx = order[: k // 2]
+        rest = [i for i in range(n) if i != c and i not in idx]
+        idx += [rest[int(j * len(rest) / (k - k // 2))] for j in range(k - k // 2)]
+        queries.append(feats[c])
+        sets.append([feats[i] for i in idx])
+    return queries, sets
+
+
+def _per_comparison_ms(fn: Callable[[int], object], queries: int, k: int, repeats: int
+                       ) -> float:
+    """Median over queries of the median time of one query against its K sets, per set."""
+    return float(np.median([_median_ms(lambda q=q: fn(q), repeats) for q in range(queries)])) / k
+
+
+def _two_threads_ms(fn: Callable[[int], object], queries: int, k: int, repeats: int) -> float:
+    """Two threads run the same workload at once (as two robots would): wall time per
+    comparison, so a value equal to the one-thread figure means no parallel speed-up."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def work() -> None:
+        for _ in range(repeats):
+            for q in range(queries):
+                fn(q)
+
+    with ThreadPoolExecutor(2) as pool:
+        t0 = time.perf_counter()
+        for f in [pool.submit(work), pool.submit(work)]:
+            f.result()
+        wall = time.perf_counter() - t0
+    return 1e3 * wall / (2 * repeats * queries * k)
+
+
+def bench_matcher(photos: str | None = None, seed: int = 0, k: int = 20, places: int = 3,
+                  repeats: int = 5) -> MatcherBench:
+    """Exact uint8 matcher (NumKong GEMM + numba top-2) against the float ``match_batch`` on
+    the same descriptors (quantised CLAHE + RootSIFT; the float path gets them normalised)."""
+    from threadpoolctl import threadpool_limits
+
+    from client.rootsift import unit_float
+    from service.matcher import match_batch_u8, match_batch_u8_reference, prepare, warm_up
+
+    if photos:
+        queries, sets = _photo_matcher_sets(photos, k, places)
+        source = f"photos {photos}"
+    else:
+        queries, sets = _rendered_matcher_sets(seed, k, places)
+        source = f"rendered world seed {seed} (sunny map, cloudy queries)"
+    warm_up()  # numba compiles (or loads its cache) here, outside every timed section
+    fq = [unit_float(a) for a in queries]
+    fsets = [[unit_float(b) for b in s] for s in sets]
+    prepared = [[prepare(b) for b in s] for s in sets]
+    prepared_blas = [[prepare(b, "blas") for b in s] for s in sets]
+
+    def float_path(q: int) -> object:
+        return match_batch(fq[q], fsets[q])
+
+    def fast(q: int) -> object:
+        return match_batch_u8(queries[q], prepared[q])
+
+    def fast_blas(q: int) -> object:
+        return match_batch_u8(queries[q], prepared_blas[q], backend="blas")
+
+    nq = len(queries)
+    identical, float_identical = True, True
+    for q in range(nq):
+        ref = match_batch_u8_reference(queries[q], sets[q]).counts
+        identical &= bool(np.array_equal(fast(q).counts, ref))
+        identical &= bool(np.array_equal(fast_blas(q).counts, ref))
+        float_identical &= bool(np.array_equal(float_path(q).counts, ref))
+    float_default = _per_comparison_ms(float_path, nq, k, repeats)
+    with threadpool_limits(1, "blas"):
+        float_ms = _per_comparison_ms(float_path, nq, k, repeats)
+        fast_ms = _per_comparison_ms(fast, nq, k, repeats)
+        fast_blas_ms = _per_comparison_ms(fast_blas, nq, k, repeats)
+        float2 = _two_threads_ms(float_path, nq, k, repeats)
+        fast2 = _two_threads_ms(fast, nq, k, repeats)
+    return MatcherBench(
+        source, nq, k, float(np.mean([len(a) for a in queries])),
+        float(np.mean([len(b) for s in sets for b in s])), float_ms, float_default, fast_ms,
+        fast_blas_ms, float2, fast2, identical, float_identical, nq * k)

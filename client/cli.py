@@ -153,6 +153,38 @@ def bench_similarity_cmd(k: int = 20, repeats: int = 7) -> None:
                f"identical match counts: {b.counts_equal}")
 
 
+@bench_app.command("matcher")
+def bench_matcher_cmd(
+    photos: Annotated[Path | None, typer.Option(help="also measure on these photos")] = None,
+    k: Annotated[int, typer.Option(help="map images per frame")] = 20,
+    places: Annotated[int, typer.Option(help="query frames")] = 3,
+    repeats: int = 5,
+) -> None:
+    """Exact uint8 matcher vs the float match_batch: ms/comparison, speed-up, identical counts."""
+    from client.bench import bench_matcher
+
+    if photos is not None and not photos.is_dir():
+        _fail(f"--photos {photos}: not a directory")
+    for src in [None, str(photos)] if photos is not None else [None]:
+        try:
+            b = bench_matcher(src, k=k, places=places, repeats=repeats)
+        except ValueError as exc:
+            _fail(str(exc))
+        typer.echo(f"{b.source}: {b.queries} frames x {b.k} map images, features: frame "
+                   f"{b.frame_features:.0f}, map image {b.map_features:.0f}")
+        typer.echo(f"  float match_batch (1 BLAS thread):    {b.float_ms:8.3f} ms/comparison")
+        typer.echo(f"  float match_batch (default BLAS):     {b.float_default_blas_ms:8.3f} "
+                   "ms/comparison")
+        typer.echo(f"  uint8 match_batch_u8 (NumKong):       {b.fast_ms:8.3f} ms/comparison")
+        typer.echo(f"  uint8 match_batch_u8 (BLAS float32):  {b.fast_blas_ms:8.3f} ms/comparison")
+        typer.echo(f"  speed-up (NumKong vs float, 1 thread): {b.speedup:7.1f} x")
+        typer.echo(f"  2 threads at once: float {b.float_2threads_ms:.3f}, uint8 "
+                   f"{b.fast_2threads_ms:.3f} ms/comparison (wall / comparisons)")
+        typer.echo(f"  identical counts, fast vs exact reference: {b.counts_identical} "
+                   f"({b.comparisons} comparisons); float path vs reference: "
+                   f"{b.float_counts_identical}")
+
+
 # ---- service ----------------------------------------------------------------------------
 @app.command("serve")
 def serve(
