@@ -70,12 +70,17 @@ def _check_u8(x: np.ndarray, name: str) -> np.ndarray:
     x = np.asarray(x)
     if x.dtype != np.uint8 or x.ndim != 2:
         raise ValueError(f"{name}: expected a 2-D uint8 descriptor array, got {x.dtype} {x.shape}")
+    if x.shape[1] * 255 * 255 >= 2**24:
+        raise ValueError(f"{name}: descriptors of length {x.shape[1]} are too long for exact "
+                         "float32 dot products (at most 258)")
     return np.ascontiguousarray(x)
 
 
 def norms_u8(x: np.ndarray) -> np.ndarray:
     """|x| per row in float64 from the exact integer sum of squares; zero rows are refused."""
-    sq = np.einsum("ij,ij->i", x, x, dtype=np.int64) if len(x) else np.zeros(0, np.int64)
+    x = _check_u8(x, "descriptors")
+    f = x.astype(np.float32)
+    sq = np.einsum("ij,ij->i", f, f)  # integer partial sums below 2^24: exact in float32
     if np.any(sq == 0):
         raise ValueError("descriptor rows must be non-zero")
     return np.sqrt(sq.astype(np.float64))
@@ -105,14 +110,14 @@ def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, cm1, cm2):
     """Update the float32 top-2 keys of rows r0.. (over columns) and of every column.
 
     ``dots`` (rows, nB) holds exact integer dots; row keys are d * (1/|b|) (best index kept),
-    column keys d * (1/|a|) (values only). Rows are reduced over 16 lanes so that the loop
-    vectorises, then the lanes are merged.
+    column keys d * (1/|a|) (values only). Rows are reduced over 64 independent lanes (the loop
+    vectorises and enough chains are in flight to hide the max latency), then the lanes merge.
     """
     nr, nb = dots.shape
-    nl = 16
+    nl = 64
     lm1 = np.empty(nl, np.float32)
     lm2 = np.empty(nl, np.float32)
-    lj1 = np.empty(nl, np.int64)
+    lj1 = np.empty(nl, np.int32)
     nfull = nb - nb % nl
     for r in range(nr):
         i = r0 + r
@@ -132,7 +137,7 @@ def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, cm1, cm2):
                 cm1[j] = max(c1, kc)
                 kr = x * inv_nb[j]
                 l1 = lm1[q]
-                lj1[q] = j if kr > l1 else lj1[q]
+                lj1[q] = np.int32(j) if kr > l1 else lj1[q]
                 lm2[q] = max(lm2[q], min(l1, kr))
                 lm1[q] = max(l1, kr)
         m1 = np.float32(-1.0)
@@ -270,9 +275,6 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
         if s.desc.shape[1] != a.shape[1] and len(s) and na_rows:
             raise ValueError(f"descriptor length differs: {a.shape[1]} vs {s.desc.shape[1]}")
     nb_all = np.array([len(s) for s in prepared], np.int64)
-    if a.shape[1] * 255 * 255 >= 2**24:
-        raise ValueError(f"descriptors of length {a.shape[1]} are too long for exact float32 "
-                         "keys (at most 258)")
     if k == 0 or na_rows < 2:
         return BatchMatch(counts, np.zeros(k), matched)
     na = norms_u8(a)
