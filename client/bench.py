@@ -186,10 +186,23 @@ def _photo_matcher_sets(photos: str, k: int, places: int) -> tuple[list, list]:
     return queries, sets
 
 
-def _per_comparison_ms(fn: Callable[[int], object], queries: int, k: int, repeats: int
-                       ) -> float:
-    """Median over queries of the median time of one query against its K sets, per set."""
-    return float(np.median([_median_ms(lambda q=q: fn(q), repeats) for q in range(queries)])) / k
+def _median_cpu_ms(fn: Callable[[], object], repeats: int) -> float:
+    """Median CPU time of the calling thread (robust to other users' load on a shared machine;
+    only for single-threaded work: BLAS worker threads would not be counted)."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.thread_time()
+        fn()
+        times.append(time.thread_time() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def _per_comparison_ms(fn: Callable[[int], object], queries: int, k: int, repeats: int,
+                       cpu: bool = True) -> float:
+    """Median over queries of the median time of one query against its K sets, per set:
+    CPU time of the thread (single-threaded work) or wall time."""
+    timer = _median_cpu_ms if cpu else _median_ms
+    return float(np.median([timer(lambda q=q: fn(q), repeats) for q in range(queries)])) / k
 
 
 def _two_threads_ms(fn: Callable[[int], object], queries: int, k: int, repeats: int) -> float:
@@ -247,7 +260,7 @@ def bench_matcher(photos: str | None = None, seed: int = 0, k: int = 20, places:
         identical &= bool(np.array_equal(fast(q).counts, ref))
         identical &= bool(np.array_equal(fast_blas(q).counts, ref))
         float_identical &= bool(np.array_equal(float_path(q).counts, ref))
-    float_default = _per_comparison_ms(float_path, nq, k, repeats)
+    float_default = _per_comparison_ms(float_path, nq, k, repeats, cpu=False)
     with threadpool_limits(1, "blas"):
         float_ms = _per_comparison_ms(float_path, nq, k, repeats)
         fast_ms = _per_comparison_ms(fast, nq, k, repeats)
@@ -258,3 +271,116 @@ def bench_matcher(photos: str | None = None, seed: int = 0, k: int = 20, places:
         source, nq, k, float(np.mean([len(a) for a in queries])),
         float(np.mean([len(b) for s in sets for b in s])), float_ms, float_default, fast_ms,
         fast_blas_ms, float2, fast2, identical, float_identical, nq * k)
+
+
+# ---- feature types: SIFT, CLAHE + RootSIFT (uint8), ORB (AKAZE where OpenCV has it) -----
+@dataclass
+class FeatureTypeBench:
+    name: str
+    features: float  # per frame (mean)
+    extract_ms: float  # per 320x240 frame (median)
+    match_ms: float  # per comparison (median over queries of one frame vs the whole map)
+    cross_light_top1: float  # cloudy frames whose most similar map image lies within 5 m
+    same_light_top1: float  # sunny frames of another round, the same
+    map_images: int
+    queries: int
+
+
+def _binary_similarity(a: np.ndarray, b: np.ndarray, ratio: float = 0.8) -> float:
+    """The symmetric ratio test on Hamming distances (binary descriptors have no angle):
+    reciprocal nearest neighbours with d1 < ratio * d2 both ways, over min(|A|, |B|)."""
+    import cv2
+
+    if len(a) < 2 or len(b) < 2:
+        return 0.0
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+    def one_way(q: np.ndarray, t: np.ndarray) -> dict[int, int]:
+        return {m1.queryIdx: m1.trainIdx for m1, m2 in bf.knnMatch(q, t, k=2)
+                if m1.distance < ratio * m2.distance}
+
+    ab, ba = one_way(a, b), one_way(b, a)
+    return sum(1 for i, j in ab.items() if ba.get(j) == i) / min(len(a), len(b))
+
+
+def _feature_types() -> dict[str, tuple[Callable, Callable]]:
+    """name -> (extract(image) -> descriptors, similarities(query, map sets) -> scores)."""
+    import cv2
+
+    from client.rootsift import rootsift_u8
+    from service.features import SiftParams, to_working_size
+    from service.matcher import match_batch_u8, prepare
+
+    def clahe(image: np.ndarray) -> np.ndarray:
+        gray = to_working_size(image, SiftParams())
+        return cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(gray)
+
+    def binary(detector: Callable[[], object]) -> Callable:
+        def run(image: np.ndarray) -> np.ndarray:
+            _, d = detector().detectAndCompute(clahe(image), None)
+            return d if d is not None else np.zeros((0, 32), np.uint8)
+        return run
+
+    def binary_scores(q: np.ndarray, sets: list) -> np.ndarray:
+        return np.array([_binary_similarity(q, b) for b in sets])
+
+    types = {
+        "SIFT (float32, all)": (
+            lambda im: extract(im).descriptors, lambda q, sets: match_batch(q, sets).scores),
+        "CLAHE + RootSIFT (uint8)": (
+            rootsift_u8, lambda q, sets: match_batch_u8(q, sets).scores),
+        "CLAHE + ORB (1500)": (binary(lambda: cv2.ORB_create(nfeatures=1500)), binary_scores),
+    }
+    if hasattr(cv2, "AKAZE_create"):  # OpenCV 5 moved AKAZE out of the main modules
+        types["CLAHE + AKAZE"] = (binary(cv2.AKAZE_create), binary_scores)
+    types["_prepare"] = (prepare, lambda q, sets: None)
+    return types
+
+
+def bench_features(seed: int = 0, length_m: float = 120.0, map_step: int = 3,
+                   queries: int = 10, repeats: int = 3) -> list[FeatureTypeBench]:
+    """Extraction time, matching time and place recognition (top-1 within 5 m) per feature
+    type, on a sunny map against cloudy (cross-light) and sunny (same-light) frames."""
+    from service.matcher import warm_up
+
+    world = World(seed, length_m=length_m)
+    p0, t0, _ = world.round_trajectory(0)
+    map_idx = list(range(0, len(p0), map_step))
+    map_imgs = [world.render(Pose(*p0[i]), "sunny", t=float(t0[i]), noise_seed=i) for i in map_idx]
+    map_xy = p0[map_idx, :2]
+    q_sets = {}
+    for label, rnd, cond in (("cross", 1, "cloudy"), ("same", 2, "sunny")):
+        p, t, _ = world.round_trajectory(rnd)
+        idx = [int(len(p) * (j + 0.5) / queries) for j in range(queries)]
+        q_sets[label] = ([world.render(Pose(*p[i]), cond, t=float(t[i]), noise_seed=50_000 + i)
+                          for i in idx], p[idx, :2])
+    warm_up()
+    types = _feature_types()
+    prepare = types.pop("_prepare")[0]
+    out = []
+    for name, (extract_fn, scores_fn) in types.items():
+        extract_fn(map_imgs[0])  # first-call set-up outside the timing
+        map_desc = [extract_fn(im) for im in map_imgs]
+        if "uint8" in name:
+            map_desc = [prepare(d) for d in map_desc]
+        top1, match_ms, ext_ms, n_feat = {}, [], [], []
+        for label, (imgs, xy) in q_sets.items():
+            hits = 0
+            for img, truth in zip(imgs, xy, strict=True):
+                times = []
+                for _ in range(repeats):
+                    t = time.thread_time()
+                    q = extract_fn(img)
+                    times.append(time.thread_time() - t)
+                ext_ms.append(1e3 * float(np.median(times)))
+                n_feat.append(len(q))
+                t = time.thread_time()
+                scores = scores_fn(q, map_desc)
+                match_ms.append(1e3 * (time.thread_time() - t) / len(map_desc))
+                best = int(np.argmax(scores))
+                hits += bool(np.linalg.norm(map_xy[best] - truth) <= 5.0)
+            top1[label] = hits / len(imgs)
+        out.append(FeatureTypeBench(name, float(np.mean(n_feat)), float(np.median(ext_ms)),
+                                    float(np.median(match_ms)), top1["cross"], top1["same"],
+                                    len(map_imgs), queries))
+    return out

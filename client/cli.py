@@ -185,6 +185,26 @@ def bench_matcher_cmd(
                    f"{b.float_counts_identical}")
 
 
+@bench_app.command("features")
+def bench_features_cmd(
+    seed: int = 0,
+    length: Annotated[float, typer.Option(help="loop length of the world, m")] = 120.0,
+    map_step: Annotated[int, typer.Option(help="map image every N frames")] = 3,
+    queries: Annotated[int, typer.Option(help="query frames per lighting")] = 10,
+) -> None:
+    """SIFT vs CLAHE + RootSIFT (uint8) vs ORB (AKAZE): CPU time per frame, place recognition."""
+    from client.bench import bench_features
+
+    rows = bench_features(seed, length, map_step, queries)
+    typer.echo(f"map: {rows[0].map_images} sunny images; {rows[0].queries} queries per lighting; "
+               "top-1: most similar map image within 5 m of the truth")
+    typer.echo(f"{'feature type':28s} {'feat/frame':>10s} {'extract ms':>10s} "
+               f"{'match ms/cmp':>12s} {'top-1 cloudy':>12s} {'top-1 sunny':>11s}")
+    for r in rows:
+        typer.echo(f"{r.name:28s} {r.features:10.0f} {r.extract_ms:10.2f} {r.match_ms:12.3f} "
+                   f"{100 * r.cross_light_top1:11.0f}% {100 * r.same_light_top1:10.0f}%")
+
+
 # ---- service ----------------------------------------------------------------------------
 @app.command("serve")
 def serve(
