@@ -106,12 +106,56 @@ def _use_numkong(backend: str) -> bool:
 
 
 # ---- numba kernels ------------------------------------------------------------------------
-def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, cm1, cm2):
-    """Update the float32 top-2 keys of rows r0.. (over columns) and of every column.
+def _scan_columns(dots, r0, inv_na, cm1, cm2):
+    """Update the two best float32 keys d * (1/|a|) of every column with rows r0.. of a tile.
 
-    ``dots`` (rows, nB) holds exact integer dots; row keys are d * (1/|b|) (best index kept),
-    column keys d * (1/|a|) (values only). Rows are reduced over 64 independent lanes (the loop
-    vectorises and enough chains are in flight to hide the max latency), then the lanes merge.
+    Four rows per sweep: the column state is loaded and stored once for four updates.
+    """
+    nr, nb = dots.shape
+    r = 0
+    while r + 4 <= nr:
+        sa = inv_na[r0 + r]
+        sb = inv_na[r0 + r + 1]
+        sc = inv_na[r0 + r + 2]
+        sd = inv_na[r0 + r + 3]
+        ra = dots[r]
+        rb = dots[r + 1]
+        rc = dots[r + 2]
+        rd = dots[r + 3]
+        for j in range(nb):
+            c1 = cm1[j]
+            c2 = cm2[j]
+            k = np.float32(ra[j]) * sa
+            c2 = max(c2, min(c1, k))
+            c1 = max(c1, k)
+            k = np.float32(rb[j]) * sb
+            c2 = max(c2, min(c1, k))
+            c1 = max(c1, k)
+            k = np.float32(rc[j]) * sc
+            c2 = max(c2, min(c1, k))
+            c1 = max(c1, k)
+            k = np.float32(rd[j]) * sd
+            c2 = max(c2, min(c1, k))
+            c1 = max(c1, k)
+            cm1[j] = c1
+            cm2[j] = c2
+        r += 4
+    while r < nr:
+        sa = inv_na[r0 + r]
+        ra = dots[r]
+        for j in range(nb):
+            k = np.float32(ra[j]) * sa
+            c1 = cm1[j]
+            cm2[j] = max(cm2[j], min(c1, k))
+            cm1[j] = max(c1, k)
+        r += 1
+
+
+def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2):
+    """Best key d * (1/|b|), its column and the second key of rows r0.. of a tile.
+
+    Each row is reduced over 64 independent lanes (the loop vectorises and enough chains are in
+    flight to hide the latency of max), then the lanes merge.
     """
     nr, nb = dots.shape
     nl = 64
@@ -120,8 +164,6 @@ def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, cm1, cm2):
     lj1 = np.empty(nl, np.int32)
     nfull = nb - nb % nl
     for r in range(nr):
-        i = r0 + r
-        sa = inv_na[i]
         row = dots[r]
         for q in range(nl):
             lm1[q] = -1.0
@@ -130,32 +172,22 @@ def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, cm1, cm2):
         for jb in range(0, nfull, nl):
             for q in range(nl):
                 j = jb + q
-                x = np.float32(row[j])
-                kc = x * sa
-                c1 = cm1[j]
-                cm2[j] = max(cm2[j], min(c1, kc))
-                cm1[j] = max(c1, kc)
-                kr = x * inv_nb[j]
+                k = np.float32(row[j]) * inv_nb[j]
                 l1 = lm1[q]
-                lj1[q] = np.int32(j) if kr > l1 else lj1[q]
-                lm2[q] = max(lm2[q], min(l1, kr))
-                lm1[q] = max(l1, kr)
+                lj1[q] = np.int32(j) if k > l1 else lj1[q]
+                lm2[q] = max(lm2[q], min(l1, k))
+                lm1[q] = max(l1, k)
         m1 = np.float32(-1.0)
         m2 = np.float32(-1.0)
         j1 = -1
         for j in range(nfull, nb):
-            x = np.float32(row[j])
-            kc = x * sa
-            c1 = cm1[j]
-            cm2[j] = max(cm2[j], min(c1, kc))
-            cm1[j] = max(c1, kc)
-            kr = x * inv_nb[j]
-            if kr > m1:
+            k = np.float32(row[j]) * inv_nb[j]
+            if k > m1:
                 m2 = m1
-                m1 = kr
+                m1 = k
                 j1 = j
-            elif kr > m2:
-                m2 = kr
+            elif k > m2:
+                m2 = k
         for q in range(nl):  # merge the lanes (an equal value goes to m2: a tie is kept)
             v = lm1[q]
             if v > m1 or (v == m1 and lj1[q] < j1):
@@ -165,9 +197,15 @@ def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, cm1, cm2):
             elif v > m2:
                 m2 = v
             m2 = max(m2, lm2[q])
-        rm1[i] = m1
-        rj1[i] = j1
-        rm2[i] = m2
+        rm1[r0 + r] = m1
+        rj1[r0 + r] = j1
+        rm2[r0 + r] = m2
+
+
+def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, cm1, cm2):
+    """The float32 top-2 keys of rows r0.. (best column kept) and of every column (values)."""
+    _scan_columns(dots, r0, inv_na, cm1, cm2)
+    _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2)
 
 
 def _dot(x, y):
@@ -246,6 +284,8 @@ def _decide(a, na, b, nb, inv_na, rm1, rj1, rm2, cm1, cm2, delta, tol, matched):
     return count
 
 
+_scan_columns = _jit(_scan_columns)
+_scan_rows = _jit(_scan_rows)
 _scan_tile = _jit(_scan_tile)
 _dot = _jit(_dot)
 _cos = _jit(_cos)
