@@ -151,7 +151,7 @@ def _scan_columns(dots, r0, inv_na, cm1, cm2):
         r += 1
 
 
-def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2):
+def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1):
     """Best key d * (1/|b|), its column and the second key of rows r0.. of a tile.
 
     Each row is reduced over 64 independent lanes (the loop vectorises and enough chains are in
@@ -200,12 +200,14 @@ def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2):
         rm1[r0 + r] = m1
         rj1[r0 + r] = j1
         rm2[r0 + r] = m2
+        rd1[r0 + r] = row[j1]
 
 
-def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, cm1, cm2):
-    """The float32 top-2 keys of rows r0.. (best column kept) and of every column (values)."""
+def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, rd1, cm1, cm2):
+    """The float32 top-2 keys of rows r0.. (best column and its dot kept) and of every column
+    (values)."""
     _scan_columns(dots, r0, inv_na, cm1, cm2)
-    _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2)
+    _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1)
 
 
 def _dot(x, y):
@@ -250,27 +252,36 @@ def _ratio(c1, m2, n, delta, tol):
     return -1
 
 
-def _decide(a, na, b, nb, inv_na, rm1, rj1, rm2, cm1, cm2, delta, tol, matched):
-    """Mark rows of A in a symmetric ratio-test match with B; return the count."""
+def _decide(a, na, b, nb, inv_na, rm1, rj1, rm2, rd1, cm1, cm2, delta, tol, matched):
+    """Mark rows of A in a symmetric ratio-test match with B; return the count.
+
+    Cheap checks first: a row whose float32 best is clear and whose column's clear best is
+    another row is no match (no angle is computed); exact rescans only where keys are close.
+    """
     count = 0
     for i in range(a.shape[0]):
-        if rm1[i] > rm2[i] * (1.0 + tol):  # a clear float32 winner is the exact winner
+        c2 = 0.0
+        row_clear = rm1[i] > rm2[i] * (1.0 + tol)  # a clear float32 winner is the exact one
+        if row_clear:
             j = rj1[i]
-            c1 = _cos(a[i], b[j], na[i], nb[j])
-            ok = _ratio(c1, rm2[i], na[i], delta, tol)
-            if ok < 0:
-                j, c1, c2 = _exact_scan(a[i], na[i], b, nb)
-                ok = _passes(c1, c2, delta)
+            d = rd1[i]
+            c1 = min(d / (na[i] * nb[j]), 1.0)
         else:
             j, c1, c2 = _exact_scan(a[i], na[i], b, nb)
+            d = _dot(a[i], b[j])
+        col_clear = cm1[j] > cm2[j] * (1.0 + tol)
+        if col_clear and np.float32(d) * inv_na[i] != cm1[j]:
+            continue  # column j's nearest neighbour is another row
+        if row_clear:
+            ok = _ratio(c1, rm2[i], na[i], delta, tol)
+            if ok < 0:
+                _, c1, c2 = _exact_scan(a[i], na[i], b, nb)
+                ok = _passes(c1, c2, delta)
+        else:
             ok = _passes(c1, c2, delta)
         if not ok:
             continue
-        # column j: is a_i its nearest neighbour, and does it pass?
-        if cm1[j] > cm2[j] * (1.0 + tol):
-            key = np.float32(_dot(a[i], b[j])) * inv_na[i]  # as the kernel computed it
-            if key != cm1[j]:
-                continue
+        if col_clear:
             okb = _ratio(c1, cm2[j], nb[j], delta, tol)
             if okb < 0:
                 ib, c1b, c2b = _exact_scan(b[j], nb[j], a, na)
@@ -324,6 +335,7 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
     rm1 = np.empty(na_rows, np.float32)
     rm2 = np.empty(na_rows, np.float32)
     rj1 = np.empty(na_rows, np.int64)
+    rd1 = np.empty(na_rows, np.int64)
     for idx, s in enumerate(prepared):
         nb = len(s)
         if nb < 2:
@@ -347,8 +359,8 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
                 dots = buf
             else:
                 dots = np.matmul(a_f32[r0:r1], b_t, out=buf[: r1 - r0])
-            _scan_tile(dots, r0, inv_na, s.inv_norms, rm1, rj1, rm2, cm1, cm2)
-        counts[idx] = _decide(a, na, s.desc, s.norms, inv_na, rm1, rj1, rm2, cm1, cm2,
+            _scan_tile(dots, r0, inv_na, s.inv_norms, rm1, rj1, rm2, rd1, cm1, cm2)
+        counts[idx] = _decide(a, na, s.desc, s.norms, inv_na, rm1, rj1, rm2, rd1, cm1, cm2,
                               float(delta), _TOL, matched[idx])
     denom = np.minimum(na_rows, nb_all)
     scores = np.where(denom > 0, counts / np.maximum(denom, 1), 0.0)
