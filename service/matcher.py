@@ -151,56 +151,81 @@ def _scan_columns(dots, r0, inv_na, cm1, cm2):
         r += 1
 
 
-def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1):
-    """Best key d * (1/|b|), its column and the second key of rows r0.. of a tile.
+def _finish_row(row, inv_nb, nfull, lm1, lm2, lj1):
+    """Best key, its column and the second key of a row from its lanes plus the tail."""
+    m1 = np.float32(-1.0)
+    m2 = np.float32(-1.0)
+    j1 = -1
+    for j in range(nfull, row.shape[0]):
+        k = np.float32(row[j]) * inv_nb[j]
+        if k > m1:
+            m2 = m1
+            m1 = k
+            j1 = j
+        elif k > m2:
+            m2 = k
+    for q in range(lm1.shape[0]):  # merge the lanes (an equal value goes to m2: a tie is kept)
+        v = lm1[q]
+        if v > m1 or (v == m1 and lj1[q] < j1):
+            m2 = m1
+            m1 = v
+            j1 = lj1[q]
+        elif v > m2:
+            m2 = v
+        m2 = max(m2, lm2[q])
+    return m1, j1, m2
 
-    Each row is reduced over 64 independent lanes (the loop vectorises and enough chains are in
-    flight to hide the latency of max), then the lanes merge.
+
+def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1):
+    """Best key d * (1/|b|), its column and dot, and the second key of rows r0.. of a tile.
+
+    Two rows at a time, each over 32 independent lanes: the loop vectorises, enough chains are
+    in flight to hide the latency of max, and the 1/|b| loads are shared; then lanes merge.
     """
     nr, nb = dots.shape
-    nl = 64
-    lm1 = np.empty(nl, np.float32)
-    lm2 = np.empty(nl, np.float32)
-    lj1 = np.empty(nl, np.int32)
+    nl = 32
+    a1 = np.empty(nl, np.float32)
+    a2 = np.empty(nl, np.float32)
+    aj = np.empty(nl, np.int32)
+    b1 = np.empty(nl, np.float32)
+    b2 = np.empty(nl, np.float32)
+    bj = np.empty(nl, np.int32)
     nfull = nb - nb % nl
-    for r in range(nr):
-        row = dots[r]
+    for r in range(0, nr, 2):
+        ra = dots[r]
+        rb = dots[min(r + 1, nr - 1)]  # an odd last row is simply done twice
         for q in range(nl):
-            lm1[q] = -1.0
-            lm2[q] = -1.0
-            lj1[q] = -1
+            a1[q] = -1.0
+            a2[q] = -1.0
+            aj[q] = -1
+            b1[q] = -1.0
+            b2[q] = -1.0
+            bj[q] = -1
         for jb in range(0, nfull, nl):
             for q in range(nl):
                 j = jb + q
-                k = np.float32(row[j]) * inv_nb[j]
-                l1 = lm1[q]
-                lj1[q] = np.int32(j) if k > l1 else lj1[q]
-                lm2[q] = max(lm2[q], min(l1, k))
-                lm1[q] = max(l1, k)
-        m1 = np.float32(-1.0)
-        m2 = np.float32(-1.0)
-        j1 = -1
-        for j in range(nfull, nb):
-            k = np.float32(row[j]) * inv_nb[j]
-            if k > m1:
-                m2 = m1
-                m1 = k
-                j1 = j
-            elif k > m2:
-                m2 = k
-        for q in range(nl):  # merge the lanes (an equal value goes to m2: a tie is kept)
-            v = lm1[q]
-            if v > m1 or (v == m1 and lj1[q] < j1):
-                m2 = m1
-                m1 = v
-                j1 = lj1[q]
-            elif v > m2:
-                m2 = v
-            m2 = max(m2, lm2[q])
+                s = inv_nb[j]
+                k = np.float32(ra[j]) * s
+                l1 = a1[q]
+                aj[q] = np.int32(j) if k > l1 else aj[q]
+                a2[q] = max(a2[q], min(l1, k))
+                a1[q] = max(l1, k)
+                k = np.float32(rb[j]) * s
+                l1 = b1[q]
+                bj[q] = np.int32(j) if k > l1 else bj[q]
+                b2[q] = max(b2[q], min(l1, k))
+                b1[q] = max(l1, k)
+        m1, j1, m2 = _finish_row(ra, inv_nb, nfull, a1, a2, aj)
         rm1[r0 + r] = m1
         rj1[r0 + r] = j1
         rm2[r0 + r] = m2
-        rd1[r0 + r] = row[j1]
+        rd1[r0 + r] = ra[j1]
+        if r + 1 < nr:
+            m1, j1, m2 = _finish_row(rb, inv_nb, nfull, b1, b2, bj)
+            rm1[r0 + r + 1] = m1
+            rj1[r0 + r + 1] = j1
+            rm2[r0 + r + 1] = m2
+            rd1[r0 + r + 1] = rb[j1]
 
 
 def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, rd1, cm1, cm2):
@@ -296,6 +321,7 @@ def _decide(a, na, b, nb, inv_na, rm1, rj1, rm2, rd1, cm1, cm2, delta, tol, matc
 
 
 _scan_columns = _jit(_scan_columns)
+_finish_row = _jit(_finish_row)
 _scan_rows = _jit(_scan_rows)
 _scan_tile = _jit(_scan_tile)
 _dot = _jit(_dot)
