@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -132,3 +136,24 @@ def test_jit_falls_back_without_a_cache_location() -> None:
     scope: dict = {}
     exec("def f(x):\n    return x + 1\n", scope)  # no source file: no cache locator
     assert _jit(scope["f"])(41) == 42
+
+
+def test_module_works_where_numba_can_write_no_cache() -> None:
+    """Read-only install and no writable user cache: every kernel compiles uncached, results
+    unchanged (a fresh interpreter, numba's cache locators all refusing)."""
+    code = (
+        "import numba.core.caching as c\n"
+        "impl = getattr(c, 'CacheImpl', None) or getattr(c, '_CacheImpl')\n"
+        "impl._locator_classes = []\n"  # no location accepts a cache
+        "import numpy as np\n"
+        "from service.matcher import match_batch_u8, match_batch_u8_reference\n"
+        "x = np.random.default_rng(0).integers(1, 255, (40, 128)).astype(np.uint8)\n"
+        "r = match_batch_u8(x, [x[5:], x[:30]])\n"
+        "assert (r.counts == match_batch_u8_reference(x, [x[5:], x[:30]]).counts).all()\n"
+        "print(r.counts.tolist())\n"
+    )
+    root = Path(__file__).resolve().parent.parent
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=False, cwd=root)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[35, 30]"
