@@ -348,3 +348,292 @@ def _stats(name: str, times: list[float]) -> LatencyBench:
     a = np.array(times)
     return LatencyBench(name, len(a), float(np.percentile(a, 50)), float(np.percentile(a, 99)),
                         float(a.mean()))
+
+
+# ---- matcher: exact uint8 similarity vs the float path ---------------------------------------
+@dataclass
+class MatcherBench:
+    source: str
+    queries: int
+    k: int
+    frame_features: float
+    map_features: float
+    float_ms: float  # match_batch on float32 unit vectors, 1 BLAS thread (per comparison)
+    float_default_blas_ms: float  # the same with the process's default BLAS threads
+    fast_ms: float  # match_batch_u8, default backend (NumKong), prepared sets
+    fast_blas_ms: float  # match_batch_u8, float32 BLAS GEMM backend, 1 BLAS thread
+    float_2threads_ms: float  # two threads at once (throughput per comparison)
+    fast_2threads_ms: float
+    counts_identical: bool  # fast paths == exact reference, on every comparison
+    float_counts_identical: bool  # float path == exact reference
+    comparisons: int
+
+    @property
+    def speedup(self) -> float:
+        return self.float_ms / self.fast_ms
+
+
+def _rendered_matcher_sets(seed: int, k: int, places: int) -> tuple[list, list]:
+    """Cloudy query frames (round 1) and, per query, K sunny map frames (round 0): the ten
+    nearest frames around the place (as a swarm compares) and the rest from other places."""
+    from client.rootsift import rootsift_u8
+
+    world = World(seed)
+    poses0, t0, _ = world.round_trajectory(0)
+    poses1, t1, _ = world.round_trajectory(1)
+    n = min(len(poses0), len(poses1))
+    centres = [int(n * (p + 0.5) / places) for p in range(places)]
+    near = k // 2
+    cache: dict[int, np.ndarray] = {}
+
+    def map_frame(i: int) -> np.ndarray:
+        i %= n
+        if i not in cache:
+            cache[i] = rootsift_u8(world.render(Pose(*poses0[i]), "sunny", t=float(t0[i]),
+                                                noise_seed=i))
+        return cache[i]
+
+    queries, sets = [], []
+    for c in centres:
+        queries.append(rootsift_u8(world.render(Pose(*poses1[c]), "cloudy", t=float(t1[c]),
+                                                noise_seed=10_000 + c)))
+        idx = [c + 2 * (j - near // 2) for j in range(near)]
+        far = [o for o in centres if o != c]
+        idx += [far[j % len(far)] + 4 * (j // len(far)) for j in range(k - near)]
+        sets.append([map_frame(i) for i in idx])
+    return queries, sets
+
+
+def _photo_matcher_sets(photos: str, k: int, places: int) -> tuple[list, list]:
+    """Query photos spread over the sequence; per query, its K/2 nearest photos by index and
+    K/2 others spread over the sequence."""
+    from pathlib import Path
+
+    import cv2
+
+    from client.rootsift import rootsift_u8
+
+    paths = sorted(p for p in Path(photos).iterdir()
+                   if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    if len(paths) < k + 1:
+        raise ValueError(f"{photos}: need at least {k + 1} images, found {len(paths)}")
+    feats = [rootsift_u8(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)) for p in paths]
+    n = len(feats)
+    queries, sets = [], []
+    for p in range(places):
+        c = int(n * (p + 0.5) / places)
+        order = sorted((i for i in range(n) if i != c), key=lambda i: abs(i - c))
+        idx = order[: k // 2]
+        rest = [i for i in range(n) if i != c and i not in idx]
+        idx += [rest[int(j * len(rest) / (k - k // 2))] for j in range(k - k // 2)]
+        queries.append(feats[c])
+        sets.append([feats[i] for i in idx])
+    return queries, sets
+
+
+def _median_cpu_ms(fn: Callable[[], object], repeats: int) -> float:
+    """Median CPU time of the calling thread (robust to other users' load on a shared machine;
+    only for single-threaded work: BLAS worker threads would not be counted)."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.thread_time()
+        fn()
+        times.append(time.thread_time() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def _per_comparison_ms(fn: Callable[[int], object], queries: int, k: int, repeats: int,
+                       cpu: bool = True) -> float:
+    """Median over queries of the median time of one query against its K sets, per set:
+    CPU time of the thread (single-threaded work) or wall time."""
+    timer = _median_cpu_ms if cpu else _median_ms
+    return float(np.median([timer(lambda q=q: fn(q), repeats) for q in range(queries)])) / k
+
+
+def _two_threads_ms(fn: Callable[[int], object], queries: int, k: int, repeats: int) -> float:
+    """Two threads run the same workload at once (as two robots would): wall time per
+    comparison, so a value equal to the one-thread figure means no parallel speed-up."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def work() -> None:
+        for _ in range(repeats):
+            for q in range(queries):
+                fn(q)
+
+    with ThreadPoolExecutor(2) as pool:
+        t0 = time.perf_counter()
+        for f in [pool.submit(work), pool.submit(work)]:
+            f.result()
+        wall = time.perf_counter() - t0
+    return 1e3 * wall / (2 * repeats * queries * k)
+
+
+def bench_matcher(photos: str | None = None, seed: int = 0, k: int = 20, places: int = 3,
+                  repeats: int = 5) -> MatcherBench:
+    """Exact uint8 matcher (NumKong GEMM + numba top-2) against the float ``match_batch`` on
+    the same descriptors (quantised CLAHE + RootSIFT; the float path gets them normalised)."""
+    from threadpoolctl import threadpool_limits
+
+    from client.rootsift import unit_float
+    from service.matcher import match_batch_u8, match_batch_u8_reference, prepare, warm_up
+
+    if photos:
+        queries, sets = _photo_matcher_sets(photos, k, places)
+        source = f"photos {photos}"
+    else:
+        queries, sets = _rendered_matcher_sets(seed, k, places)
+        source = f"rendered world seed {seed} (sunny map, cloudy queries)"
+    warm_up()  # numba compiles (or loads its cache) here, outside every timed section
+    fq = [unit_float(a) for a in queries]
+    fsets = [[unit_float(b) for b in s] for s in sets]
+    prepared = [[prepare(b) for b in s] for s in sets]
+    prepared_blas = [[prepare(b, "blas") for b in s] for s in sets]
+
+    def float_path(q: int) -> object:
+        return match_batch(fq[q], fsets[q])
+
+    def fast(q: int) -> object:
+        return match_batch_u8(queries[q], prepared[q])
+
+    def fast_blas(q: int) -> object:
+        return match_batch_u8(queries[q], prepared_blas[q], backend="blas")
+
+    nq = len(queries)
+    identical, float_identical = True, True
+    for q in range(nq):
+        ref = match_batch_u8_reference(queries[q], sets[q]).counts
+        identical &= bool(np.array_equal(fast(q).counts, ref))
+        identical &= bool(np.array_equal(fast_blas(q).counts, ref))
+        float_identical &= bool(np.array_equal(float_path(q).counts, ref))
+    float_default = _per_comparison_ms(float_path, nq, k, repeats, cpu=False)
+    with threadpool_limits(1, "blas"):
+        float_ms = _per_comparison_ms(float_path, nq, k, repeats)
+        fast_ms = _per_comparison_ms(fast, nq, k, repeats)
+        fast_blas_ms = _per_comparison_ms(fast_blas, nq, k, repeats)
+        float2 = _two_threads_ms(float_path, nq, k, repeats)
+        fast2 = _two_threads_ms(fast, nq, k, repeats)
+    return MatcherBench(
+        source, nq, k, float(np.mean([len(a) for a in queries])),
+        float(np.mean([len(b) for s in sets for b in s])), float_ms, float_default, fast_ms,
+        fast_blas_ms, float2, fast2, identical, float_identical, nq * k)
+
+
+# ---- feature types: SIFT, CLAHE + RootSIFT (uint8), ORB (AKAZE where OpenCV has it) -----
+@dataclass
+class FeatureTypeBench:
+    name: str
+    features: float  # per frame (mean)
+    extract_ms: float  # per 320x240 frame (median)
+    match_ms: float  # per comparison (median over queries of one frame vs the whole map)
+    cross_light_top1: float  # cloudy frames whose most similar map image lies within 5 m
+    same_light_top1: float  # sunny frames of another round, the same
+    map_images: int
+    queries: int
+
+
+def _binary_similarity(a: np.ndarray, b: np.ndarray, ratio: float = 0.8) -> float:
+    """The symmetric ratio test on Hamming distances (binary descriptors have no angle):
+    reciprocal nearest neighbours with d1 < ratio * d2 both ways, over min(|A|, |B|)."""
+    import cv2
+
+    if len(a) < 2 or len(b) < 2:
+        return 0.0
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+    def one_way(q: np.ndarray, t: np.ndarray) -> dict[int, int]:
+        return {m1.queryIdx: m1.trainIdx for m1, m2 in bf.knnMatch(q, t, k=2)
+                if m1.distance < ratio * m2.distance}
+
+    ab, ba = one_way(a, b), one_way(b, a)
+    return sum(1 for i, j in ab.items() if ba.get(j) == i) / min(len(a), len(b))
+
+
+def _feature_types() -> dict[str, tuple[Callable, Callable]]:
+    """name -> (extract(image) -> descriptors, similarities(query, map sets) -> scores)."""
+    import cv2
+
+    from client.rootsift import rootsift_u8
+    from service.features import SiftParams, to_working_size
+    from service.matcher import match_batch_u8, prepare
+
+    def clahe(image: np.ndarray) -> np.ndarray:
+        gray = to_working_size(image, SiftParams())
+        return cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(gray)
+
+    def binary(detector: Callable[[], object]) -> Callable:
+        def run(image: np.ndarray) -> np.ndarray:
+            _, d = detector().detectAndCompute(clahe(image), None)
+            return d if d is not None else np.zeros((0, 32), np.uint8)
+        return run
+
+    def binary_scores(q: np.ndarray, sets: list) -> np.ndarray:
+        return np.array([_binary_similarity(q, b) for b in sets])
+
+    types = {
+        "SIFT (float32, all)": (
+            lambda im: extract(im).descriptors, lambda q, sets: match_batch(q, sets).scores),
+        "CLAHE + RootSIFT (uint8)": (
+            rootsift_u8, lambda q, sets: match_batch_u8(q, sets).scores),
+        "CLAHE + ORB (1500)": (binary(lambda: cv2.ORB_create(nfeatures=1500)), binary_scores),
+    }
+    if hasattr(cv2, "AKAZE_create"):  # OpenCV 5 moved AKAZE out of the main modules
+        types["CLAHE + AKAZE"] = (binary(cv2.AKAZE_create), binary_scores)
+    types["_prepare"] = (prepare, lambda q, sets: None)
+    return types
+
+
+def bench_features(seed: int = 0, length_m: float = 120.0, map_step: int = 3,
+                   queries: int = 10, repeats: int = 3) -> list[FeatureTypeBench]:
+    """Extraction time, matching time and place recognition (top-1 within 5 m) per feature
+    type, on a sunny map against cloudy (cross-light) and sunny (same-light) frames."""
+    from threadpoolctl import threadpool_limits
+
+    from service.matcher import warm_up
+
+    world = World(seed, length_m=length_m)
+    p0, t0, _ = world.round_trajectory(0)
+    map_idx = list(range(0, len(p0), map_step))
+    map_imgs = [world.render(Pose(*p0[i]), "sunny", t=float(t0[i]), noise_seed=i) for i in map_idx]
+    map_xy = p0[map_idx, :2]
+    q_sets = {}
+    for label, rnd, cond in (("cross", 1, "cloudy"), ("same", 2, "sunny")):
+        p, t, _ = world.round_trajectory(rnd)
+        idx = [int(len(p) * (j + 0.5) / queries) for j in range(queries)]
+        q_sets[label] = ([world.render(Pose(*p[i]), cond, t=float(t[i]), noise_seed=50_000 + i)
+                          for i in idx], p[idx, :2])
+    warm_up()
+    types = _feature_types()
+    prepare = types.pop("_prepare")[0]
+    with threadpool_limits(1, "blas"):  # CPU time of this thread is then all the work
+        return [_bench_feature_type(name, extract_fn, scores_fn, prepare, map_imgs, map_xy,
+                                    q_sets, queries, repeats)
+                for name, (extract_fn, scores_fn) in types.items()]
+
+
+def _bench_feature_type(name: str, extract_fn: Callable, scores_fn: Callable,
+                        prepare: Callable, map_imgs: list, map_xy: np.ndarray, q_sets: dict,
+                        queries: int, repeats: int) -> FeatureTypeBench:
+    extract_fn(map_imgs[0])  # first-call set-up outside the timing
+    map_desc = [extract_fn(im) for im in map_imgs]
+    if "uint8" in name:
+        map_desc = [prepare(d) for d in map_desc]
+    top1, match_ms, ext_ms, n_feat = {}, [], [], []
+    for label, (imgs, xy) in q_sets.items():
+        hits = 0
+        for img, truth in zip(imgs, xy, strict=True):
+            times = []
+            for _ in range(repeats):
+                t = time.thread_time()
+                q = extract_fn(img)
+                times.append(time.thread_time() - t)
+            ext_ms.append(1e3 * float(np.median(times)))
+            n_feat.append(len(q))
+            t = time.thread_time()
+            scores = scores_fn(q, map_desc)
+            match_ms.append(1e3 * (time.thread_time() - t) / len(map_desc))
+            best = int(np.argmax(scores))
+            hits += bool(np.linalg.norm(map_xy[best] - truth) <= 5.0)
+        top1[label] = hits / len(imgs)
+    return FeatureTypeBench(name, float(np.mean(n_feat)), float(np.median(ext_ms)),
+                            float(np.median(match_ms)), top1["cross"], top1["same"],
+                            len(map_imgs), queries)

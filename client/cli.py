@@ -615,6 +615,58 @@ def eval_split(
                f"{res.comparisons.mean():.1f} comparisons/frame; final status {res.status[-1]}")
 
 
+@bench_app.command("matcher")
+def bench_matcher_cmd(
+    photos: Annotated[Path | None, typer.Option(help="also measure on these photos")] = None,
+    k: Annotated[int, typer.Option(help="map images per frame")] = 20,
+    places: Annotated[int, typer.Option(help="query frames")] = 3,
+    repeats: int = 5,
+) -> None:
+    """Exact uint8 matcher vs the float match_batch: ms/comparison, speed-up, identical counts."""
+    from client.bench import bench_matcher
+
+    if photos is not None and not photos.is_dir():
+        _fail(f"--photos {photos}: not a directory")
+    for src in [None, str(photos)] if photos is not None else [None]:
+        try:
+            b = bench_matcher(src, k=k, places=places, repeats=repeats)
+        except ValueError as exc:
+            _fail(str(exc))
+        typer.echo(f"{b.source}: {b.queries} frames x {b.k} map images, features: frame "
+                   f"{b.frame_features:.0f}, map image {b.map_features:.0f}")
+        typer.echo(f"  float match_batch (1 BLAS thread):    {b.float_ms:8.3f} ms/comparison")
+        typer.echo(f"  float match_batch (default BLAS):     {b.float_default_blas_ms:8.3f} "
+                   "ms/comparison")
+        typer.echo(f"  uint8 match_batch_u8 (NumKong):       {b.fast_ms:8.3f} ms/comparison")
+        typer.echo(f"  uint8 match_batch_u8 (BLAS float32):  {b.fast_blas_ms:8.3f} ms/comparison")
+        typer.echo(f"  speed-up (NumKong vs float, 1 thread): {b.speedup:7.1f} x")
+        typer.echo(f"  2 threads at once: float {b.float_2threads_ms:.3f}, uint8 "
+                   f"{b.fast_2threads_ms:.3f} ms/comparison (wall / comparisons)")
+        typer.echo(f"  identical counts, fast vs exact reference: {b.counts_identical} "
+                   f"({b.comparisons} comparisons); float path vs reference: "
+                   f"{b.float_counts_identical}")
+
+
+@bench_app.command("features")
+def bench_features_cmd(
+    seed: int = 0,
+    length: Annotated[float, typer.Option(help="loop length of the world, m")] = 120.0,
+    map_step: Annotated[int, typer.Option(help="map image every N frames")] = 3,
+    queries: Annotated[int, typer.Option(help="query frames per lighting")] = 10,
+) -> None:
+    """SIFT vs CLAHE + RootSIFT (uint8) vs ORB (AKAZE): CPU time per frame, place recognition."""
+    from client.bench import bench_features
+
+    rows = bench_features(seed, length, map_step, queries)
+    typer.echo(f"map: {rows[0].map_images} sunny images; {rows[0].queries} queries per lighting; "
+               "top-1: most similar map image within 5 m of the truth")
+    typer.echo(f"{'feature type':28s} {'feat/frame':>10s} {'extract ms':>10s} "
+               f"{'match ms/cmp':>12s} {'top-1 cloudy':>12s} {'top-1 sunny':>11s}")
+    for r in rows:
+        typer.echo(f"{r.name:28s} {r.features:10.0f} {r.extract_ms:10.2f} {r.match_ms:12.3f} "
+                   f"{100 * r.cross_light_top1:11.0f}% {100 * r.same_light_top1:10.0f}%")
+
+
 @bench_app.command("latency")
 def bench_latency_cmd(
     round_dir: Annotated[Path, typer.Argument(help="round whose frames are sent")],

@@ -1,0 +1,159 @@
+"""The fast uint8 matcher equals its exact reference (and the float path) on real frames."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from client.rootsift import rootsift_u8, unit_float
+from service.features import match_batch
+from service.matcher import (
+    _jit,
+    match_batch_u8,
+    match_batch_u8_reference,
+    norms_u8,
+    prepare,
+    warm_up,
+)
+
+BACKENDS = ("auto", "blas")
+
+
+@pytest.fixture(scope="module")
+def frames(sunny1, sunny2, cloudy1) -> dict[str, np.ndarray]:
+    """CLAHE + RootSIFT uint8 features: neighbouring, same and far places, two lightings."""
+    out = {}
+    for name, rnd in (("sunny1", sunny1), ("sunny2", sunny2), ("cloudy1", cloudy1)):
+        for i in (3, 5, 40, 100):
+            out[f"{name}/{i}"] = rootsift_u8(rnd.load_image(i))
+    return out
+
+
+@pytest.fixture(scope="module")
+def references(frames) -> dict:
+    sets = [frames[n] for n in sorted(frames)]
+    return {n: match_batch_u8_reference(frames[n], sets) for n in sorted(frames)}
+
+
+def _same(x, y) -> None:
+    np.testing.assert_array_equal(x.counts, y.counts)
+    np.testing.assert_array_equal(x.matched, y.matched)
+    np.testing.assert_array_equal(x.scores, y.scores)
+
+
+def test_features_are_quantised_rootsift(frames) -> None:
+    for q in frames.values():
+        assert q.dtype == np.uint8 and q.shape[1] == 128 and len(q) > 100
+        n = norms_u8(q)
+        assert np.all(np.abs(n - 255) < 255 * 0.05)  # unit vectors scaled by 255, rounded
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_fast_path_equals_reference_on_rendered_frames(frames, references, backend) -> None:
+    warm_up()
+    names = sorted(frames)
+    sets = [frames[n] for n in names]
+    prepared = [prepare(s, backend) for s in sets]
+    counts = []
+    for name in names:
+        ref = references[name]
+        _same(match_batch_u8(frames[name], prepared, backend=backend), ref)
+        _same(match_batch_u8(frames[name], sets, backend=backend), ref)  # unprepared sets
+        counts.append(ref.counts)
+    counts = np.array(counts)
+    # the comparison is not trivial: self-matches, neighbours that match, far places that don't
+    assert np.all(np.diag(counts) > 0.5 * np.array([len(s) for s in sets]))
+    assert (counts[np.eye(len(names)) == 0] > 0).sum() >= len(names)
+    assert (counts == 0).sum() > 0 or counts.min() < counts.max() / 20
+
+
+def test_reference_agrees_with_float_path_on_rendered_frames(frames, references) -> None:
+    """The float32 path on the normalised vectors gives the same counts on these frames (the
+    reference is the exact definition; float32 rounding could only flip borderline ratios)."""
+    names = sorted(frames)
+    sets = [frames[n] for n in names]
+    unit = [unit_float(s) for s in sets]
+    for name in names:
+        flt = match_batch(unit_float(frames[name]), unit)
+        np.testing.assert_array_equal(references[name].counts, flt.counts)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_ties_and_near_ties_follow_the_reference(backend) -> None:
+    """Tiny integer vectors give many exact ties and near ties: the exact fallbacks decide."""
+    rng = np.random.default_rng(7)
+    for _ in range(150):
+        n1, n2 = rng.integers(0, 70, 2)
+        dim = int(rng.integers(2, 8))
+        a = rng.integers(0, 3, (n1, dim)).astype(np.uint8)
+        b = rng.integers(0, 3, (n2, dim)).astype(np.uint8)
+        a[a.sum(axis=1) == 0, 0] = 1
+        b[b.sum(axis=1) == 0, 0] = 1
+        sets = [b, a, np.vstack([b, b[:1]])]
+        _same(match_batch_u8(a, sets, backend=backend), match_batch_u8_reference(a, sets))
+
+
+def test_exact_tie_never_passes_and_identical_descriptor_does() -> None:
+    rng = np.random.default_rng(0)
+    x = rng.integers(1, 255, (3, 128)).astype(np.uint8)
+    a = x[:2]
+    tie = np.stack([x[0], x[0], x[2]])  # a0 has two equal nearest neighbours
+    clean = np.stack([x[0], x[2]])  # a0 == b0: angle 0 passes any ratio test
+    for backend in BACKENDS:
+        r = match_batch_u8(a, [tie, clean], backend=backend)
+        assert not r.matched[0, 0]
+        assert r.matched[1, 0]
+        _same(r, match_batch_u8_reference(a, [tie, clean]))
+
+
+def test_small_sets_match_nothing() -> None:
+    x = np.random.default_rng(1).integers(1, 255, (10, 128)).astype(np.uint8)
+    r = match_batch_u8(x, [x[:0], x[:1], x])
+    assert r.counts.tolist() == [0, 0, 10]
+    assert r.scores.tolist() == [0.0, 0.0, 1.0]
+    assert match_batch_u8(x[:1], [x]).counts.tolist() == [0]
+    assert match_batch_u8(x, []).counts.shape == (0,)
+
+
+def test_bad_input_is_refused() -> None:
+    x = np.ones((4, 128), np.uint8)
+    with pytest.raises(ValueError, match="uint8"):
+        match_batch_u8(x.astype(np.float32), [x])
+    with pytest.raises(ValueError, match="non-zero"):
+        match_batch_u8(np.vstack([x, np.zeros((1, 128), np.uint8)]), [x])
+    with pytest.raises(ValueError, match="backend"):
+        match_batch_u8(x, [x], backend="gpu")
+    with pytest.raises(ValueError, match="too long"):
+        match_batch_u8(np.ones((4, 300), np.uint8), [np.ones((4, 300), np.uint8)])
+
+
+def test_jit_falls_back_without_a_cache_location() -> None:
+    """A function numba cannot cache (no source file) still compiles, uncached."""
+    scope: dict = {}
+    exec("def f(x):\n    return x + 1\n", scope)  # no source file: no cache locator
+    assert _jit(scope["f"])(41) == 42
+
+
+def test_module_works_where_numba_can_write_no_cache() -> None:
+    """Read-only install and no writable user cache: every kernel compiles uncached, results
+    unchanged (a fresh interpreter, numba's cache locators all refusing)."""
+    code = (
+        "import numba.core.caching as c\n"
+        "impl = getattr(c, 'CacheImpl', None) or getattr(c, '_CacheImpl')\n"
+        "impl._locator_classes = []\n"  # no location accepts a cache
+        "import numpy as np\n"
+        "from service.matcher import match_batch_u8, match_batch_u8_reference\n"
+        "x = np.random.default_rng(0).integers(1, 255, (40, 128)).astype(np.uint8)\n"
+        "r = match_batch_u8(x, [x[5:], x[:30]])\n"
+        "assert (r.counts == match_batch_u8_reference(x, [x[5:], x[:30]]).counts).all()\n"
+        "print(r.counts.tolist())\n"
+    )
+    root = Path(__file__).resolve().parent.parent
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=False, cwd=root)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[35, 30]"
