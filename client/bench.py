@@ -376,7 +376,6 @@ class MatcherBench:
 def _rendered_matcher_sets(seed: int, k: int, places: int) -> tuple[list, list]:
     """Cloudy query frames (round 1) and, per query, K sunny map frames (round 0): the ten
     nearest frames around the place (as a swarm compares) and the rest from other places."""
-    from client.rootsift import rootsift_u8
 
     world = World(seed)
     poses0, t0, _ = world.round_trajectory(0)
@@ -389,19 +388,26 @@ def _rendered_matcher_sets(seed: int, k: int, places: int) -> tuple[list, list]:
     def map_frame(i: int) -> np.ndarray:
         i %= n
         if i not in cache:
-            cache[i] = rootsift_u8(world.render(Pose(*poses0[i]), "sunny", t=float(t0[i]),
+            cache[i] = _codes(world.render(Pose(*poses0[i]), "sunny", t=float(t0[i]),
                                                 noise_seed=i))
         return cache[i]
 
     queries, sets = [], []
     for c in centres:
-        queries.append(rootsift_u8(world.render(Pose(*poses1[c]), "cloudy", t=float(t1[c]),
+        queries.append(_codes(world.render(Pose(*poses1[c]), "cloudy", t=float(t1[c]),
                                                 noise_seed=10_000 + c)))
         idx = [c + 2 * (j - near // 2) for j in range(near)]
         far = [o for o in centres if o != c]
         idx += [far[j % len(far)] + 4 * (j // len(far)) for j in range(k - near)]
         sets.append([map_frame(i) for i in idx])
     return queries, sets
+
+
+def _codes(image: np.ndarray) -> np.ndarray:
+    """The map's default descriptor codes (CLAHE + RootSIFT, uint8) of a frame."""
+    from service.features import extract
+
+    return extract(image).codes
 
 
 def _photo_matcher_sets(photos: str, k: int, places: int) -> tuple[list, list]:
@@ -411,13 +417,12 @@ def _photo_matcher_sets(photos: str, k: int, places: int) -> tuple[list, list]:
 
     import cv2
 
-    from client.rootsift import rootsift_u8
 
     paths = sorted(p for p in Path(photos).iterdir()
                    if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
     if len(paths) < k + 1:
         raise ValueError(f"{photos}: need at least {k + 1} images, found {len(paths)}")
-    feats = [rootsift_u8(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)) for p in paths]
+    feats = [_codes(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)) for p in paths]
     n = len(feats)
     queries, sets = [], []
     for p in range(places):
@@ -474,7 +479,7 @@ def bench_matcher(photos: str | None = None, seed: int = 0, k: int = 20, places:
     the same descriptors (quantised CLAHE + RootSIFT; the float path gets them normalised)."""
     from threadpoolctl import threadpool_limits
 
-    from client.rootsift import unit_float
+    from service.features import unit_descriptors
     from service.matcher import match_batch_u8, match_batch_u8_reference, prepare, warm_up
 
     if photos:
@@ -484,8 +489,8 @@ def bench_matcher(photos: str | None = None, seed: int = 0, k: int = 20, places:
         queries, sets = _rendered_matcher_sets(seed, k, places)
         source = f"rendered world seed {seed} (sunny map, cloudy queries)"
     warm_up()  # numba compiles (or loads its cache) here, outside every timed section
-    fq = [unit_float(a) for a in queries]
-    fsets = [[unit_float(b) for b in s] for s in sets]
+    fq = [unit_descriptors(a) for a in queries]
+    fsets = [[unit_descriptors(b) for b in s] for s in sets]
     prepared = [[prepare(b) for b in s] for s in sets]
     prepared_blas = [[prepare(b, "blas") for b in s] for s in sets]
 
@@ -552,8 +557,7 @@ def _feature_types() -> dict[str, tuple[Callable, Callable]]:
     """name -> (extract(image) -> descriptors, similarities(query, map sets) -> scores)."""
     import cv2
 
-    from client.rootsift import rootsift_u8
-    from service.features import SiftParams, to_working_size
+    from service.features import SiftParams, extract, to_working_size
     from service.matcher import match_batch_u8, prepare
 
     def clahe(image: np.ndarray) -> np.ndarray:
@@ -571,9 +575,10 @@ def _feature_types() -> dict[str, tuple[Callable, Callable]]:
 
     types = {
         "SIFT (float32, all)": (
-            lambda im: extract(im).descriptors, lambda q, sets: match_batch(q, sets).scores),
+            lambda im: extract(im, SiftParams.papers()).descriptors,
+            lambda q, sets: match_batch(q, sets).scores),
         "CLAHE + RootSIFT (uint8)": (
-            rootsift_u8, lambda q, sets: match_batch_u8(q, sets).scores),
+            _codes, lambda q, sets: match_batch_u8(q, sets).scores),
         "CLAHE + ORB (1500)": (binary(lambda: cv2.ORB_create(nfeatures=1500)), binary_scores),
     }
     if hasattr(cv2, "AKAZE_create"):  # OpenCV 5 moved AKAZE out of the main modules

@@ -119,7 +119,7 @@ def world_eval(
     for i in range(0, len(qr), every):
         f = extract(qr.load_image(i), m.sift_params)
         n_feat.append(len(f))
-        best = int(np.argmax(m.similarity(f.descriptors, range(m.n_images))))
+        best = int(np.argmax(m.similarity(f.codes, range(m.n_images))))
         hits.append(np.linalg.norm(m.positions[best] - qr.reference_xy[i]) <= radius)
     pr = m.meta["pruning"]
     typer.echo(f"map {mr.name}: {len(mr)} images, {pr['features_before'] / len(mr):.0f} SIFT "
@@ -597,7 +597,7 @@ def eval_split(
     feats = [extract(rnd.load_image(i), params) for i in odd]
     adjacent = 0
     for k, f in enumerate(feats):
-        best = int(np.argmax(m.similarity(f.descriptors, range(m.n_images))))
+        best = int(np.argmax(m.similarity(f.codes, range(m.n_images))))
         adjacent += abs(best - (k + 0.5)) <= 0.5 + 1e-9  # even neighbours of odd frame 2k+1
     from client.dataset import Round
 

@@ -52,8 +52,28 @@ def map_for(dataset: Path, rounds: str, papers: bool) -> RouteMap:
                   [f"{r.name}/{n}" for r in rnds for n in r.images], params,
                   origin=rnds[0].origin, prune_features=papers,
                   layers=np.concatenate([np.full(len(r), k) for k, r in enumerate(rnds)]))
-    save_map(m, path)
-    return m
+    return load_map(save_map(m, path))  # loaded: with its checksum, memory-mapped
+
+
+def cached_table(dataset: Path, m: RouteMap, rnd: Any) -> SimilarityTable:
+    """The similarity table of a map and a query round, kept in DATASET/.maps between runs
+    (keyed by the map's checksum: a rebuilt map starts a new table)."""
+    table = SimilarityTable.from_round(m, rnd)
+    path = dataset / ".maps" / f"{m.meta['checksum'][:16]}-{rnd.name}.table.npy"
+    if path.is_file():
+        saved = np.load(path)
+        if saved.shape == table.table.shape:
+            table.table = saved
+    table.cache_path = path
+    return table
+
+
+def save_table(table: SimilarityTable) -> None:
+    path = table.cache_path
+    if path is not None:
+        tmp = path.with_suffix(".tmp.npy")
+        np.save(tmp, table.table)
+        tmp.replace(path)
 
 
 def run_metrics(runs: list[RunResult], warmup: int) -> dict[str, float]:
@@ -126,7 +146,7 @@ def experiment(
             for papers in {CONFIGS[c].papers_map for c in chosen}}
     for q in [x for x in query.split(",") if x]:
         rnd = read_round(dataset / q)
-        tables = {papers: SimilarityTable.from_round(m, rnd) for papers, m in maps.items()}
+        tables = {papers: cached_table(dataset, m, rnd) for papers, m in maps.items()}
         start_list = _starts(len(rnd), starts)
         typer.echo(f"\n{map_round} (map) vs {q}: {starts} runs x {len(rnd)} frames, errors "
                    f"after {warmup} frames")
@@ -152,6 +172,8 @@ def experiment(
                        f"{r['comparisons']:10.1f} {_fmt(r['recovering'], True):>6s} "
                        f"{_fmt(r['calibration'], True):>6s} {_fmt(r['honesty'], True):>7s} "
                        f"{_fmt(r['speed_error'], True):>6s} {kid}")
+        for table in tables.values():
+            save_table(table)
         if "DPSO-80" in rows and "PF-l-300" in rows:
             d, pf = rows["DPSO-80"], rows["PF-l-300"]
             typer.echo(f"DPSO-80 / PF-l-300: error x{d['mean_error_m'] / pf['mean_error_m']:.2f}"
@@ -175,7 +197,7 @@ def sweep(
     tables = {}
     for q in [x for x in query.split(",") if x]:
         rnd = read_round(dataset / q)
-        tables[q] = (rnd, SimilarityTable.from_round(m, rnd))
+        tables[q] = (rnd, cached_table(dataset, m, rnd))
     for raw in values.split(","):
         value: Any = float(raw) if "." in raw or "e" in raw else int(raw)
         cfg = Config("dpso", {"variant": variant, param: value}, papers)

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from client.dataset import Round
-from service.features import Features, extract, match_batch
+from service.features import Features, extract
 from service.localizer import Localizer
 from service.route_map import RouteMap
 
@@ -28,6 +29,7 @@ class SimilarityTable:
         self.map = route_map
         self.queries = queries
         self.table = np.full((len(queries), route_map.n_images), np.nan, np.float64)
+        self.cache_path: Path | None = None  # where ``swarmloc experiment`` keeps it
 
     @classmethod
     def from_round(cls, route_map: RouteMap, rnd: Round) -> SimilarityTable:
@@ -38,8 +40,7 @@ class SimilarityTable:
         row = self.table[q]
         missing = ids[np.isnan(row[ids])]
         if len(missing):
-            sets = [self.map.features_of(int(i)) for i in missing]
-            row[missing] = match_batch(self.queries[q].descriptors, sets, self.map.delta).scores
+            row[missing] = self.map.similarity(self.queries[q].codes, missing)
         return row[ids]
 
 

@@ -64,11 +64,8 @@ def estimate_message(est: Estimate, wall: float, latency_s: float | None) -> str
         "score": _r(est.score, 4), "comparisons": est.comparisons,
         "latency_ms": None if latency_s is None else round(1e3 * latency_s, 2),
     }
-    # competing hypotheses, once Estimate has them (a missing attribute costs an exception)
-    hyps = (getattr(est, "hypotheses", None) if "hypotheses" in type(est).model_fields
-            else None) or []
-    if hyps:
-        msg["hypotheses"] = [[_r(h.x, 2), _r(h.y, 2), _r(h.weight, 4)] for h in hyps]
+    if est.hypotheses:  # competing places (multi-swarm DPSO), best first
+        msg["hypotheses"] = [[_r(h.x, 2), _r(h.y, 2), _r(h.weight, 4)] for h in est.hypotheses]
     return json.dumps(msg, separators=(",", ":"))
 
 

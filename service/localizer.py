@@ -65,8 +65,8 @@ class Localizer:
         """One frame: optional pose prior (x, y, radius), estimator step, Estimate."""
         if prior is not None:
             self.estimator.constrain((prior[0], prior[1]), prior[2])
-        desc = features.descriptors
-        res = self.estimator.step(lambda ids: self.map.similarity(desc, ids), t)
+        codes = features.codes
+        res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t)
         self.seq += 1
         self.last = self._estimate(res, t)
         return self.last

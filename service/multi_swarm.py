@@ -88,7 +88,11 @@ class MultiSwarmDPSO(DPSO):
         seeds, label = speciate(self.x, f, p.species_radius_m, p.max_species)
         support = np.array([self.evidence[label == s].max() for s in range(len(seeds))])
         best_s = int(np.argmax(support))
-        members = label == best_s
+        # the estimate: the particles of the best group near its best particle (the front of
+        # a moving swarm: a centre over the whole group trails the robot)
+        seed_x = self.x[seeds[best_s]]
+        members = (label == best_s) & (np.linalg.norm(self.x - seed_x, axis=1)
+                                       <= p.estimate_radius_m)
         w = f[members] if f[members].sum() > 0 else self.evidence[members]
         pos = weighted_centre(self.x[members], w)
         cov = weighted_covariance(self.x[members], w, p.estimate_floor_m) * p.covariance_scale
@@ -115,9 +119,12 @@ class MultiSwarmDPSO(DPSO):
         else:
             self._adapt_v0()
 
-        attractor = self.x[seeds][np.where(label >= 0, label, best_s)]
+        # attractors: the seeds where the robot will be at the next frame (the tracked step
+        # ahead), so the swarm does not trail the robot where matches are weak
+        lead = self.ema_step if p.predict_attractor and self.ema_step is not None else 0.0
+        attractor = self.x[seeds][np.where(label >= 0, label, best_s)] + lead
         weak = (label >= 0) & (support[label.clip(0)] < p.dissolve_ratio * support[best_s])
-        self._move_species(attractor, self.x[seeds[best_s]].copy(), weak)
+        self._move_species(attractor, self.x[seeds[best_s]] + lead, weak)
         speed, heading = self.motion(dt)
         return StepResult(pos, cov, heading, speed, status, lost or self.recovering, ev.best_m,
                           fitness.comparisons, spread, hypotheses)

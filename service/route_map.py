@@ -37,6 +37,7 @@ from service.features import (
     unit_descriptors,
 )
 from service.geo import LocalFrame
+from service.matcher import PreparedSet, match_batch_u8, prepare
 
 MAGIC = b"SWMAP\x00\r\n"
 FORMAT_VERSION = 2
@@ -105,6 +106,7 @@ class RouteMap:
         self._layer_trees = ([self._tree] if self.n_layers == 1 else
                              [cKDTree(self.positions[ids]) for ids in self._layer_ids])
         self._sets: list[np.ndarray | None] = [None] * n
+        self._prepared: list[PreparedSet | None] = [None] * n
 
     @property
     def n_layers(self) -> int:
@@ -168,10 +170,21 @@ class RouteMap:
             out_i[:, k] = ids[local]
         return out_i, out_d
 
-    def similarity(self, frame_descriptors: np.ndarray, image_ids: Iterable[int]) -> np.ndarray:
-        """m(frame, map image) for each id, batched (one matrix product)."""
-        sets = [self.features_of(int(i)) for i in image_ids]
-        return match_batch(frame_descriptors, sets, self.delta).scores
+    def prepared(self, image_id: int) -> PreparedSet:
+        """One map image's codes prepared for the exact uint8 matcher (kept after first use;
+        the codes stay memory-mapped)."""
+        cached = self._prepared[image_id]
+        if cached is None:
+            cached = prepare(np.asarray(
+                self.codes[self.offsets[image_id]: self.offsets[image_id + 1]]))
+            self._prepared[image_id] = cached
+        return cached
+
+    def similarity(self, frame_codes: np.ndarray, image_ids: Iterable[int]) -> np.ndarray:
+        """m(frame, map image) for each id: the exact uint8 matcher (service/matcher.py) on
+        the frame's descriptor codes (``Features.codes``)."""
+        sets = [self.prepared(int(i)) for i in image_ids]
+        return match_batch_u8(frame_codes, sets, self.delta).scores
 
     def summary(self) -> dict:
         return {

@@ -45,6 +45,13 @@ def build_app(settings: Settings) -> FastAPI:
 
 def run(settings: Settings) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    from threadpoolctl import threadpool_limits
+
+    from service.matcher import warm_up
+
+    # robots run in parallel threads: one BLAS thread each, not threads fighting over cores
+    threadpool_limits(1, "blas")
+    warm_up()  # compile (or load) the matcher's kernels before the first frame
     app = build_app(settings)
     log.info("maps loaded from %s: %s", settings.maps_dir, sorted(app.state.service.maps))
     _Server(uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info",

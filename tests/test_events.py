@@ -9,12 +9,11 @@ from collections.abc import Iterator
 import httpx
 import numpy as np
 import pytest
-from pydantic import BaseModel
 
 from client.transports import HttpClient, ZenohClient
 from service.events import EventHub, estimate_message
 from service.metrics import Metrics
-from service.models import Estimate
+from service.models import Estimate, Hypothesis
 from service.server import free_port, running_server
 from service.sessions import LocalizationService
 from service.settings import Settings
@@ -30,20 +29,9 @@ def _estimate(robot: str, seq: int, x: float = 1.0) -> Estimate:
                     nearest_image_name="3.png", spread_m=1.0, robot_id=robot)
 
 
-class _Hypothesis(BaseModel):
-    x: float
-    y: float
-    weight: float
-
-
-class _EstimateWithHypotheses(Estimate):  # the field the estimators are getting
-    hypotheses: list[_Hypothesis]
-
-
 def test_hypotheses_are_streamed_when_the_estimate_has_them() -> None:
-    base = _estimate("a", 1).model_dump()
-    est = _EstimateWithHypotheses(**base, hypotheses=[_Hypothesis(x=1.234, y=5.0, weight=0.7),
-                                                      _Hypothesis(x=-3.0, y=2.0, weight=0.3)])
+    est = _estimate("a", 1).model_copy(update={"hypotheses": [
+        Hypothesis(x=1.234, y=5.0, weight=0.7), Hypothesis(x=-3.0, y=2.0, weight=0.3)]})
     msg = json.loads(estimate_message(est, 1.0, None))
     assert msg["hypotheses"] == [[1.23, 5.0, 0.7], [-3.0, 2.0, 0.3]]
     assert "hypotheses" not in json.loads(estimate_message(_estimate("a", 1), 1.0, None))

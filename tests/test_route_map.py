@@ -51,8 +51,11 @@ def test_loaded_map_matches_like_the_map_in_memory(small_map, sunny1, sunny2) ->
                     [sunny1.images[i] for i in idx])
     f = extract(sunny2.load_image(5))
     ids = np.arange(12)
-    np.testing.assert_array_equal(mem.similarity(f.descriptors, ids),
-                                  small_map.similarity(f.descriptors, ids))
+    np.testing.assert_array_equal(mem.similarity(f.codes, ids), small_map.similarity(f.codes, ids))
+    # the exact uint8 matcher equals the float path on the same descriptors
+    sets = [small_map.features_of(int(i)) for i in ids]
+    np.testing.assert_array_equal(small_map.similarity(f.codes, ids),
+                                  match_batch(f.descriptors, sets).scores)
 
 
 def test_multi_condition_map_compares_each_layer(tmp_path: Path, sunny1, cloudy1) -> None:
@@ -71,10 +74,10 @@ def test_multi_condition_map_compares_each_layer(tmp_path: Path, sunny1, cloudy1
     assert ids.shape == (3, 2) and (ids[:, 0] < 10).all() and (ids[:, 1] >= 10).all()
     # a cloudy frame: both layers are compared, the cloudy image of its place wins
     f = extract(cloudy1.load_image(25))
-    fit = FrameFitness(loaded, lambda i: loaded.similarity(f.descriptors, i), 2.0)
+    fit = FrameFitness(loaded, lambda i: loaded.similarity(f.codes, i), 2.0)
     _, m_best, best = fit(cloudy1.xy[[25]])
     assert fit.comparisons == 2 and best[0] >= 10
-    assert m_best[0] == loaded.similarity(f.descriptors, [best[0]])[0]
+    assert m_best[0] == loaded.similarity(f.codes, [best[0]])[0]
 
 
 def test_nearest_many_positions(small_map) -> None:
@@ -93,7 +96,7 @@ def test_true_image_outscores_far_ones(small_map, sunny2, cloudy1) -> None:
             ids, _ = small_map.nearest(rnd.truth_xy[i][None])
             d = np.linalg.norm(small_map.positions - rnd.truth_xy[i], axis=1)
             far = np.flatnonzero(d > 15)[::7]
-            sc = small_map.similarity(f.descriptors, np.concatenate([ids, far]))
+            sc = small_map.similarity(f.codes, np.concatenate([ids, far]))
             wins += sc[0] > sc[1:].max()
         assert wins / len(idx) >= min_frac
 
@@ -171,5 +174,5 @@ def test_map_of_featureless_images_roundtrips(tmp_path: Path) -> None:
                   ["a.png", "b.png", "c.png"])
     loaded = load_map(save_map(m, tmp_path / "blank"))
     assert loaded.n_images == 3 and loaded.offsets[-1] == 0
-    assert loaded.similarity(np.ones((5, 128), np.float32) / np.sqrt(128), [0, 1]).tolist() \
+    assert loaded.similarity(np.ones((5, 128), np.uint8), [0, 1]).tolist() \
         == [0.0, 0.0]
