@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.features import extract, match_batch, unit_descriptors
+from service.features import ROOT_SCALE, extract, match_batch, unit_descriptors
 from service.matcher import (
     _jit,
     match_batch_u8,
