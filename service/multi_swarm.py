@@ -104,20 +104,8 @@ class MultiSwarmDPSO(DPSO):
                                 p.species_radius_m)
         status, lost = self._update_evidence_status(ev.good)
         self.track_motion(pos)
-        if lost and not self.recovering:
-            self.recovering = True
-            self._v0_before_recovery = self.v0
-        elif self.recovering and self._good >= p.recovered_frames:
-            self.recovering = False
-            self.v0, self.q_r, self.phi2 = self._v0_before_recovery, p.quantum_ratio, p.phi2
-        if self.recovering:
-            a = p.recovery_step
-            self.v0 = min(self.v0 * (1 + a), p.v0_max)
-            self.q_r = min(self.q_r * (1 + a), p.quantum_ratio_max)
-            self.phi2 = max(self.phi2 * (1 - a), p.phi2_min)
+        if self.recovery_phase(lost):
             status = Status.RECOVERING
-        else:
-            self._adapt_v0()
 
         # attractors: the seeds where the robot will be at the next frame (the tracked step
         # ahead), so the swarm does not trail the robot where matches are weak

@@ -66,7 +66,6 @@ class DPSO(Estimator):
     def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
         if self._needs_init:
             self._initialize()
-        p = self.params
         dt = self.frame_dt(t)
         f, m, _ = fitness(self.x)
         best = int(np.argmax(f))
@@ -83,25 +82,32 @@ class DPSO(Estimator):
         self.track_motion((f @ self.x) / total if total > 0 else centre)
 
         status, lost = self.update_status(best_m)
-        if lost and not self.recovering:  # recovery phase starts (Sec. 5)
+        if self.recovery_phase(lost):
+            status = Status.RECOVERING
+        self._move(p_n)
+        speed, heading = self.motion(dt)
+        return StepResult(p_n, cov, heading, speed, status, lost, best_m, fitness.comparisons,
+                          spread)
+
+    def recovery_phase(self, lost: bool) -> bool:
+        """Sec. 5's recovery state machine; True while recovering. Entering it keeps v0;
+        ``recovered_frames`` good frames restore v0, q_r and phi2; while it lasts, diversity
+        is boosted step by step towards the limits, otherwise v0 self-adapts."""
+        p = self.params
+        if lost and not self.recovering:  # recovery phase starts
             self.recovering = True
             self._v0_before_recovery = self.v0
         elif self.recovering and self._good >= p.recovered_frames:  # matches are good again
             self.recovering = False
             self.v0, self.q_r, self.phi2 = self._v0_before_recovery, p.quantum_ratio, p.phi2
-        if self.recovering:  # boost diversity step by step towards the limits
+        if self.recovering:
             a = p.recovery_step
             self.v0 = min(self.v0 * (1 + a), p.v0_max)
             self.q_r = min(self.q_r * (1 + a), p.quantum_ratio_max)
             self.phi2 = max(self.phi2 * (1 - a), p.phi2_min)
-            status = Status.RECOVERING
         else:
             self._adapt_v0()
-
-        self._move(p_n)
-        speed, heading = self.motion(dt)
-        return StepResult(p_n, cov, heading, speed, status, lost, best_m, fitness.comparisons,
-                          spread)
+        return self.recovering
 
     def _adapt_v0(self) -> None:
         """Hold v0 ~ 2 v_sw: change v0 by 10 % when EMA(v_sw) / v0 leaves [0.4, 0.6]."""
