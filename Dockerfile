@@ -1,4 +1,5 @@
-# swarmloc: the localization service with the demo map (built on first start into /app/maps).
+# swarmloc: the localization service only (no client/, no lab), with the demo map (built on
+# first start into /app/maps from the round shipped in service/demo).
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -10,14 +11,15 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 RUN useradd --create-home --uid 10001 swarmloc
 WORKDIR /app
 
-# only what the runtime needs: the two packages and the maps directory
+# only what the runtime needs: the service package and the maps directory
 COPY pyproject.toml README.md ./
 COPY service ./service
-COPY client ./client
 COPY maps ./maps
 
-# the README's install step
-RUN pip install . && chown -R 10001:10001 /app/maps
+# the README's install step (the service extra includes Zenoh); DL3013 reads ".[service]" as
+# an unpinned package: it is this source tree, whose dependencies pyproject.toml pins
+# hadolint ignore=DL3013
+RUN pip install ".[service]" && chown -R 10001:10001 /app/maps
 
 USER 10001
 EXPOSE 8080 7447
@@ -25,5 +27,5 @@ VOLUME ["/app/maps"]
 HEALTHCHECK --interval=30s --timeout=5s --start-period=90s --retries=3 \
     CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8080/healthz', timeout=4)"]
 
-# the README's run step
-CMD ["swarmloc", "serve", "--demo"]
+# the README's run step (`swarmloc serve` is this command; client/ is not in the image)
+CMD ["swarmloc-service", "serve", "--demo"]

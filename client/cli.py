@@ -1,31 +1,45 @@
-"""The ``swarmloc`` command: world rendering, maps, benchmarks, experiments, serving, replay."""
+"""The ``swarmloc`` command: world rendering, maps, benchmarks, experiments, serving, replay.
+
+Importing this module costs typer only: every command imports what it needs (NumPy, OpenCV,
+the service, the lab) when it runs, so ``swarmloc --help`` stays fast and the light client
+install runs ``replay`` without the heavy extras.
+"""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
-import numpy as np
 import typer
 
-if TYPE_CHECKING:
-    from client.dataset import Round
-    from client.transports import HttpClient
+from client.lab.experiment_cli import experiment, sweep
+from service.cli import serve
 
+if TYPE_CHECKING:
+    import numpy as np
+
+    from client.dataset import Round
+    from client.transports import Client, HttpClient
+    from service.features import SiftParams
+    from service.models import MapSummary
+
+# plain click help (rich_markup_mode=None): rich's import alone costs more than the 0.3 s
+# that `swarmloc --help` may take
+_PLAIN = {"no_args_is_help": True, "rich_markup_mode": None}
 app = typer.Typer(help="swarmloc: visual localization service (SIFT maps + Dynamic PSO).",
-                  no_args_is_help=True, pretty_exceptions_enable=False)
-world_app = typer.Typer(help="Synthetic route world.", no_args_is_help=True)
-map_app = typer.Typer(help="Route maps.", no_args_is_help=True)
-bench_app = typer.Typer(help="Benchmarks (print numbers).", no_args_is_help=True)
-dataset_app = typer.Typer(help="Datasets: import recordings.", no_args_is_help=True)
+                  pretty_exceptions_enable=False, **_PLAIN)  # type: ignore[arg-type]
+world_app = typer.Typer(help="Synthetic route world.", **_PLAIN)  # type: ignore[arg-type]
+map_app = typer.Typer(help="Route maps.", **_PLAIN)  # type: ignore[arg-type]
+bench_app = typer.Typer(help="Benchmarks (print numbers).", **_PLAIN)  # type: ignore[arg-type]
+dataset_app = typer.Typer(help="Datasets: import recordings.", **_PLAIN)  # type: ignore[arg-type]
 app.add_typer(world_app, name="world")
 app.add_typer(dataset_app, name="dataset")
 app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
 
 
-def _fail(msg: str) -> None:
+def _fail(msg: str) -> NoReturn:
     typer.echo(f"error: {msg}", err=True)
     raise typer.Exit(2)
 
@@ -47,7 +61,7 @@ PruneOpt = Annotated[bool, typer.Option(
     help="the papers' neighbour pruning (drops the features that survive lighting changes)")]
 
 
-def feature_params(name: str, width: int = 320, height: int = 240):
+def feature_params(name: str, width: int = 320, height: int = 240) -> SiftParams:
     """SiftParams of a feature type name (the CLI's --features)."""
     from service.features import SiftParams
 
@@ -70,7 +84,7 @@ def world_render(
     )] = "",
 ) -> None:
     """Render rounds (default: sunny1-3, cloudy1-3) in the dataset format."""
-    from client.world import DatasetSpec, render_dataset
+    from client.lab.world import DatasetSpec, render_dataset
 
     spec = DatasetSpec(seed=seed, length_m=length, spacing_m=spacing)
     only = [r for r in rounds.split(",") if r] or None
@@ -89,8 +103,9 @@ def world_sheet(
 ) -> None:
     """Write a contact sheet PNG of evenly spaced frames of a round."""
     import cv2
+    import numpy as np
 
-    from client.world import contact_sheet
+    from client.lab.world import contact_sheet
 
     rnd = _read_round(round_dir)
     idx = np.linspace(0, len(rnd) - 1, min(count, len(rnd))).astype(int)
@@ -109,12 +124,13 @@ def world_eval(
 ) -> None:
     """Features per frame, pruning, and the fraction of query frames whose best-matching
     map image lies within RADIUS of the truth (symmetric ratio matching)."""
+    import numpy as np
+
     from service.features import extract
-    from service.route_map import build_map
+    from service.route_map import build_map_from_rounds
 
     mr, qr = _read_round(map_round), _read_round(query_round)
-    m = build_map(mr.name, [mr.load_image(i) for i in range(len(mr))], mr.xy, list(mr.images),
-                  feature_params(features), prune_features=prune)
+    m = build_map_from_rounds([mr], params=feature_params(features), prune_features=prune)
     hits, n_feat = [], []
     for i in range(0, len(qr), every):
         f = extract(qr.load_image(i), m.sift_params)
@@ -187,21 +203,18 @@ def map_build(
     """Build a map from one or more rounds: features, optional pruning, atomic write."""
     from tqdm import tqdm
 
-    from service.route_map import build_map, save_map
+    from service.route_map import MapError, build_map_from_rounds, save_map
 
     rounds = [_read_round(r) for r in round_dirs]
-    origin = rounds[0].origin
-    if any(r.origin != origin for r in rounds[1:]):
-        _fail("the rounds have different geodetic origins: give them one dataset.json origin")
-    jobs = [(r, i) for r in rounds for i in range(len(r))]
-    images = (r.load_image(i) for r, i in tqdm(jobs, desc="features", unit="img"))
-    m = build_map(out.name.removesuffix(".swmap"), images,
-                  np.concatenate([r.xy for r in rounds]),
-                  [f"{r.name}/{n}" if len(rounds) > 1 else n for r in rounds for n in r.images],
-                  feature_params(features, width, height), delta, origin,
-                  {"rounds": [{"round": str(r.path), "name": r.name} for r in rounds]},
-                  prune_features=prune,
-                  layers=np.concatenate([np.full(len(r), k) for k, r in enumerate(rounds)]))
+    try:
+        m = build_map_from_rounds(
+            rounds, name=out.name.removesuffix(".swmap"),
+            params=feature_params(features, width, height), delta=delta, prune_features=prune,
+            source={"rounds": [{"round": str(r.path), "name": r.name} for r in rounds]},
+            wrap=lambda it: tqdm(it, total=sum(len(r) for r in rounds), desc="features",
+                                 unit="img"))
+    except MapError as exc:
+        _fail(str(exc))
     path = save_map(m, out)
     pr = m.meta["pruning"]
     typer.echo(f"wrote {path}: {m.n_images} images in {m.n_layers} layer(s), "
@@ -228,7 +241,7 @@ def _remote(url: str, token: str | None) -> HttpClient:
     return HttpClient(url, token)
 
 
-def _remote_fail(exc: Exception) -> None:
+def _remote_fail(exc: Exception) -> NoReturn:
     _fail(f"service error {getattr(exc, 'status', '?')}: {getattr(exc, 'message', exc)}")
 
 
@@ -357,7 +370,7 @@ def map_build_remote(
 @bench_app.command("similarity")
 def bench_similarity_cmd(k: int = 20, repeats: int = 7) -> None:
     """SIFT ms/frame; batched similarity vs OpenCV BFMatcher per comparison."""
-    from client.bench import bench_similarity
+    from client.lab.bench import bench_similarity
 
     b = bench_similarity(k=k, repeats=repeats)
     typer.echo(f"SIFT extraction (320x240):        {b.extract_ms:8.2f} ms/frame (median)")
@@ -373,7 +386,7 @@ def bench_similarity_cmd(k: int = 20, repeats: int = 7) -> None:
 def bench_ros2_cmd(repeats: int = 200) -> None:
     """Per-frame cost of the ROS 2 layer: CDR in (rosbags) and the answer out (needs the
     'ros' extra)."""
-    from client.bench import bench_ros2
+    from client.lab.bench import bench_ros2
 
     b = bench_ros2(repeats=repeats)
     typer.echo(f"CompressedImage in (320x240 JPEG, {b.jpeg_bytes} B): {b.compressed_in_ms:7.3f} "
@@ -385,42 +398,8 @@ def bench_ros2_cmd(repeats: int = 200) -> None:
     typer.echo(f"SIFT on the same frame:         {b.extract_ms:7.3f} ms")
 
 
-# ---- service ----------------------------------------------------------------------------
-@app.command("serve")
-def serve(
-    host: Annotated[str | None, typer.Option(help="bind address [SWARMLOC_HOST]")] = None,
-    port: Annotated[int | None, typer.Option(help="HTTP port [SWARMLOC_PORT]")] = None,
-    maps_dir: Annotated[Path | None, typer.Option(help="maps directory [SWARMLOC_MAPS_DIR]")]
-    = None,
-    demo: Annotated[bool, typer.Option(help="build maps/demo.swmap first if it is missing")]
-    = False,
-    default_map: Annotated[str | None, typer.Option(help="[SWARMLOC_DEFAULT_MAP]")] = None,
-    default_estimator: Annotated[str | None, typer.Option(help="dpso | pf-g | pf-l")] = None,
-    token: Annotated[str | None, typer.Option(help="bearer token [SWARMLOC_AUTH_TOKEN]")] = None,
-    zenoh: Annotated[bool | None, typer.Option(help="serve Zenoh too [SWARMLOC_ZENOH_ENABLED]")]
-    = None,
-    zenoh_listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint")] = None,
-    zenoh_connect: Annotated[list[str] | None, typer.Option(help="Zenoh connect endpoint")]
-    = None,
-    ros2: Annotated[bool | None, typer.Option(
-        help="speak ROS 2 CDR messages on Zenoh too [SWARMLOC_ROS2_ENABLED]")] = None,
-) -> None:
-    """Run the localization service (HTTP + Zenoh). Flags override SWARMLOC_* variables."""
-    from service.server import run
-    from service.settings import Settings
-
-    overrides = {k: v for k, v in {
-        "host": host, "port": port, "maps_dir": maps_dir, "default_map": default_map,
-        "default_estimator": default_estimator, "auth_token": token, "zenoh_enabled": zenoh,
-        "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect,
-        "ros2_enabled": ros2}.items() if v is not None}
-    settings = Settings(**overrides)
-    if demo:
-        from client.demo import ensure_demo_map
-
-        path = ensure_demo_map(settings.maps_dir)
-        typer.echo(f"demo map: {path}")
-    run(settings)
+# ---- service (service/cli.py) ------------------------------------------------------------
+app.command("serve")(serve)
 
 
 # ---- replay -----------------------------------------------------------------------------
@@ -550,26 +529,28 @@ def _map_origin(via: str, token: str | None, map_name: str | None
         return None
     finally:
         client.close()
-    name = map_name or (maps[0].name if len(maps) == 1 else "demo")  # the service default
+    name = map_name or _default_map(maps)
     match = [m for m in maps if m.name == name]
     o = match[0].meta.get("origin") if len(match) == 1 else None
     return (float(o["lat"]), float(o["lon"])) if o else None
 
 
-def _route_positions(client: object, map_name: str | None, rnd: object) -> np.ndarray:
+def _default_map(maps: list[MapSummary]) -> str:
+    """The service's default map: the only one, else 'demo'."""
+    return maps[0].name if len(maps) == 1 else "demo"
+
+
+def _route_positions(client: Client, map_name: str | None, rnd: Round) -> np.ndarray:
     """The map's image positions for the route plot; the round's own when not available."""
-    from client.transports import HttpClient, LocalClient, SwarmlocError
-    from service.errors import ServiceError
+    import numpy as np
+
+    from client.transports import SwarmlocError
 
     try:
-        if isinstance(client, HttpClient) and map_name:
-            return np.array(client.map_detail(map_name).positions)
-        if isinstance(client, LocalClient):
-            svc = client.service
-            return svc.get_map(map_name or svc.default_map).positions
-    except (SwarmlocError, ServiceError):
-        pass
-    return rnd.xy  # type: ignore[attr-defined]
+        name = map_name or _default_map(client.maps())
+        return np.array(client.map_detail(name).positions)
+    except SwarmlocError:
+        return rnd.xy
 
 
 @app.command("eval-split")
@@ -584,26 +565,23 @@ def eval_split(
 
     Prints the share of odd frames whose best-matching map image is an adjacent even frame,
     and the estimator's error when the odd frames are replayed in order."""
-    from client.experiments import SimilarityTable, run
+    import numpy as np
+
+    from client.lab.experiments import SimilarityTable, run
     from service.features import SiftParams, extract
-    from service.route_map import build_map
+    from service.route_map import build_map_from_rounds
 
     rnd = _read_round(round_dir)
     params = SiftParams(width=width, height=height)
     even = list(range(0, len(rnd), 2))
     odd = list(range(1, len(rnd), 2))
-    m = build_map(rnd.name, [rnd.load_image(i) for i in even], rnd.reference_xy[even],
-                  [rnd.images[i] for i in even], params)
+    m = build_map_from_rounds([rnd.subset(even, use_truth=True)], params=params)
     feats = [extract(rnd.load_image(i), params) for i in odd]
     adjacent = 0
     for k, f in enumerate(feats):
         best = int(np.argmax(m.similarity(f.codes, range(m.n_images))))
         adjacent += abs(best - (k + 0.5)) <= 0.5 + 1e-9  # even neighbours of odd frame 2k+1
-    from client.dataset import Round
-
-    query = Round(rnd.name, rnd.path, tuple(rnd.images[i] for i in odd), rnd.xy[odd],
-                  rnd.t[odd] if rnd.t is not None else None,
-                  rnd.truth_xy[odd] if rnd.truth_xy is not None else None, rnd.origin)
+    query = rnd.subset(odd)
     res = run(m, SimilarityTable(m, feats), query, estimator, None, seed=seed)
     pr = m.meta["pruning"]
     typer.echo(f"{rnd.name}: map of {m.n_images} even frames ({width}x{height}, pruning removed "
@@ -623,7 +601,7 @@ def bench_matcher_cmd(
     repeats: int = 5,
 ) -> None:
     """Exact uint8 matcher vs the float match_batch: ms/comparison, speed-up, identical counts."""
-    from client.bench import bench_matcher
+    from client.lab.bench import bench_matcher
 
     if photos is not None and not photos.is_dir():
         _fail(f"--photos {photos}: not a directory")
@@ -655,7 +633,7 @@ def bench_features_cmd(
     queries: Annotated[int, typer.Option(help="query frames per lighting")] = 10,
 ) -> None:
     """SIFT vs CLAHE + RootSIFT (uint8) vs ORB (AKAZE): CPU time per frame, place recognition."""
-    from client.bench import bench_features
+    from client.lab.bench import bench_features
 
     rows = bench_features(seed, length, map_step, queries)
     typer.echo(f"map: {rows[0].map_images} sunny images; {rows[0].queries} queries per lighting; "
@@ -674,7 +652,7 @@ def bench_latency_cmd(
     frames: int = 200,
 ) -> None:
     """p50/p99 per-frame latency in process, over HTTP and over Zenoh (real server)."""
-    from client.bench import bench_latency
+    from client.lab.bench import bench_latency
 
     for b in bench_latency(str(maps_dir), str(round_dir), frames):
         typer.echo(f"{b.transport:10s} {b.frames} frames: p50 {b.p50_ms:6.1f} ms, "
@@ -688,7 +666,7 @@ def bench_events_cmd(
     frames: int = 150,
 ) -> None:
     """Cost of the event stream (GET /events) per frame with no viewer and with one."""
-    from client.bench import bench_events
+    from client.lab.bench import bench_events
 
     rows = bench_events(str(maps_dir), str(round_dir), frames)
     for b in rows:
@@ -713,7 +691,7 @@ def bench_viewer_cmd(
     """The viewer in headless Chromium under ROBOTS robots at FPS (synthetic estimates on the
     real stream): animation-frame intervals, draw time, long tasks; without and with all
     particles."""
-    from client.viewer_tools import bench_viewer
+    from client.lab.viewer_tools import bench_viewer
 
     for particles in (False, True):
         b = bench_viewer(maps_dir, map_name, robots, fps, seconds, particles)
@@ -735,7 +713,7 @@ def viewer_screenshot_cmd(
 ) -> None:
     """Write a PNG of the fleet viewer (headless Chromium) with robots streaming real frames:
     the README's screenshot."""
-    from client.viewer_tools import screenshot
+    from client.lab.viewer_tools import screenshot
 
     path = screenshot(maps_dir, round_dir, out, map_name, robots)
     typer.echo(f"wrote {path} ({path.stat().st_size // 1024} KiB)")
@@ -750,7 +728,7 @@ def bench_build_latency_cmd(
     = 0.5,
 ) -> None:
     """Frame latency p50/p99 of a streaming robot (HTTP) without and during a map build."""
-    from client.bench import bench_build_latency
+    from client.lab.bench import bench_build_latency
 
     benches, build_s, state = bench_build_latency(str(maps_dir), str(round_dir), frames, fps,
                                                   duty=duty)
@@ -761,14 +739,9 @@ def bench_build_latency_cmd(
                f"(duty {duty:g}; robot at {fps:g} frames/s over HTTP)")
 
 
-def _register_experiment() -> None:
-    from client.experiment_cli import experiment, sweep
-
-    app.command("experiment")(experiment)
-    app.command("sweep")(sweep)
-
-
-_register_experiment()
+# ---- experiments (client/lab/experiment_cli.py) -------------------------------------------
+app.command("experiment")(experiment)
+app.command("sweep")(sweep)
 
 
 def main() -> None:

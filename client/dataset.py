@@ -17,7 +17,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from service.round_format import (
@@ -30,6 +29,18 @@ from service.round_format import (
     parse_positions,
     read_meta,
 )
+
+
+def imread_gray(path: Path) -> np.ndarray | None:
+    """An image file as 8-bit grayscale (None when it does not decode); needs OpenCV, which
+    the light client install does not have: replaying sends the files' bytes."""
+    try:
+        import cv2
+    except ImportError as exc:
+        raise ImportError("decoding images needs OpenCV: pip install 'swarmloc[service]'"
+                          ) from exc
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    return None if img is None else np.asarray(img)
 
 
 @dataclass(frozen=True)
@@ -52,13 +63,21 @@ class Round:
         """Exact positions when the round has a truth.csv, the poses otherwise."""
         return self.truth_xy if self.truth_xy is not None else self.xy
 
+    def subset(self, idx: Sequence[int], use_truth: bool = False) -> Round:
+        """These frames only, in this order; ``use_truth``: the exact positions as poses."""
+        i = np.asarray(idx, int)
+        return Round(self.name, self.path, tuple(self.images[k] for k in i),
+                     (self.reference_xy if use_truth else self.xy)[i],
+                     self.t[i] if self.t is not None else None,
+                     self.truth_xy[i] if self.truth_xy is not None else None, self.origin)
+
     def image_path(self, i: int) -> Path:
         return self.path / self.images[i]
 
     def load_image(self, i: int) -> np.ndarray:
         """The i-th image as 8-bit grayscale."""
         path = self.image_path(i)
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        img = imread_gray(path)
         if img is None:
             raise DatasetError(f"{path}: cannot be decoded as an image")
         return img
@@ -95,7 +114,7 @@ def read_round(
             raise DatasetError(
                 f"{path / POSES_FILE}, line {line}: '{name}' is not a PNG or JPEG file"
             )
-        if decode_images and cv2.imread(str(img_path), cv2.IMREAD_GRAYSCALE) is None:
+        if decode_images and imread_gray(img_path) is None:
             raise DatasetError(f"{path / POSES_FILE}, line {line}: image '{name}' is unreadable")
 
     truth_xy = None

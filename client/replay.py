@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from client.dataset import Round
-from client.experiments import frame_sequence, true_speed
+from client.runs import Run, frame_sequence
 from client.transports import Client
 from service.models import Estimate
 
@@ -18,7 +19,7 @@ from service.models import Estimate
 class ReplayConfig:
     map_name: str | None = None
     estimator: str = "dpso"
-    params: dict = field(default_factory=dict)
+    params: dict[str, Any] = field(default_factory=dict)
     seed: int = 0
     start: int = 0  # first image (wraps around the loop)
     speed: float = 1.0  # k > 1: every k-th image; 1/r: each image r times (Sec. 7.1)
@@ -27,49 +28,26 @@ class ReplayConfig:
     repeat: int = 1  # runs from evenly spaced start images (seed + run index)
 
 
-@dataclass
-class ReplayRun:
-    start: int
-    seed: int
-    frames: np.ndarray  # image index per iteration
-    estimates: list[Estimate]
-    latency_ms: np.ndarray  # as seen by the client
-    true_xy: np.ndarray
-    dt: float
-    kidnap: bool
-
-    @property
-    def est_xy(self) -> np.ndarray:
-        return np.array([[e.x, e.y] for e in self.estimates])
-
-    @property
-    def errors(self) -> np.ndarray:
-        return np.linalg.norm(self.est_xy - self.true_xy, axis=1)
-
-    @property
-    def true_speed(self) -> np.ndarray:
-        return true_speed(self.true_xy, self.dt)
-
-
-def replay(client: Client, rnd: Round, cfg: ReplayConfig, robot_id: str = "replay",
+def replay(client: Client, rnd: Round, cfg: ReplayConfig, *, robot_id: str = "replay",
            progress: bool = False,
-           on_frame: Callable[[int, Estimate], None] | None = None) -> list[ReplayRun]:
+           on_frame: Callable[[int, Estimate], None] | None = None) -> list[Run]:
     """Stream the round's frames in order to a session, once per run."""
     n = len(rnd)
     dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and n > 1 else 1.0
     cache: dict[int, bytes] = {}
-    runs = []
+    runs: list[Run] = []
     starts = [(cfg.start + k * n // cfg.repeat) % n for k in range(cfg.repeat)]
     for k, start in enumerate(starts):
         seq = frame_sequence(n, start, cfg.speed, cfg.kidnap, cfg.length)
         seed = cfg.seed + k
         client.create_session(robot_id, cfg.map_name, cfg.estimator, cfg.params, seed)
-        it = range(len(seq))
+        it: Iterable[int] = range(len(seq))
         if progress:
             from tqdm import tqdm
 
             it = tqdm(it, desc=f"run {k + 1}/{len(starts)} (start {start})", unit="frame")
-        estimates, latency = [], []
+        estimates: list[Estimate] = []
+        latency: list[float] = []
         for i in it:
             q = int(seq[i])
             if q not in cache:
@@ -81,6 +59,8 @@ def replay(client: Client, rnd: Round, cfg: ReplayConfig, robot_id: str = "repla
             if on_frame:
                 on_frame(i, est)
         client.delete_session(robot_id)
-        runs.append(ReplayRun(start, seed, seq, estimates, np.array(latency),
-                              rnd.reference_xy[seq], dt, cfg.kidnap))
+        runs.append(Run.from_estimates(
+            estimates, estimator=cfg.estimator, start=start, seed=seed, frames=seq,
+            true_xy=rnd.reference_xy[seq], dt=dt, kidnap=cfg.kidnap,
+            latency_ms=np.array(latency)))
     return runs

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from client.replay import ReplayRun
+from client.runs import Run
 
 STATUSES = ("initializing", "tracking", "recovering", "lost")
 
@@ -22,23 +22,22 @@ def _r(a: Any, nd: int = 2) -> list:
     return np.round(np.asarray(a, float), nd).tolist()
 
 
-def run_data(run: ReplayRun) -> dict[str, Any]:
+def run_data(run: Run) -> dict[str, Any]:
     """One run as columns (compact: one list per quantity, positions in cm)."""
-    e = run.estimates
     return {
         "start": run.start, "seed": run.seed, "kidnap": run.kidnap, "dt": run.dt,
         "image": np.asarray(run.frames).astype(int).tolist(),
-        "x": _r([v.x for v in e]), "y": _r([v.y for v in e]),
+        "x": _r(run.est_xy[:, 0]), "y": _r(run.est_xy[:, 1]),
         "tx": _r(run.true_xy[:, 0]), "ty": _r(run.true_xy[:, 1]),
-        "error": _r(run.errors), "accuracy": _r([v.accuracy_m for v in e]),
-        "heading": _r([v.heading for v in e], 3), "speed": _r([v.speed for v in e], 3),
-        "status": [STATUSES.index(v.status) if v.status in STATUSES else 0 for v in e],
-        "score": _r([v.score for v in e], 4), "comparisons": [v.comparisons for v in e],
+        "error": _r(run.errors), "accuracy": _r(run.accuracy_m),
+        "heading": _r(run.heading, 3), "speed": _r(run.speed, 3),
+        "status": [STATUSES.index(s) if s in STATUSES else 0 for s in run.status],
+        "score": _r(run.scores, 4), "comparisons": [int(c) for c in run.comparisons],
         "latency_ms": _r(run.latency_ms, 1),
     }
 
 
-def render_html(report: dict, runs: list[ReplayRun], route_xy: np.ndarray) -> str:
+def render_html(report: dict, runs: list[Run], route_xy: np.ndarray) -> str:
     data = {"statuses": STATUSES, "route": _r(route_xy), "runs": [run_data(r) for r in runs],
             "summary": report["summary"], "round": report["round"], "via": report["via"],
             "config": report["config"], "created": report["created"]}

@@ -56,7 +56,11 @@ def _config(map_name: str | None, estimator: str | None, params: dict | None, se
 
 
 class Client(Protocol):
+    """What every transport offers (and all that ``swarmloc replay`` uses)."""
+
     def maps(self) -> list[MapSummary]: ...
+
+    def map_detail(self, name: str) -> MapDetail: ...
 
     def create_session(self, robot_id: str, map_name: str | None = None,
                        estimator: str | None = None, params: dict | None = None,
@@ -328,6 +332,9 @@ class ZenohClient:
         att = json.dumps({k: v for k, v in opts.items() if v is not None}).encode()
         return self._query(f"@maps/{name}", payload, att)
 
+    def map_detail(self, name: str) -> MapDetail:
+        raise SwarmlocError(501, "map detail (image positions) is served over HTTP only")
+
     def map_info(self, name: str) -> MapSummary:
         return MapSummary(**self._maps(name, action="get"))
 
@@ -378,6 +385,9 @@ class LocalClient:
     def maps(self) -> list[MapSummary]:
         return [self.service.map_summary(n) for n in sorted(self.service.maps)]
 
+    def map_detail(self, name: str) -> MapDetail:
+        return self._wrap(self.service.map_detail, name)
+
     def create_session(self, robot_id: str, map_name: str | None = None,
                        estimator: str | None = None, params: dict | None = None,
                        seed: int = 0, initial_pose: PosePrior | None = None) -> SessionInfo:
@@ -397,7 +407,7 @@ class LocalClient:
                  seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
         data = _frame_bytes(image)
         return self._wrap(lambda: self.service.process_frame(
-            robot_id, data, None, t, prior, "local", None, seq))
+            robot_id, data, t=t, prior=prior, transport="local", input_seq=seq))
 
     def close(self) -> None:
         pass

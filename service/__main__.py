@@ -1,7 +1,6 @@
-"""``python -m service``: run the service with settings from SWARMLOC_* environment variables."""
+"""``python -m service serve [--demo]``: the service's command (``service/cli.py``)."""
 
-from service.server import run
-from service.settings import Settings
+from service.cli import main
 
 if __name__ == "__main__":
-    run(Settings())
+    main()

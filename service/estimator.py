@@ -9,6 +9,7 @@ from enum import StrEnum
 import numpy as np
 
 from service.fitness import FrameFitness, MapIndex, SimilarityFn
+from service.models import DEFAULT_PRIOR_RADIUS_M
 from service.params import CommonParams
 
 # radius of the 68 % confidence disc of a 2-D Gaussian in units of sigma: sqrt(chi2_2(0.68))
@@ -84,7 +85,7 @@ class Estimator:
     def reset(self, near: tuple[float, float] | None = None, radius: float | None = None) -> None:
         """Global re-initialisation, or around a known pose (like AMCL's initial pose)."""
         if near is not None:
-            r = float(radius) if radius is not None else 5.0
+            r = float(radius) if radius is not None else DEFAULT_PRIOR_RADIUS_M
             self._init_near = (np.asarray(near, float), max(r, 0.0))
         else:
             self._init_near = None

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-from pyproj import Transformer
+
+if TYPE_CHECKING:
+    from pyproj import Transformer
 
 
 @dataclass(frozen=True)
@@ -20,6 +23,11 @@ class LocalFrame:
     def __post_init__(self) -> None:
         if not (-90.0 <= self.lat0 <= 90.0 and -180.0 <= self.lon0 <= 180.0):
             raise ValueError(f"origin ({self.lat0}, {self.lon0}) is not a WGS84 lat/lon")
+        try:
+            from pyproj import Transformer
+        except ImportError as exc:
+            raise ImportError("geographic (lat/lon) positions need pyproj: "
+                              "pip install 'swarmloc[geo]'") from exc
         proj = f"+proj=aeqd +lat_0={self.lat0!r} +lon_0={self.lon0!r} +datum=WGS84 +units=m"
         object.__setattr__(self, "_fwd", Transformer.from_crs("EPSG:4326", proj, always_xy=True))
         object.__setattr__(self, "_inv", Transformer.from_crs(proj, "EPSG:4326", always_xy=True))

@@ -18,6 +18,7 @@ from service.errors import PayloadTooLarge, ServiceError
 from service.events import events_router
 from service.map_routes import map_router
 from service.models import (
+    DEFAULT_PRIOR_RADIUS_M,
     ErrorBody,
     Estimate,
     MapDetail,
@@ -141,7 +142,7 @@ def create_app(service: LocalizationService, *, expire_every_s: float | None = N
         if body is not None and (body.x is not None or body.y is not None):
             if body.x is None or body.y is None:
                 raise ServiceError("reset near a pose needs both x and y", 422)
-            near = PosePrior(x=body.x, y=body.y, radius=body.radius or 5.0)
+            near = PosePrior(x=body.x, y=body.y, radius=body.radius or DEFAULT_PRIOR_RADIUS_M)
         return service.reset_session(robot_id, near)
 
     @app.post("/sessions/{robot_id}/frames", tags=["frames"], dependencies=guarded,
@@ -160,11 +161,12 @@ def create_app(service: LocalizationService, *, expire_every_s: float | None = N
         if prior_x is not None or prior_y is not None:
             if prior_x is None or prior_y is None:
                 raise ServiceError("a pose prior needs both prior_x and prior_y", 422)
-            prior = PosePrior(x=prior_x, y=prior_y, radius=prior_radius or 5.0)
+            prior = PosePrior(x=prior_x, y=prior_y, radius=prior_radius or DEFAULT_PRIOR_RADIUS_M)
         body = await _read_body(request, settings.max_body_bytes, service)
         return await anyio.to_thread.run_sync(
-            lambda: service.process_frame(robot_id, body, request.headers.get("content-type"),
-                                          t, prior, "http", session, seq),
+            lambda: service.process_frame(
+                robot_id, body, content_type=request.headers.get("content-type"), t=t,
+                prior=prior, transport="http", session=session, input_seq=seq),
             limiter=limiter)
 
     return app

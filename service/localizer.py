@@ -6,28 +6,13 @@ from typing import Any
 
 import numpy as np
 
-from service.estimator import Estimator, StepResult
+from service.estimator import StepResult
 from service.features import Features, extract
 from service.models import Estimate, Hypothesis
-from service.multi_swarm import MultiSwarmDPSO
-from service.params import DPSOParams, PFParams, params_for
-from service.particle_filter import ParticleFilter
+from service.registry import make_estimator
 from service.route_map import RouteMap
-from service.swarm import DPSO
 
 _UNKNOWN_VAR = 1e6
-
-
-def make_estimator(route_map: RouteMap, name: str, params: dict[str, Any] | None,
-                   rng: np.random.Generator) -> Estimator:
-    p = params_for(name, params)
-    if name == "dpso":
-        assert isinstance(p, DPSOParams)
-        if p.variant == "paper":
-            return DPSO(route_map, p, rng)
-        return MultiSwarmDPSO(route_map, p, rng)
-    assert isinstance(p, PFParams)
-    return ParticleFilter(route_map, p, rng, "gauss" if name == "pf-g" else "linear")
 
 
 class Localizer:

@@ -7,7 +7,10 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 StatusName = Literal["initializing", "tracking", "recovering", "lost"]
+#: every estimator's name, listed once (``service.registry`` dispatches each to its class)
 EstimatorName = Literal["dpso", "pf-g", "pf-l"]
+#: search radius of a pose prior or a reset near a pose when the robot gives none, m
+DEFAULT_PRIOR_RADIUS_M = 5.0
 
 
 class Hypothesis(BaseModel):
@@ -63,7 +66,7 @@ class PosePrior(BaseModel):
 
     x: float = Field(description="metres east in the map frame")
     y: float = Field(description="metres north in the map frame")
-    radius: float = Field(5.0, gt=0, le=10_000, description="search radius, m")
+    radius: float = Field(DEFAULT_PRIOR_RADIUS_M, gt=0, le=10_000, description="search radius, m")
 
 
 class SessionConfig(BaseModel):

@@ -9,7 +9,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Self
+from typing import Any, Literal, Self, get_args
+
+#: DPSO variants (``service.registry`` dispatches each to its class)
+DPSOVariant = Literal["swarmloc", "paper"]
+DPSO_VARIANTS: tuple[str, ...] = get_args(DPSOVariant)
 
 
 class ParamError(ValueError):
@@ -177,15 +181,3 @@ class PFParams(CommonParams):
         super().validate()
         if self.n_particles < 1 or self.sigma_gauss_m < 0 or self.sigma_rot_deg < 0:
             raise ParamError("n_particles >= 1 and non-negative noise levels required")
-
-
-ESTIMATORS = ("dpso", "pf-g", "pf-l")
-DPSO_VARIANTS = ("swarmloc", "paper")
-
-
-def params_for(estimator: str, overrides: dict[str, Any] | None = None) -> CommonParams:
-    if estimator == "dpso":
-        return DPSOParams().with_overrides(overrides)
-    if estimator in ("pf-g", "pf-l"):
-        return PFParams().with_overrides(overrides)
-    raise ParamError(f"unknown estimator '{estimator}'; choose one of {list(ESTIMATORS)}")

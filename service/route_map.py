@@ -21,10 +21,11 @@ import hashlib
 import json
 import os
 import struct
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -203,6 +204,7 @@ def build_map(
     images: Iterable[np.ndarray],
     positions: np.ndarray,
     image_names: list[str],
+    *,
     params: SiftParams | None = None,
     delta: float = DEFAULT_DELTA,
     origin: tuple[float, float] | None = None,
@@ -267,6 +269,61 @@ def build_map(
     }
     return RouteMap(name, meta, positions, list(image_names), codes, offsets, kps,
                     layers=layer_arr)
+
+
+class RoundLike(Protocol):
+    """What a map is built from: a traversal's images and positions (the client's ``Round``,
+    the service's ``UploadedRound``)."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def images(self) -> Sequence[str]: ...
+    @property
+    def xy(self) -> np.ndarray: ...
+    @property
+    def origin(self) -> tuple[float, float] | None: ...
+    def __len__(self) -> int: ...
+    def load_image(self, i: int) -> np.ndarray: ...
+
+
+def build_map_from_rounds(
+    rounds: Sequence[RoundLike],
+    *,
+    name: str | None = None,
+    params: SiftParams | None = None,
+    delta: float = DEFAULT_DELTA,
+    prune_features: bool = False,
+    source: dict[str, Any] | None = None,
+    images: Iterable[np.ndarray] | None = None,
+    wrap: Callable[[Iterator[np.ndarray]], Iterable[np.ndarray]] | None = None,
+) -> RouteMap:
+    """The map of one round, or of several traversals of one route (one layer each).
+
+    ``name`` defaults to the rounds' names joined by '+'. Image names are the round's, or
+    ``ROUND/IMAGE`` for several rounds. ``images`` replaces the rounds' own images (e.g. paced
+    for a background build); ``wrap`` wraps the image iterator (e.g. a progress bar).
+    """
+    if not rounds:
+        raise MapError("a map needs at least one round")
+    origin = rounds[0].origin
+    if any(r.origin != origin for r in rounds[1:]):
+        raise MapError("the rounds have different geodetic origins: give them one "
+                       "dataset.json origin")
+    it: Iterable[np.ndarray] = (images if images is not None else
+                                (r.load_image(i) for r in rounds for i in range(len(r))))
+    if wrap is not None:
+        it = wrap(iter(it))
+    multi = len(rounds) > 1
+    return build_map(
+        name or "+".join(r.name for r in rounds), it,
+        np.concatenate([np.asarray(r.xy, float) for r in rounds]),
+        [f"{r.name}/{n}" if multi else n for r in rounds for n in r.images],
+        params=params, delta=delta, origin=origin,
+        source=source if source is not None else {"rounds": [r.name for r in rounds]},
+        prune_features=prune_features,
+        layers=np.concatenate([np.full(len(r), k) for k, r in enumerate(rounds)]),
+    )
 
 
 def _arrays(m: RouteMap) -> dict[str, np.ndarray]:

@@ -203,10 +203,11 @@ class LocalizationService:
         return gone
 
     # ---- frames -------------------------------------------------------------------------
-    def process_frame(self, robot_id: str, data: bytes | np.ndarray, content_type: str | None,
-                      t: float | None = None, prior: PosePrior | None = None,
-                      transport: str = "http", session: Session | None = None,
-                      input_seq: int | None = None) -> Estimate:
+    def process_frame(self, robot_id: str, data: bytes | np.ndarray, *,
+                      content_type: str | None = None, t: float | None = None,
+                      prior: PosePrior | None = None, transport: str = "http",
+                      session: Session | None = None, input_seq: int | None = None
+                      ) -> Estimate:
         """Decode, validate, extract and step one frame; raises ServiceError on bad input.
 
         ``data`` is an encoded PNG/JPEG, or already validated 8-bit grayscale pixels (a ROS 2

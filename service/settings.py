@@ -9,6 +9,8 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from service.models import EstimatorName
+
 
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="SWARMLOC_", env_nested_delimiter="__")
@@ -18,7 +20,7 @@ class Settings(BaseSettings):
     maps_dir: Path = Field(Path("maps"), description="directory of *.swmap files to load")
     default_map: str | None = Field(None, description="map for sessions that name none "
                                     "(default: the only map, or 'demo')")
-    default_estimator: Literal["dpso", "pf-g", "pf-l"] = "dpso"
+    default_estimator: EstimatorName = "dpso"
     max_sessions: int = Field(256, description="most concurrent robot sessions")
     session_idle_s: float = Field(600.0, description="idle sessions expire after this")
     max_body_bytes: int = Field(8 * 1024 * 1024, description="largest accepted frame body")

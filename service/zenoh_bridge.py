@@ -38,7 +38,7 @@ from pydantic import ValidationError
 
 from service.errors import BadRequest, InvalidParameters, ServiceError
 from service.map_zenoh import declare_map_queryables
-from service.models import PosePrior, SessionConfig
+from service.models import DEFAULT_PRIOR_RADIUS_M, PosePrior, SessionConfig
 from service.sessions import LocalizationService
 from service.settings import Settings
 
@@ -155,8 +155,9 @@ class ZenohBridge:
         try:
             t, seq, prior = _frame_args(frame.meta)
             session = self.service.ensure_session(robot)
-            est = self.service.process_frame(robot, frame.data, frame.content_type, t, prior,
-                                             "zenoh", session, seq)
+            est = self.service.process_frame(
+                robot, frame.data, content_type=frame.content_type, t=t, prior=prior,
+                transport="zenoh", session=session, input_seq=seq)
             return est.model_dump(mode="json")
         except ServiceError as exc:
             return error_body(exc, robot, seq)
@@ -247,7 +248,8 @@ class ZenohBridge:
             elif action == "reset":
                 near = None
                 if body.get("x") is not None and body.get("y") is not None:
-                    near = PosePrior(x=body["x"], y=body["y"], radius=body.get("radius") or 5.0)
+                    near = PosePrior(x=body["x"], y=body["y"],
+                                     radius=body.get("radius") or DEFAULT_PRIOR_RADIUS_M)
                 reply = self.service.reset_session(robot, near).model_dump(mode="json")
             else:
                 raise BadRequest(f"unknown action '{action}'; use put, get, reset or delete")

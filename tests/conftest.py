@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from client.dataset import Round, read_round
-from client.world import World
+from client.lab.world import World
 from service.route_map import RouteMap, build_map, load_map, save_map
 from service.server import free_port, running_server
 from service.sessions import LocalizationService

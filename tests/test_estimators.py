@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.experiments import SimilarityTable, frames_to_recover, run
+from client.lab.experiments import SimilarityTable, run
+from client.runs import frames_to_recover
 from service.fitness import FrameFitness
 from service.localizer import Localizer
-from service.params import ParamError, params_for
+from service.params import ParamError
 from service.particle_filter import low_variance_resample
+from service.registry import params_for
 
 WARMUP = 20  # frames of global convergence left out of tracking errors
 

@@ -27,9 +27,11 @@ def test_dockerfile_steps_match_readme() -> None:
     first = re.search(r"```bash\n(.+?)\n```", readme, re.S)
     assert first is not None
     install_and_run = first.group(1).strip()
-    assert install_and_run == "pip install . && swarmloc serve --demo"
-    assert "RUN pip install . " in docker
-    assert 'CMD ["swarmloc", "serve", "--demo"]' in docker
+    assert install_and_run == 'pip install ".[service]" && swarmloc serve --demo'
+    assert 'RUN pip install ".[service]" ' in docker
+    # the image carries the service only: its own entry point runs the same `serve`
+    assert 'CMD ["swarmloc-service", "serve", "--demo"]' in docker
+    assert "COPY service ./service" in docker and "COPY client" not in docker
     assert "HEALTHCHECK" in docker and "/healthz" in docker
 
 
@@ -54,3 +56,7 @@ def test_the_wheel_ships_the_viewer_files(tmp_path: Path) -> None:
     files = [p.relative_to(ROOT).as_posix() for p in static.rglob("*") if p.is_file()]
     assert "service/viewer/static/index.html" in files and len(files) >= 7
     assert set(files) <= names, sorted(set(files) - names)
+    demo = [p.relative_to(ROOT).as_posix() for p in (ROOT / "service" / "demo" / "round").iterdir()]
+    assert "service/demo/round/poses.csv" in demo and len(demo) > 50
+    assert set(demo) <= names, sorted(set(demo) - names)
+    assert "client/lab/world.py" in names

@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from client.world import Pose, World
+from client.lab.world import Pose, World
 from service.features import extract, similarity
 
 

@@ -10,54 +10,43 @@ RootSIFT, unpruned); the papers' DPSO runs on a map built as in the papers (SIFT
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
-import numpy as np
 import typer
 
-from client.dataset import read_round
-from client.experiments import RunResult, SimilarityTable, frames_to_recover, run
-from service.features import SiftParams
-from service.route_map import RouteMap, build_map, load_map, save_map
+from client.lab.methods import METHODS, Method
 
-
-@dataclass(frozen=True)
-class Config:
-    estimator: str
-    params: dict[str, Any]
-    papers_map: bool = False  # SIFT + pruning as in the papers, else the service's features
-
-
-CONFIGS = {
-    "DPSO-80": Config("dpso", {}),
-    "DPSO-80-paper": Config("dpso", {"variant": "paper"}, papers_map=True),
-    "PF-l-100": Config("pf-l", {"n_particles": 100}),
-    "PF-l-300": Config("pf-l", {"n_particles": 300}),
-    "PF-g-300": Config("pf-g", {"n_particles": 300}),
-}
+if TYPE_CHECKING:
+    from client.dataset import Round
+    from client.lab.experiments import SimilarityTable
+    from client.runs import Run
+    from service.route_map import RouteMap
 
 
 def map_for(dataset: Path, rounds: str, papers: bool) -> RouteMap:
     """The map of one round (or rounds joined by '+'), built once and kept in DATASET/.maps."""
+    from client.dataset import read_round
+    from service.features import SiftParams
+    from service.route_map import build_map_from_rounds, load_map, save_map
+
     names = [r for r in rounds.split("+") if r]
     path = dataset / ".maps" / f"{'+'.join(names)}{'-papers' if papers else ''}.swmap"
     if path.is_file():
         return load_map(path)
-    rnds = [read_round(dataset / r) for r in names]
-    params = SiftParams.papers() if papers else SiftParams()
-    m = build_map("+".join(names), [r.load_image(i) for r in rnds for i in range(len(r))],
-                  np.concatenate([r.xy for r in rnds]),
-                  [f"{r.name}/{n}" for r in rnds for n in r.images], params,
-                  origin=rnds[0].origin, prune_features=papers,
-                  layers=np.concatenate([np.full(len(r), k) for k, r in enumerate(rnds)]))
+    m = build_map_from_rounds([read_round(dataset / r) for r in names],
+                              params=SiftParams.papers() if papers else SiftParams(),
+                              prune_features=papers)
     return load_map(save_map(m, path))  # loaded: with its checksum, memory-mapped
 
 
-def cached_table(dataset: Path, m: RouteMap, rnd: Any) -> SimilarityTable:
+def cached_table(dataset: Path, m: RouteMap, rnd: Round) -> SimilarityTable:
     """The similarity table of a map and a query round, kept in DATASET/.maps between runs
     (keyed by the map's checksum: a rebuilt map starts a new table)."""
+    import numpy as np
+
+    from client.lab.experiments import SimilarityTable
+
     table = SimilarityTable.from_round(m, rnd)
     path = dataset / ".maps" / f"{m.meta['checksum'][:16]}-{rnd.name}.table.npy"
     if path.is_file():
@@ -69,6 +58,8 @@ def cached_table(dataset: Path, m: RouteMap, rnd: Any) -> SimilarityTable:
 
 
 def save_table(table: SimilarityTable) -> None:
+    import numpy as np
+
     path = table.cache_path
     if path is not None:
         tmp = path.with_suffix(".tmp.npy")
@@ -76,46 +67,40 @@ def save_table(table: SimilarityTable) -> None:
         tmp.replace(path)
 
 
-def run_metrics(runs: list[RunResult], warmup: int) -> dict[str, float]:
-    """Named metrics over runs (means of per-run values), frames after ``warmup`` only."""
-    per: dict[str, list[float]] = {k: [] for k in (
-        "mean_error_m", "median_error_m", "within_5m", "comparisons", "recovering",
-        "calibration", "honesty", "speed_error")}
-    for res in runs:
-        e = res.errors[warmup:]
-        status = np.array(res.status[warmup:])
-        per["mean_error_m"].append(float(e.mean()))
-        per["median_error_m"].append(float(np.median(e)))
-        per["within_5m"].append(float(np.mean(e <= 5)))
-        per["comparisons"].append(float(res.comparisons[warmup:].mean()))
-        admits = np.isin(status, ["recovering", "lost"])
-        per["recovering"].append(float(np.mean(admits)))
-        tracking = status == "tracking"
-        if tracking.any() and len(res.accuracy_m):
-            per["calibration"].append(float(np.mean(e[tracking]
-                                                    <= res.accuracy_m[warmup:][tracking])))
-        if (e > 10).any():
-            per["honesty"].append(float(np.mean(admits[e > 10])))
-        if tracking.any():
-            per["speed_error"].append(float(abs(np.median(res.speed[warmup:][tracking])
-                                                / np.median(res.true_speed) - 1)))
-    out = {k: float(np.mean(v)) if v else float("nan") for k, v in per.items()}
-    out["mean_error_std_m"] = float(np.std(per["mean_error_m"]))
-    return out
+def metrics(runs: list[Run], warmup: int) -> dict[str, Any]:
+    """``client.runs.run_metrics`` of every run after ``warmup``, averaged over the runs."""
+    from client.runs import run_metrics, summarize
+
+    return summarize([run_metrics(r, warmup) for r in runs])
 
 
 def _starts(n: int, count: int) -> list[int]:
     return [k * n // count for k in range(count)]
 
 
-def _kidnap(m: RouteMap, table: SimilarityTable, rnd: Any, cfg: Config, starts: list[int],
-            seed: int) -> list[int | None]:
-    return [frames_to_recover(run(m, table, rnd, cfg.estimator, cfg.params, seed=seed + k,
-                                  start=s, kidnap=True)) for k, s in enumerate(starts)]
+def _runs(m: RouteMap, table: SimilarityTable, rnd: Round, method: Method,
+          starts: list[int], seed: int, kidnap: bool = False) -> list[Run]:
+    from client.lab.experiments import run
+
+    return [run(m, table, rnd, method.estimator, method.params, seed=seed + k, start=s,
+                kidnap=kidnap) for k, s in enumerate(starts)]
 
 
-def _fmt(x: float, pct: bool = False) -> str:
-    if not np.isfinite(x):
+def _kidnap(m: RouteMap, table: SimilarityTable, rnd: Round, method: Method,
+            starts: list[int], seed: int) -> list[int | None]:
+    from client.runs import frames_to_recover
+
+    return [frames_to_recover(r) for r in _runs(m, table, rnd, method, starts, seed, True)]
+
+
+def _median(values: list[int]) -> float:
+    import numpy as np
+
+    return float(np.median(values)) if values else float("nan")
+
+
+def _fmt(x: float | None, pct: bool = False) -> str:
+    if x is None or x != x:  # undefined (None) or NaN
         return "–"
     return f"{100 * x:.1f}%" if pct else f"{x:.2f}"
 
@@ -127,8 +112,8 @@ def experiment(
     = "sunny1",
     query: Annotated[str, typer.Option(help="comma-separated rounds replayed against it")]
     = "sunny2,cloudy1",
-    methods: Annotated[str, typer.Option(help=f"comma-separated, of {list(CONFIGS)}")]
-    = ",".join(CONFIGS),
+    methods: Annotated[str, typer.Option(help=f"comma-separated, of {list(METHODS)}")]
+    = ",".join(METHODS),
     starts: Annotated[int, typer.Option(help="runs from evenly spaced start images")] = 8,
     warmup: Annotated[int, typer.Option(help="frames of global convergence not scored")] = 20,
     kidnap: Annotated[bool, typer.Option(help="also run the kidnapping experiment")] = True,
@@ -138,12 +123,14 @@ def experiment(
     recovery, accuracy_m calibration (tracked frames within it), honesty (frames with error
     > 10 m reported lost or recovering), speed error and kidnap recovery (back within 5 m
     for 5 frames)."""
+    from client.dataset import read_round
+
     chosen = [x for x in methods.split(",") if x]
-    unknown = [x for x in chosen if x not in CONFIGS]
+    unknown = [x for x in chosen if x not in METHODS]
     if unknown:
-        raise typer.BadParameter(f"unknown method(s) {unknown}; choose from {list(CONFIGS)}")
+        raise typer.BadParameter(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
     maps = {papers: map_for(dataset, map_round, papers)
-            for papers in {CONFIGS[c].papers_map for c in chosen}}
+            for papers in {METHODS[c].papers_map for c in chosen}}
     for q in [x for x in query.split(",") if x]:
         rnd = read_round(dataset / q)
         tables = {papers: cached_table(dataset, m, rnd) for papers, m in maps.items()}
@@ -155,29 +142,28 @@ def experiment(
                    f"{'speed':>6s} {'kidnap: back/runs, median':>26s}")
         rows = {}
         for name in chosen:
-            cfg = CONFIGS[name]
-            m, table = maps[cfg.papers_map], tables[cfg.papers_map]
-            runs = [run(m, table, rnd, cfg.estimator, cfg.params, seed=seed + k, start=s)
-                    for k, s in enumerate(start_list)]
-            r = run_metrics(runs, warmup)
+            method = METHODS[name]
+            m, table = maps[method.papers_map], tables[method.papers_map]
+            r = metrics(_runs(m, table, rnd, method, start_list, seed), warmup)
             rows[name] = r
             kid = ""
             if kidnap:
-                rec = _kidnap(m, table, rnd, cfg, start_list, seed)
+                rec = _kidnap(m, table, rnd, method, start_list, seed)
                 done = [f for f in rec if f is not None]
-                kid = (f"{len(done)}/{len(rec)}, "
-                       f"{_fmt(float(np.median(done))) if done else '–'} {rec}")
-            typer.echo(f"{name:14s} {r['mean_error_m']:6.2f} ± {r['mean_error_std_m']:4.2f} "
-                       f"{r['median_error_m']:7.2f} {_fmt(r['within_5m'], True):>7s} "
-                       f"{r['comparisons']:10.1f} {_fmt(r['recovering'], True):>6s} "
+                kid = f"{len(done)}/{len(rec)}, {_fmt(_median(done))} {rec}"
+            typer.echo(f"{name:14s} {r['error_mean_m']:6.2f} ± {r['error_mean_std_m']:4.2f} "
+                       f"{r['error_median_m']:7.2f} {_fmt(r['within_5m'], True):>7s} "
+                       f"{r['comparisons_per_frame']:10.1f} "
+                       f"{_fmt(r['bad_status_share'], True):>6s} "
                        f"{_fmt(r['calibration'], True):>6s} {_fmt(r['honesty'], True):>7s} "
-                       f"{_fmt(r['speed_error'], True):>6s} {kid}")
+                       f"{_fmt(r['speed_error_rel'], True):>6s} {kid}")
         for table in tables.values():
             save_table(table)
         if "DPSO-80" in rows and "PF-l-300" in rows:
             d, pf = rows["DPSO-80"], rows["PF-l-300"]
-            typer.echo(f"DPSO-80 / PF-l-300: error x{d['mean_error_m'] / pf['mean_error_m']:.2f}"
-                       f", comparisons x{d['comparisons'] / pf['comparisons']:.2f}")
+            ratio = d["comparisons_per_frame"] / pf["comparisons_per_frame"]
+            typer.echo(f"DPSO-80 / PF-l-300: error x{d['error_mean_m'] / pf['error_mean_m']:.2f}"
+                       f", comparisons x{ratio:.2f}")
 
 
 def sweep(
@@ -192,6 +178,8 @@ def sweep(
 ) -> None:
     """DPSO mean error, comparisons, share of frames in recovery and kidnap recovery for each
     value of one parameter (how the choices in the README were made)."""
+    from client.dataset import read_round
+
     papers = variant == "paper"
     m = map_for(dataset, map_round, papers)
     tables = {}
@@ -200,16 +188,14 @@ def sweep(
         tables[q] = (rnd, cached_table(dataset, m, rnd))
     for raw in values.split(","):
         value: Any = float(raw) if "." in raw or "e" in raw else int(raw)
-        cfg = Config("dpso", {"variant": variant, param: value}, papers)
+        method = Method("dpso", {"variant": variant, param: value}, papers)
         for q, (rnd, table) in tables.items():
             start_list = _starts(len(rnd), starts)
-            runs = [run(m, table, rnd, "dpso", cfg.params, seed=k, start=s)
-                    for k, s in enumerate(start_list)]
-            r = run_metrics(runs, warmup)
-            kid = _kidnap(m, table, rnd, cfg, start_list, 0)
+            r = metrics(_runs(m, table, rnd, method, start_list, 0), warmup)
+            kid = _kidnap(m, table, rnd, method, start_list, 0)
             done = [f for f in kid if f is not None]
-            typer.echo(f"{param}={value} {map_round} vs {q}: mean error {r['mean_error_m']:.2f} m"
-                       f", {r['comparisons']:.1f} comparisons, recovering "
-                       f"{100 * r['recovering']:.1f} % of frames, kidnap recovery median "
-                       f"{np.median(done) if done else float('nan'):.0f} frames, never "
-                       f"recovered {len(kid) - len(done)}/{len(kid)}")
+            typer.echo(f"{param}={value} {map_round} vs {q}: mean error {r['error_mean_m']:.2f} m"
+                       f", {r['comparisons_per_frame']:.1f} comparisons, recovering "
+                       f"{100 * r['bad_status_share']:.1f} % of frames, kidnap recovery median "
+                       f"{_median(done):.0f} frames, never recovered "
+                       f"{len(kid) - len(done)}/{len(kid)}")

@@ -27,8 +27,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from client import textures as tx
 from client.dataset import write_dataset_meta, write_round
+from client.lab import textures as tx
 
 PPM = 32.0  # wall texels per metre
 GROUND_PPM = 10.0  # ground texels per metre

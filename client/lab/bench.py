@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from client.lab.world import Pose, World
 from client.transports import Client
-from client.world import Pose, World
 from service.features import extract, match_batch, similarity_bfmatcher
 from service.route_map import prune
 
@@ -238,7 +238,7 @@ def bench_events(maps_dir: str, round_dir: str, frames: int = 150, block: int = 
         def frame() -> float:
             nonlocal k
             t0 = time.perf_counter()
-            service.process_frame("bench", data[k % frames], None, float(k), session=session)
+            service.process_frame("bench", data[k % frames], t=float(k), session=session)
             k += 1
             return 1e3 * (time.perf_counter() - t0)
 

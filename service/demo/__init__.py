@@ -1,0 +1,59 @@
+"""The demo map, built from the round shipped in this package (service/demo/round).
+
+The round is frame 0 to 66 of ``sunny1`` of the synthetic world (seed 0, 80 m loop, a frame
+every 1.2 m; JPEG quality 80), written by ``swarmloc world render`` (``client/lab/``): the
+service builds the demo map from it with its own map builder, without the renderer.
+Replay a round of the same world against it:
+``swarmloc world render data/demo --length 80 --rounds cloudy1``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+DEMO_ROUND_DIR = Path(__file__).resolve().parent / "round"
+DEMO_SOURCE = {"world_seed": 0, "length_m": 80.0, "spacing_m": 1.2, "round": "sunny1",
+               "condition": "sunny"}
+
+
+@dataclass(frozen=True)
+class DemoRound:
+    """The shipped round (the ``RoundLike`` a map is built from)."""
+
+    name: str
+    path: Path
+    images: tuple[str, ...]
+    xy: np.ndarray
+    origin: tuple[float, float] | None = None
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def load_image(self, i: int) -> np.ndarray:
+        import cv2
+
+        img = cv2.imread(str(self.path / self.images[i]), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise ValueError(f"{self.path / self.images[i]}: cannot be decoded")
+        return np.asarray(img)
+
+
+def demo_round(path: Path = DEMO_ROUND_DIR) -> DemoRound:
+    from service.round_format import POSES_FILE, parse_positions
+
+    names, xy, _, origin = parse_positions(path / POSES_FILE, None)
+    return DemoRound("sunny1", path, tuple(names), xy, origin)
+
+
+def ensure_demo_map(maps_dir: Path, name: str = "demo") -> Path:
+    """Build ``maps_dir/NAME.swmap`` from the shipped round if it is missing."""
+    from service.route_map import build_map_from_rounds, list_maps, save_map
+
+    path = maps_dir / f"{name}.swmap"
+    if path in list_maps(maps_dir):
+        return path
+    m = build_map_from_rounds([demo_round()], name=name, source=dict(DEMO_SOURCE))
+    return save_map(m, path)
