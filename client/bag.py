@@ -174,7 +174,9 @@ def convert_bag(bag: str | Path, image_topic: str, out: str | Path,
                                                                       float(pv[0, 1]))
             pxy = LocalFrame(*origin).to_local(pv[:, 0], pv[:, 1]) if origin else pv
             conns = _connections(reader, image_topic, (COMPRESSED_IMAGE, IMAGE))
-            names, xy, times = [], [], []
+            names: list[str] = []
+            xy: list[np.ndarray] = []
+            times: list[float] = []
             outside = subsampled = 0
             travelled = last_kept = 0.0
             prev: np.ndarray | None = None

@@ -491,7 +491,7 @@ def _replay(round_dir: Path, map_name: str | None, via: str, estimator: str,
                    + (f"?map={map_name}" if map_name else "")
                    + (" (add the token: &token=... or ?token=...)" if token else ""))
     try:
-        runs = replay(client, rnd, cfg, robot_id, progress=True)
+        runs = replay(client, rnd, cfg, robot_id=robot_id, progress=True)
         route = _route_positions(client, map_name, rnd)
     except SwarmlocError as exc:
         _fail(f"service error {exc.status}: {exc.message}")

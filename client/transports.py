@@ -51,8 +51,9 @@ def _frame_bytes(image: np.ndarray | bytes) -> bytes:
 
 def _config(map_name: str | None, estimator: str | None, params: dict | None, seed: int,
             initial_pose: PosePrior | None) -> SessionConfig:
-    return SessionConfig(map=map_name, estimator=estimator, params=params or {}, seed=seed,
-                         initial_pose=initial_pose)
+    return SessionConfig.model_validate({"map": map_name, "estimator": estimator,
+                                         "params": params or {}, "seed": seed,
+                                         "initial_pose": initial_pose})
 
 
 class Client(Protocol):
@@ -289,7 +290,8 @@ class ZenohClient:
         for reply in replies:
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes())
-            body = json.loads(reply.err.payload.to_bytes())
+            err = reply.err
+            body = json.loads(err.payload.to_bytes()) if err is not None else {}
             raise SwarmlocError(int(body.get("status", 500)), body.get("error", "error"))
         raise SwarmlocError(0, f"no reply on {self.prefix}/{key} within {self.timeout} s: "
                                "is the service running and reachable over Zenoh?")

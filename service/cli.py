@@ -7,7 +7,7 @@ from here, and the server's modules are imported when it runs.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -44,7 +44,7 @@ def serve(
                    f"'swarmloc[service]' ({exc})", err=True)
         raise typer.Exit(2) from None
 
-    overrides = {k: v for k, v in {
+    overrides: dict[str, Any] = {k: v for k, v in {
         "host": host, "port": port, "maps_dir": maps_dir, "default_map": default_map,
         "default_estimator": default_estimator, "auth_token": token, "zenoh_enabled": zenoh,
         "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect,

@@ -214,7 +214,7 @@ def similarity_bfmatcher(a: np.ndarray, b: np.ndarray, delta: float = DEFAULT_DE
     bf = cv2.BFMatcher(cv2.NORM_L2)
 
     def one_way(q: np.ndarray, t: np.ndarray) -> dict[int, int]:
-        out = {}
+        out: dict[int, int] = {}
         if len(t) < 2:
             return out
         for pair in bf.knnMatch(q, t, k=2):

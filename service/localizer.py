@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from service.estimator import StepResult
 from service.features import Features, extract
-from service.models import Estimate, Hypothesis
+from service.models import Estimate, EstimatorName, Hypothesis
 from service.registry import make_estimator
 from service.route_map import RouteMap
 
@@ -68,7 +68,8 @@ class Localizer:
         pose_cov = np.diag([0.0, 0.0, _UNKNOWN_VAR, _UNKNOWN_VAR, _UNKNOWN_VAR, _UNKNOWN_VAR])
         pose_cov[:2, :2] = cov
         return Estimate(
-            seq=self.seq, stamp=t, frame_id=self.map.name, estimator=self.estimator_name,
+            seq=self.seq, stamp=t, frame_id=self.map.name,
+            estimator=cast(EstimatorName, self.estimator_name),
             x=x, y=y, lat=lat, lon=lon, heading=float(res.heading), speed=float(res.speed_mps),
             status=res.status.value, lost=bool(res.lost), score=float(res.score),
             comparisons=int(res.comparisons), covariance=cov.tolist(),

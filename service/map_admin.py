@@ -115,7 +115,7 @@ class MapAdmin:
     def remove_stale(self, older_than_s: float = STALE_S) -> list[str]:
         """Remove temporary files and folders a crash left in the maps directory (only old
         ones: another service on the same directory may be using fresh ones)."""
-        gone = []
+        gone: list[str] = []
         if not self.directory.is_dir():
             return gone
         limit = time.time() - older_than_s

@@ -50,7 +50,7 @@ def _jit(fn: Callable) -> Callable:
 try:  # NumKong: exact packed uint8 GEMM (AMX / AVX-512 VNNI); optional, BLAS otherwise
     import numkong as _nk
 except ImportError:  # pragma: no cover - numkong is a main dependency
-    _nk = None
+    _nk = None  # type: ignore[assignment]
 
 
 @dataclass(frozen=True)
@@ -235,8 +235,8 @@ def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, rd1, cm1, cm2):
     _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1)
 
 
-def _dot(x, y):
-    d = 0
+def _dot(x, y):  # numba kernel
+    d = np.int64(0)
     for t in range(x.shape[0]):
         d += np.int64(x[t]) * np.int64(y[t])
     return d
@@ -384,6 +384,7 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
                 _nk.dots_packed(a[r0:r1], packed, out=out)
                 dots = buf
             else:
+                assert a_f32 is not None
                 dots = np.matmul(a_f32[r0:r1], b_t, out=buf[: r1 - r0])
             _scan_tile(dots, r0, inv_na, s.inv_norms, rm1, rj1, rm2, rd1, cm1, cm2)
         counts[idx] = _decide(a, na, s.desc, s.norms, inv_na, rm1, rj1, rm2, rd1, cm1, cm2,

@@ -171,10 +171,10 @@ def _extract(archive: Path, dest: Path, limits: ArchiveLimits) -> None:
                     kind = "link" if member.issym() or member.islnk() else "special file"
                     raise BadRequest(f"archive member '{member.name}' is a {kind}; only files "
                                      "and folders are accepted")
-                src = tf.extractfile(member)
-                if src is None:
+                member_src = tf.extractfile(member)
+                if member_src is None:
                     raise BadRequest(f"archive member '{member.name}' cannot be read")
-                _copy(src, target, budget)
+                _copy(member_src, target, budget)
     except (tarfile.TarError, EOFError, OSError, zipfile.BadZipFile) as exc:
         raise BadRequest(f"corrupted tar archive: {exc}") from None
 

@@ -347,7 +347,7 @@ def _raw(arr: np.ndarray) -> memoryview | bytes:
     """The array's bytes without copying a (memory-mapped) contiguous array."""
     if arr.nbytes == 0:
         return b""
-    return memoryview(np.ascontiguousarray(arr)).cast("B")
+    return np.ascontiguousarray(arr).data.cast("B")
 
 
 def _pad(n: int) -> int:

@@ -19,7 +19,7 @@ from service.zenoh_bridge import ZenohBridge
 
 log = logging.getLogger("swarmloc")
 # the longest uvicorn waits for open responses at shutdown
-SHUTDOWN_GRACE_S = 2.0
+SHUTDOWN_GRACE_S = 2
 
 
 class _Server(uvicorn.Server):

@@ -13,6 +13,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -22,7 +23,15 @@ from service.imaging import decode_frame
 from service.localizer import Localizer
 from service.map_admin import MapAdmin
 from service.metrics import Metrics
-from service.models import Estimate, MapDetail, MapSummary, PosePrior, SessionConfig, SessionInfo
+from service.models import (
+    Estimate,
+    EstimatorName,
+    MapDetail,
+    MapSummary,
+    PosePrior,
+    SessionConfig,
+    SessionInfo,
+)
 from service.params import ParamError
 from service.route_map import MapError, RouteMap, list_maps, load_map
 from service.settings import Settings
@@ -40,7 +49,8 @@ class Session:
     def info(self) -> SessionInfo:
         loc = self.localizer
         return SessionInfo(robot_id=self.robot_id, map=loc.map.name,
-                           estimator=loc.estimator_name, seed=loc.seed, params=loc.params,
+                           estimator=cast(EstimatorName, loc.estimator_name), seed=loc.seed,
+                           params=loc.params,
                            frames=loc.seq, created=self.created, last_used=self.last_used,
                            last_estimate=loc.last, map_checksum=loc.map.meta.get("checksum"))
 

@@ -5,12 +5,15 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from client.lab.world import Pose, World
 from client.transports import Client
-from service.features import extract, match_batch, similarity_bfmatcher
+from service.features import BatchMatch, extract, match_batch, similarity_bfmatcher
 from service.route_map import prune
 
 
@@ -44,7 +47,7 @@ def bench_similarity(seed: int = 0, k: int = 20, repeats: int = 7) -> Similarity
     poses, t, _ = world.round_trajectory(0)
     frames = [world.render(Pose(*poses[i]), "sunny", t=float(t[i]), noise_seed=i)
               for i in range(0, 2 * (k + 2), 2)]
-    extract_ms = float(np.median([_median_ms(lambda f=f: extract(f), 1) for f in frames]))
+    extract_ms = float(np.median([_median_ms(partial(extract, f), 1) for f in frames]))
     feats = [extract(f) for f in frames]
     pruned, _ = prune(feats)
     query = extract(world.render(Pose(*poses[1]), "cloudy", t=float(t[1]), noise_seed=99))
@@ -80,10 +83,11 @@ def bench_latency(maps_dir: str, round_dir: str, frames: int = 200, seed: int = 
     rnd = read_round(round_dir)
     data = [rnd.image_path(i % len(rnd)).read_bytes() for i in range(frames)]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    settings = Settings(maps_dir=maps_dir, host="127.0.0.1", port=free_port(),
+    settings = Settings(maps_dir=Path(maps_dir), host="127.0.0.1", port=free_port(),
                         zenoh_listen=[endpoint], zenoh_multicast_scouting=False)
     with running_server(LocalizationService(settings)) as url:
-        clients = {"in-process": LocalClient(maps_dir), "http": HttpClient(url),
+        clients: dict[str, Client] = {
+                   "in-process": LocalClient(maps_dir), "http": HttpClient(url),
                    "zenoh": ZenohClient([endpoint], mode="peer")}
         try:
             return [_time_frames(name, c, data, seed) for name, c in clients.items()]
@@ -220,7 +224,7 @@ def bench_events(maps_dir: str, round_dir: str, frames: int = 150, block: int = 
 
     rnd = read_round(round_dir)
     data = [rnd.image_path(i % len(rnd)).read_bytes() for i in range(frames)]
-    settings = Settings(maps_dir=maps_dir, host="127.0.0.1", port=free_port(),
+    settings = Settings(maps_dir=Path(maps_dir), host="127.0.0.1", port=free_port(),
                         zenoh_enabled=False)
     service = LocalizationService(settings)
     hub = service.events
@@ -243,7 +247,9 @@ def bench_events(maps_dir: str, round_dir: str, frames: int = 150, block: int = 
             return 1e3 * (time.perf_counter() - t0)
 
         def hook() -> float:
-            est = session.localizer.last.model_copy(update={"robot_id": "bench"})
+            last = session.localizer.last
+            assert last is not None  # the warm-up frames made estimates
+            est = last.model_copy(update={"robot_id": "bench"})
             t0 = time.perf_counter()
             with session.lock:
                 xy = hub.particles_due("bench", session.localizer)
@@ -452,7 +458,7 @@ def _per_comparison_ms(fn: Callable[[int], object], queries: int, k: int, repeat
     """Median over queries of the median time of one query against its K sets, per set:
     CPU time of the thread (single-threaded work) or wall time."""
     timer = _median_cpu_ms if cpu else _median_ms
-    return float(np.median([timer(lambda q=q: fn(q), repeats) for q in range(queries)])) / k
+    return float(np.median([timer(partial(fn, q), repeats) for q in range(queries)])) / k
 
 
 def _two_threads_ms(fn: Callable[[int], object], queries: int, k: int, repeats: int) -> float:
@@ -494,13 +500,13 @@ def bench_matcher(photos: str | None = None, seed: int = 0, k: int = 20, places:
     prepared = [[prepare(b) for b in s] for s in sets]
     prepared_blas = [[prepare(b, "blas") for b in s] for s in sets]
 
-    def float_path(q: int) -> object:
+    def float_path(q: int) -> BatchMatch:
         return match_batch(fq[q], fsets[q])
 
-    def fast(q: int) -> object:
+    def fast(q: int) -> BatchMatch:
         return match_batch_u8(queries[q], prepared[q])
 
-    def fast_blas(q: int) -> object:
+    def fast_blas(q: int) -> BatchMatch:
         return match_batch_u8(queries[q], prepared_blas[q], backend="blas")
 
     nq = len(queries)
@@ -564,7 +570,7 @@ def _feature_types() -> dict[str, tuple[Callable, Callable]]:
         gray = to_working_size(image, SiftParams())
         return cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(gray)
 
-    def binary(detector: Callable[[], object]) -> Callable:
+    def binary(detector: Callable[[], Any]) -> Callable[[np.ndarray], np.ndarray]:
         def run(image: np.ndarray) -> np.ndarray:
             _, d = detector().detectAndCompute(clahe(image), None)
             return d if d is not None else np.zeros((0, 32), np.uint8)
@@ -583,7 +589,7 @@ def _feature_types() -> dict[str, tuple[Callable, Callable]]:
     }
     if hasattr(cv2, "AKAZE_create"):  # OpenCV 5 moved AKAZE out of the main modules
         types["CLAHE + AKAZE"] = (binary(cv2.AKAZE_create), binary_scores)
-    types["_prepare"] = (prepare, lambda q, sets: None)
+    types["_prepare"] = (prepare, lambda q, sets: None)  # type: ignore[assignment,return-value]
     return types
 
 

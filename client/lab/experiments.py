@@ -8,6 +8,7 @@ it, so repeating runs costs estimator time only. Each run still counts its own c
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -52,10 +53,12 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
     seq = frame_sequence(n, start, speed, kidnap, length)
     dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and n > 1 else 1.0
     loc = Localizer(route_map, estimator, params, seed)
-    est, comps, status, spd, head, scores, ms, acc, lost = ([] for _ in range(9))
+    est: list[np.ndarray] = []
+    status: list[str] = []
+    comps, spd, head, scores, ms, acc, lost = ([] for _ in range(7))  # floats (and bools)
     for it, q in enumerate(seq):
         t0 = time.perf_counter()
-        e = loc.estimator.step(lambda ids, q=q: table.scores(int(q), ids), it * dt)
+        e = loc.estimator.step(partial(table.scores, int(q)), it * dt)
         ms.append(1e3 * (time.perf_counter() - t0))
         est.append(e.position)
         comps.append(e.comparisons)

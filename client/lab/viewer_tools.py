@@ -164,7 +164,8 @@ def _synthetic_fleet(route: np.ndarray, robots: int, fps: float, seconds: float,
             est = Estimate(seq=k + 1, stamp=k * period, frame_id="m", estimator="dpso",
                            x=float(x[i]), y=float(y[i]), heading=float(rng.uniform(-math.pi,
                                                                                   math.pi)),
-                           speed=float(speed[i]), status=status, lost=status == "lost",
+                           speed=float(speed[i]), status=status,  # type: ignore[arg-type]
+                           lost=status == "lost",
                            score=0.2, comparisons=20, covariance=[[1, 0], [0, 1]],
                            pose_covariance=[0.0] * 36, accuracy_m=1.5, nearest_image=0,
                            nearest_image_name="0", spread_m=1.0, robot_id=f"robot-{i:02d}")

@@ -299,8 +299,8 @@ def _ground_texture(route: Route, rng: np.random.Generator, parking: list[tuple[
         img = np.where(inside, asphalt + 0.02, img)
         img = np.where(inside & ((s % 2.6) < 0.1) & (d < -8.0), 0.8, img)
     for _ in range(int(route.length / 25)):  # manholes and patches
-        cs = rng.uniform(0, route.length)
-        c = route.point(cs)[0] + rng.uniform(-2.5, 2.5) * route.normal(cs)[0]
+        at = rng.uniform(0, route.length)
+        c = route.point(at)[0] + rng.uniform(-2.5, 2.5) * route.normal(at)[0]
         cx, cy = int((c[0] - x0 + m) * GROUND_PPM), int((y1 + m - c[1]) * GROUND_PPM)
         cv2.circle(img, (cx, cy), int(0.35 * GROUND_PPM), 0.18, -1)
         cv2.circle(img, (cx, cy), int(0.35 * GROUND_PPM), 0.45, 1)
