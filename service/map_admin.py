@@ -44,7 +44,7 @@ from service.errors import (
 )
 from service.models import JobInfo, JobState, MapDeleted, MapSummary
 from service.round_archive import ArchiveLimits, UploadedRound, extract_round, remove_tree
-from service.route_map import SUFFIX, MapError, RouteMap, build_map, load_map, save_map
+from service.route_map import SUFFIX, MapError, RouteMap, build_map_from_rounds, load_map, save_map
 
 if TYPE_CHECKING:
     from service.sessions import LocalizationService
@@ -330,9 +330,8 @@ class MapAdmin:
         job.state, job.started = "running", time.time()
         rnd = job.round
         try:
-            m = build_map(name=job.map, images=self._paced_images(job), positions=rnd.xy,
-                          image_names=list(rnd.images), origin=rnd.origin,
-                          source={"name": rnd.name, "uploaded": True, "job": job.id})
+            m = build_map_from_rounds([rnd], name=job.map, images=self._paced_images(job),
+                                      source={"name": rnd.name, "uploaded": True, "job": job.id})
             with self._lock:
                 self.check_preconditions(job.map, job.if_match, job.if_none_match)
                 final = save_map(m, self._file_of(job.map))

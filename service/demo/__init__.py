@@ -9,43 +9,24 @@ Replay a round of the same world against it:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:
+    from service.round_archive import UploadedRound
 
 DEMO_ROUND_DIR = Path(__file__).resolve().parent / "round"
 DEMO_SOURCE = {"world_seed": 0, "length_m": 80.0, "spacing_m": 1.2, "round": "sunny1",
                "condition": "sunny"}
 
 
-@dataclass(frozen=True)
-class DemoRound:
-    """The shipped round (the ``RoundLike`` a map is built from)."""
-
-    name: str
-    path: Path
-    images: tuple[str, ...]
-    xy: np.ndarray
-    origin: tuple[float, float] | None = None
-
-    def __len__(self) -> int:
-        return len(self.images)
-
-    def load_image(self, i: int) -> np.ndarray:
-        import cv2
-
-        img = cv2.imread(str(self.path / self.images[i]), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise ValueError(f"{self.path / self.images[i]}: cannot be decoded")
-        return np.asarray(img)
-
-
-def demo_round(path: Path = DEMO_ROUND_DIR) -> DemoRound:
+def demo_round(path: Path = DEMO_ROUND_DIR) -> UploadedRound:
+    """The shipped round (read like a round uploaded for a build)."""
+    from service.round_archive import UploadedRound
     from service.round_format import POSES_FILE, parse_positions
 
-    names, xy, _, origin = parse_positions(path / POSES_FILE, None)
-    return DemoRound("sunny1", path, tuple(names), xy, origin)
+    names, xy, t, origin = parse_positions(path / POSES_FILE, None)
+    return UploadedRound("sunny1", path, tuple(names), xy, t, origin, max_pixels=320 * 240)
 
 
 def ensure_demo_map(maps_dir: Path, name: str = "demo") -> Path:
