@@ -382,6 +382,29 @@ def bench_similarity_cmd(k: int = 20, repeats: int = 7) -> None:
                f"identical match counts: {b.counts_equal}")
 
 
+@bench_app.command("startup")
+def bench_startup_cmd(runs: int = 10) -> None:
+    """Wall time of `swarmloc --help` in a fresh interpreter (median of RUNS), beside
+    `python -c pass`."""
+    import statistics
+    import subprocess
+    import sys
+    import time
+
+    def median_s(cmd: list[str]) -> float:
+        times = []
+        for _ in range(runs):
+            t0 = time.perf_counter()
+            subprocess.run(cmd, check=True, capture_output=True)
+            times.append(time.perf_counter() - t0)
+        return statistics.median(times)
+
+    help_s = median_s([sys.executable, "-m", "client.cli", "--help"])
+    bare_s = median_s([sys.executable, "-c", "pass"])
+    typer.echo(f"swarmloc --help: median {help_s:.3f} s over {runs} runs; "
+               f"python -c pass: {bare_s:.3f} s")
+
+
 @bench_app.command("ros2")
 def bench_ros2_cmd(repeats: int = 200) -> None:
     """Per-frame cost of the ROS 2 layer: CDR in (rosbags) and the answer out (needs the
