@@ -20,3 +20,18 @@ def test_clean(tool: str, args: list[str]) -> None:
     res = subprocess.run([sys.executable, "-m", tool, *args], cwd=ROOT, capture_output=True,
                          text=True, check=False)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_service_never_imports_client() -> None:
+    """The layering: the server and map builder stand without client/ (the Docker image has
+    no client/)."""
+    import ast
+
+    offenders = []
+    for path in sorted((ROOT / "service").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            offenders += [f"{path.relative_to(ROOT)}: {n}" for n in names
+                          if n == "client" or n.startswith("client.")]
+    assert offenders == []
