@@ -57,6 +57,7 @@ def run(settings: Settings) -> None:
     _Server(uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info",
                            timeout_graceful_shutdown=SHUTDOWN_GRACE_S),
             app.state.service).run()
+    app.state.service.close()  # after a clean stop (SIGTERM): the session snapshot
 
 
 def free_port(host: str = "127.0.0.1") -> int:

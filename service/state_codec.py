@@ -257,11 +257,11 @@ class SessionState:
     localizer: Localizer
     created: float
     last_used: float
-    last_t: float | None
-    last_input_seq: int | None
+    last_t: float | None = None  # timestamp of the last frame (frames must not go back)
+    last_input_seq: int | None = None  # the robot's seq of the last applied frame
 
 
-MapResolver = Callable[[str, "str | None"], RouteMap]
+MapResolver = Callable[[str, "str | None"], RouteMap]  # (map name, checksum) -> the map
 
 
 def encode_session(s: SessionState) -> bytes:
