@@ -33,6 +33,9 @@ class _Server(uvicorn.Server):
     async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
         self._service.events.close()
         await super().shutdown(sockets)
+        # frames have stopped: the in-process store writes its snapshot (if configured);
+        # here, not after run(): uvicorn re-raises SIGTERM when it returns
+        self._service.close()
 
 
 def build_app(settings: Settings) -> FastAPI:
@@ -57,7 +60,6 @@ def run(settings: Settings) -> None:
     _Server(uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info",
                            timeout_graceful_shutdown=SHUTDOWN_GRACE_S),
             app.state.service).run()
-    app.state.service.close()  # after a clean stop (SIGTERM): the session snapshot
 
 
 def free_port(host: str = "127.0.0.1") -> int:

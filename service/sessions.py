@@ -27,6 +27,7 @@ from service.models import Estimate, MapDetail, MapSummary, PosePrior, SessionCo
 from service.params import ParamError
 from service.route_map import MapError, RouteMap, list_maps, load_map
 from service.settings import Settings
+from service.state_codec import StateError
 from service.store import (
     InProcessStore,
     RedisOptions,
@@ -55,10 +56,16 @@ class LocalizationService:
         self.store = open_store(settings, self.resolve_map)
         snap = settings.session_snapshot
         if isinstance(self.store, InProcessStore) and snap is not None and snap.exists():
-            n, problems = self.store.load_snapshot(snap, self.resolve_map)
-            log.info("restored %d sessions from %s", n, snap)
-            for p in problems:
-                log.warning("session not restored: %s", p)
+            try:
+                n, problems = self.store.load_snapshot(snap, self.resolve_map)
+            except StateError as exc:  # kept aside for a look, never half-read
+                aside = snap.with_name(snap.name + ".corrupt")
+                snap.replace(aside)
+                log.error("session snapshot not restored (%s); moved to %s", exc, aside)
+            else:
+                log.info("restored %d sessions from %s", n, snap)
+                for p in problems:
+                    log.warning("session not restored: %s", p)
         self._update_gauge()
 
     def close(self) -> None:
@@ -204,9 +211,10 @@ class LocalizationService:
     def reset_session(self, robot_id: str, near: PosePrior | None) -> SessionInfo:
         with self.store.locked(robot_id, strict_map=False) as s:
             current = self.maps.get(s.localizer.map.name)
-            if current is not None and current is not s.localizer.map:
+            if current is not None and (s.map_changed or current is not s.localizer.map):
                 old = s.localizer  # the map was replaced: a reset moves to the new version
                 s.localizer = Localizer(current, old.estimator_name, old.params, old.seed)
+                s.map_changed = False
             if near is None:
                 s.localizer.reset()
             else:

@@ -52,6 +52,7 @@ class Session(SessionState):
 
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
     version: str | None = None  # the store's version of this state (Redis)
+    map_changed: bool = False  # loaded onto a newer version of its map (only for a reset)
 
     def info(self) -> SessionInfo:
         loc = self.localizer
@@ -348,16 +349,24 @@ class RedisStore(SessionStore):
             self._local.pop(robot_id, None)
 
     def _decode(self, robot_id: str, version: bytes, blob: bytes, strict: bool) -> Session:
+        changed = False
+
+        def resolve(name: str, checksum: str | None) -> RouteMap:
+            nonlocal changed
+            m = self._resolve(name, checksum, strict)
+            changed = checksum != m.meta.get("checksum")
+            return m
+
         try:
-            st = decode_session(blob, lambda n, c: self._resolve(n, c, strict))
+            st = decode_session(blob, resolve)
         except StateError as exc:
             raise ServiceError(f"stored state of robot '{robot_id}' is unreadable: {exc}"
                                ) from None
-        s = Session(**vars(st), version=version.decode())
-        return s
+        return Session(**vars(st), version=version.decode(), map_changed=changed)
 
     def _materialize(self, robot_id: str, res: list[Any], strict: bool) -> Session | None:
-        """A Session from a load script's answer [v] (cached) or [v, blob]."""
+        """A Session from a load script's answer [v] (cached) or [v, blob]. Only sessions on
+        the loaded version of their map are cached (the others wait for a reset)."""
         if not res:
             return None
         cached = self._cache.get(robot_id)
@@ -366,7 +375,8 @@ class RedisStore(SessionStore):
                 return cached
             raise ServiceError("session cache out of step")  # cannot happen: we sent its v
         s = self._decode(robot_id, res[0], res[1], strict)
-        self._cache[robot_id] = s
+        if not s.map_changed:
+            self._cache[robot_id] = s
         return s
 
     def _blob(self, s: Session) -> bytes:

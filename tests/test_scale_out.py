@@ -18,7 +18,6 @@ from typing import Any
 
 import httpx
 import pytest
-import redis
 import zenoh
 
 from client.processes import RedisServer, ServiceProcess
@@ -29,13 +28,6 @@ from service.sessions import LocalizationService
 from service.settings import Settings
 
 SEED = 7
-
-
-@pytest.fixture(scope="module")
-def redis_srv(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServer]:
-    srv = RedisServer(tmp_path_factory.mktemp("redis")).start()
-    yield srv
-    srv.stop()
 
 
 @pytest.fixture(scope="module")
@@ -67,14 +59,6 @@ def replicas(tmp_path_factory: pytest.TempPathFactory, redis_srv: RedisServer,
     finally:
         a.stop()
         b.stop()
-
-
-@pytest.fixture
-def rdb(redis_srv: RedisServer) -> Iterator[redis.Redis]:
-    r = redis.Redis.from_url(redis_srv.url)
-    r.flushdb()
-    yield r
-    r.close()
 
 
 @pytest.fixture(scope="module")
