@@ -227,7 +227,11 @@ class LocalizationService:
     def expire_idle(self, now: float | None = None) -> list[str]:
         now = time.time() if now is None else now
         with self._lock:
-            gone = self.store.expire(self.settings.session_idle_s, now)
+            try:
+                gone = self.store.expire(self.settings.session_idle_s, now)
+            except Unavailable as exc:  # Redis down: its TTLs expire sessions meanwhile
+                log.warning("session expiry skipped: %s", exc.message)
+                return []
             self._update_gauge()
         self.metrics.expired.inc(len(gone))
         for rid in gone:
