@@ -197,8 +197,7 @@ class _Decoder:
             slot = len(self._objs)
             self._objs.append(None)
             name, attrs = self.unpack(data)
-            cls = _resolve(name)
-            obj = cls.__new__(cls)
+            obj: Any = object.__new__(_resolve(name))
             for k, v in attrs.items():
                 object.__setattr__(obj, k, v)
             self._objs[slot] = obj

@@ -31,7 +31,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import msgpack
 
@@ -426,7 +426,8 @@ class RedisStore(SessionStore):
 
     def ids(self) -> list[str]:
         with self._io():
-            raw = self.r.zrangebyscore(self._index, time.time() - self.opt.idle_s, "+inf")
+            raw = cast(list[bytes], self.r.zrangebyscore(
+                self._index, time.time() - self.opt.idle_s, "+inf"))
         return [b.decode() for b in raw]
 
     def maps_of(self) -> dict[str, str]:
@@ -440,7 +441,8 @@ class RedisStore(SessionStore):
 
     def __len__(self) -> int:
         with self._io():
-            return int(self.r.zcount(self._index, time.time() - self.opt.idle_s, "+inf"))
+            return int(cast(int, self.r.zcount(self._index, time.time() - self.opt.idle_s,
+                                               "+inf")))
 
     @contextlib.contextmanager
     def locked(self, robot_id: str, strict_map: bool = True) -> Iterator[Session]:
@@ -460,7 +462,7 @@ class RedisStore(SessionStore):
                 with self._io():
                     ok = self._save_release(
                         keys=[lock_key, key, self._index],
-                        args=[token, loaded, version, blob, s.localizer.map.name,
+                        args=[token, loaded or "", version, blob, s.localizer.map.name,
                               self._ttl_ms(), time.time(), robot_id])
                 saved = True
                 if not ok:
@@ -495,7 +497,7 @@ class RedisStore(SessionStore):
 
     def expire(self, idle_s: float, now: float) -> list[str]:
         with self._io():
-            raw = self.r.zrangebyscore(self._index, "-inf", now - idle_s)
+            raw = cast(list[bytes], self.r.zrangebyscore(self._index, "-inf", now - idle_s))
             gone = []
             for b in raw:  # the keys themselves expired with their TTL
                 rid = b.decode()

@@ -11,7 +11,7 @@ from typing import Any
 from urllib.parse import urlparse
 
 import pytest
-import yaml
+import yaml  # type: ignore[import-untyped]
 
 from service.settings import Settings
 
@@ -86,7 +86,9 @@ def test_one_http_entry_balances_both_replicas(compose) -> None:
     lb = compose["services"]["lb"]
     mount = next(v for v in lb["volumes"] if v.startswith("./"))
     cfg = (DEPLOY / mount.split(":")[0]).read_text()
-    bind = int(re.search(r"^\s*bind\s+:(\d+)", cfg, re.M).group(1))
+    found = re.search(r"^\s*bind\s+:(\d+)", cfg, re.M)
+    assert found is not None
+    bind = int(found.group(1))
     assert (8080, bind) in _ports(lb)
     servers = dict(re.findall(r"^\s*server\s+\S+\s+([\w-]+):(\d+)", cfg, re.M))
     assert set(servers) == set(REPLICAS)
