@@ -264,15 +264,13 @@ class LocalizationService:
                 if s.localizer.map is not loc.map:  # reset onto a new map version meanwhile
                     features = s.localizer.extract(image)
                 last = s.localizer.last
-                if input_seq is not None and s.last_input_seq is not None:
-                    if input_seq == s.last_input_seq and last is not None:
-                        # a frame sent again (a retry after a lost answer, possibly to
-                        # another replica): answered with its estimate, not applied twice
-                        return last.model_copy(update={"robot_id": robot_id,
-                                                       "input_seq": input_seq})
-                    if input_seq < s.last_input_seq:
-                        raise Conflict(f"frame seq {input_seq} is older than the last applied "
-                                       f"frame (seq {s.last_input_seq}); send frames in order")
+                if input_seq is not None and input_seq == s.last_input_seq \
+                        and t == s.last_t and last is not None:
+                    # the last frame sent again (same seq and timestamp: a retry after a lost
+                    # answer, possibly to another replica, or the same image in a second
+                    # encoding): answered with its estimate, not applied twice
+                    return last.model_copy(update={"robot_id": robot_id,
+                                                   "input_seq": input_seq})
                 if t is not None and s.last_t is not None and t < s.last_t:
                     raise Conflict(f"frame timestamp {t} is older than the last processed "
                                    f"frame ({s.last_t}); send frames in time order")
