@@ -682,6 +682,42 @@ def bench_latency_cmd(
                    f"p99 {b.p99_ms:6.1f} ms, mean {b.mean_ms:6.1f} ms")
 
 
+@bench_app.command("scale")
+def bench_scale_cmd(
+    round_dir: Annotated[Path, typer.Argument(help="round whose frames are sent")],
+    maps_dir: Annotated[Path, typer.Option(help="maps the replicas load")] = Path("maps"),
+    frames: Annotated[int, typer.Option(help="frames per store in the overhead part")] = 200,
+    robots: Annotated[int, typer.Option(help="robots sending at once to the replicas")] = 4,
+    robot_frames: Annotated[int, typer.Option(help="frames each robot sends")] = 30,
+    redis: Annotated[str | None, typer.Option(
+        help="redis://host:port/db to use (default: a fresh redis-server on loopback)")] = None,
+) -> None:
+    """Redis session store overhead per frame (p50/p99 load and store) next to the in-process
+    store, and frames/s of 1 and 2 replicas (real processes)."""
+    import os
+
+    from client.lab.bench_scale import bench_replicas, bench_store_overhead, with_redis
+
+    url, srv = with_redis(redis)
+    try:
+        typer.echo(f"redis: {url}; load average {os.getloadavg()[0]:.1f} on "
+                   f"{os.cpu_count()} CPUs")
+        for o in bench_store_overhead(str(maps_dir), str(round_dir), url, frames):
+            if not o.with_step and o.store == "in-process":
+                typer.echo("the same, load and store back to back (no estimator step "
+                           "between: the cost without the wake-up after a CPU burst):")
+            typer.echo(f"{o.store:28s} load p50 {o.load_p50_ms:6.3f} ms p99 "
+                       f"{o.load_p99_ms:6.3f} ms | store p50 {o.store_p50_ms:6.3f} ms p99 "
+                       f"{o.store_p99_ms:6.3f} ms | step p50 {o.step_p50_ms:6.2f} ms | "
+                       f"state {o.state_bytes} B")
+        for t in bench_replicas(str(maps_dir), str(round_dir), url, robots, robot_frames):
+            typer.echo(f"{t.replicas} replica(s), {t.setup:16s}: {t.frames} frames of "
+                       f"{t.robots} robots in {t.seconds:5.1f} s = {t.fps:5.1f} frames/s")
+    finally:
+        if srv is not None:
+            srv.stop()  # type: ignore[attr-defined]
+
+
 @bench_app.command("events")
 def bench_events_cmd(
     round_dir: Annotated[Path, typer.Argument(help="round whose frames are sent")],

@@ -33,6 +33,9 @@ class _Server(uvicorn.Server):
     async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
         self._service.events.close()
         await super().shutdown(sockets)
+        # frames have stopped: the in-process store writes its snapshot (if configured);
+        # here, not after run(): uvicorn re-raises SIGTERM when it returns
+        self._service.close()
 
 
 def build_app(settings: Settings) -> FastAPI:

@@ -8,12 +8,12 @@ rejected frame never changes the session.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from pathlib import Path
-from typing import cast
 
 import numpy as np
 
@@ -25,7 +25,6 @@ from service.map_admin import MapAdmin
 from service.metrics import Metrics
 from service.models import (
     Estimate,
-    EstimatorName,
     MapDetail,
     MapSummary,
     PosePrior,
@@ -35,24 +34,18 @@ from service.models import (
 from service.params import ParamError
 from service.route_map import MapError, RouteMap, list_maps, load_map
 from service.settings import Settings
+from service.state_codec import StateError
+from service.store import (
+    InProcessStore,
+    RedisOptions,
+    RedisStore,
+    Session,
+    SessionLimit,
+    SessionStore,
+)
 
-
-@dataclass
-class Session:
-    robot_id: str
-    localizer: Localizer
-    created: float
-    last_used: float
-    lock: threading.Lock = field(default_factory=threading.Lock)
-    last_t: float | None = None
-
-    def info(self) -> SessionInfo:
-        loc = self.localizer
-        return SessionInfo(robot_id=self.robot_id, map=loc.map.name,
-                           estimator=cast(EstimatorName, loc.estimator_name), seed=loc.seed,
-                           params=loc.params,
-                           frames=loc.seq, created=self.created, last_used=self.last_used,
-                           last_estimate=loc.last, map_checksum=loc.map.meta.get("checksum"))
+__all__ = ["LocalizationService", "Session"]
+log = logging.getLogger("swarmloc")
 
 
 class LocalizationService:
@@ -63,11 +56,32 @@ class LocalizationService:
         self.events = EventHub(self.metrics)  # the estimate stream of GET /events
         self.maps: dict[str, RouteMap] = maps if maps is not None else {}
         self.load_errors: dict[str, str] = {}
-        self._sessions: dict[str, Session] = {}
         self._lock = threading.Lock()
         self.admin = MapAdmin(self)  # upload / replace / delete / build without a restart
         if maps is None:
             self.load_maps(settings.maps_dir)
+        self.store = open_store(settings, self.resolve_map)
+        snap = settings.session_snapshot
+        if isinstance(self.store, InProcessStore) and snap is not None and snap.exists():
+            try:
+                n, problems = self.store.load_snapshot(snap, self.resolve_map)
+            except StateError as exc:  # kept aside for a look, never half-read
+                aside = snap.with_name(snap.name + ".corrupt")
+                snap.replace(aside)
+                log.error("session snapshot not restored (%s); moved to %s", exc, aside)
+            else:
+                log.info("restored %d sessions from %s", n, snap)
+                for p in problems:
+                    log.warning("session not restored: %s", p)
+        self._update_gauge()
+
+    def close(self) -> None:
+        """At shutdown: the in-process store writes its snapshot (if configured)."""
+        self.store.close()
+
+    def _update_gauge(self) -> None:
+        if isinstance(self.store, InProcessStore):
+            self.metrics.sessions.set(len(self.store))
 
     # ---- maps ---------------------------------------------------------------------------
     def load_maps(self, directory: Path) -> None:
@@ -113,6 +127,19 @@ class LocalizationService:
                           spacing_m=s.pop("spacing_m"), meta=s, checksum=m.meta.get("checksum"),
                           build_date=s.get("build_date"))
 
+    def resolve_map(self, name: str, checksum: str | None, strict: bool = True) -> RouteMap:
+        """The loaded map a stored session runs on; with ``strict`` the same version."""
+        m = self.maps.get(name)
+        if m is None:
+            raise NotFound(f"the session's map '{name}' is not loaded here; loaded maps: "
+                           f"{sorted(self.maps)}")
+        have = m.meta.get("checksum")
+        if strict and checksum != have:
+            raise Conflict(f"the session's map '{name}' (version {str(checksum)[:12]}) was "
+                           f"replaced by version {str(have)[:12]}; reset the session to "
+                           "continue on the new version")
+        return m
+
     def map_detail(self, name: str) -> MapDetail:
         m = self.get_map(name)  # one version for the summary and the positions
         return MapDetail(**self._summary(m).model_dump(),
@@ -139,78 +166,88 @@ class LocalizationService:
             loc.reset((p.x, p.y), p.radius)
         now = time.time()
         with self._lock:
-            created = robot_id not in self._sessions
-            if not created and not replace:
-                return self._sessions[robot_id].info(), False
             if self.maps.get(map_name) is not route_map:
                 raise Conflict(f"map '{map_name}' was replaced or deleted meanwhile; retry")
-            if created and len(self._sessions) >= self.settings.max_sessions:
+            try:
+                s, created = self.store.create(Session(robot_id, loc, now, now), replace,
+                                               self.settings.max_sessions)
+            except SessionLimit:
                 self.metrics.rejected.labels("session_limit").inc()
                 raise Unavailable(f"session limit of {self.settings.max_sessions} reached; "
-                                  "delete idle sessions or raise SWARMLOC_MAX_SESSIONS")
-            s = Session(robot_id, loc, now, now)
-            self._sessions[robot_id] = s
-            self.metrics.sessions.set(len(self._sessions))
-        if not created:  # viewers drop the old session (it may have been on another map)
+                                  "delete idle sessions or raise SWARMLOC_MAX_SESSIONS"
+                                  ) from None
+            self._update_gauge()
+        if not created and replace:  # viewers drop the old session (maybe on another map)
             self.events.remove(robot_id)
         return s.info(), created
 
     def session(self, robot_id: str) -> Session:
-        try:
-            return self._sessions[robot_id]
-        except KeyError:
+        s = self.store.get(robot_id)
+        if s is None:
             raise NotFound(f"no session for robot '{robot_id}'; create it with "
-                           f"PUT /sessions/{robot_id}") from None
+                           f"PUT /sessions/{robot_id}")
+        return s
 
     def ensure_session(self, robot_id: str) -> Session:
         """The robot's session, created with the default map and estimator if missing."""
-        if robot_id not in self._sessions:
+        s = self.store.get(robot_id)
+        if s is None:
             self.put_session(robot_id, SessionConfig(), replace=False)
-        return self.session(robot_id)
+            s = self.session(robot_id)
+        return s
 
     def sessions_on_map(self, name: str) -> list[str]:
         """Robots whose session runs on map ``name`` (any version of it)."""
-        return sorted(rid for rid, s in list(self._sessions.items())
-                      if s.localizer.map.name == name)
+        return sorted(rid for rid, m in self.store.maps_of().items() if m == name)
 
     def sessions(self) -> list[SessionInfo]:
-        return [s.info() for s in list(self._sessions.values())]
+        out = []
+        for rid in self.store.ids():
+            s = self.store.get(rid)
+            if s is not None:
+                out.append(s.info())
+        return out
 
     def delete_session(self, robot_id: str) -> None:
         with self._lock:
-            if self._sessions.pop(robot_id, None) is None:
+            if not self.store.delete(robot_id):
                 raise NotFound(f"no session for robot '{robot_id}'")
-            self.metrics.sessions.set(len(self._sessions))
+            self._update_gauge()
         self.events.remove(robot_id)
 
     def reset_session(self, robot_id: str, near: PosePrior | None) -> SessionInfo:
-        s = self.session(robot_id)
-        with s.lock:
+        with self.store.locked(robot_id, strict_map=False) as s:
             current = self.maps.get(s.localizer.map.name)
-            if current is not None and current is not s.localizer.map:
+            if current is not None and (s.map_changed or current is not s.localizer.map):
                 old = s.localizer  # the map was replaced: a reset moves to the new version
                 s.localizer = Localizer(current, old.estimator_name, old.params, old.seed)
+                s.map_changed = False
             if near is None:
                 s.localizer.reset()
             else:
                 s.localizer.reset((near.x, near.y), near.radius)
             s.last_t = None
+            s.last_input_seq = None
             s.last_used = time.time()
         return s.info()
 
     def expire_idle(self, now: float | None = None) -> list[str]:
         now = time.time() if now is None else now
-        limit = self.settings.session_idle_s
         with self._lock:
-            gone = [rid for rid, s in self._sessions.items() if now - s.last_used > limit
-                    and not s.lock.locked()]
-            for rid in gone:
-                del self._sessions[rid]
-            self.metrics.sessions.set(len(self._sessions))
+            try:
+                gone = self.store.expire(self.settings.session_idle_s, now)
+            except Unavailable as exc:  # Redis down: its TTLs expire sessions meanwhile
+                log.warning("session expiry skipped: %s", exc.message)
+                return []
+            self._update_gauge()
         self.metrics.expired.inc(len(gone))
         for rid in gone:
             self.events.remove(rid)
         return gone
+
+    def claim(self, robot_id: str) -> bool:
+        """Whether this replica serves the robot's Zenoh traffic (service/store.py)."""
+        return self.store.claim(robot_id)
 
     # ---- frames -------------------------------------------------------------------------
     def process_frame(self, robot_id: str, data: bytes | np.ndarray, *,
@@ -231,9 +268,17 @@ class LocalizationService:
                 raise InvalidParameters("timestamp t must be a finite number of seconds")
             loc = s.localizer
             features = loc.extract(image)
-            with s.lock:
-                if s.localizer is not loc:  # reset onto a new map version meanwhile
+            with self.store.locked(robot_id) as s:
+                if s.localizer.map is not loc.map:  # reset onto a new map version meanwhile
                     features = s.localizer.extract(image)
+                last = s.localizer.last
+                if input_seq is not None and input_seq == s.last_input_seq \
+                        and t == s.last_t and last is not None:
+                    # the last frame sent again (same seq and timestamp: a retry after a lost
+                    # answer, possibly to another replica, or the same image in a second
+                    # encoding): answered with its estimate, not applied twice
+                    return last.model_copy(update={"robot_id": robot_id,
+                                                   "input_seq": input_seq})
                 if t is not None and s.last_t is not None and t < s.last_t:
                     raise Conflict(f"frame timestamp {t} is older than the last processed "
                                    f"frame ({s.last_t}); send frames in time order")
@@ -241,6 +286,8 @@ class LocalizationService:
                                        (prior.x, prior.y, prior.radius) if prior else None)
                 if t is not None:
                     s.last_t = t
+                if input_seq is not None:
+                    s.last_input_seq = input_seq
                 s.last_used = time.time()
                 particles = self.events.particles_due(robot_id, s.localizer)
         except Exception as exc:
@@ -253,6 +300,20 @@ class LocalizationService:
         est = est.model_copy(update={"robot_id": robot_id, "input_seq": input_seq})
         self.events.publish(est, elapsed, particles)
         return est
+
+
+def open_store(settings: Settings,
+               resolve: Callable[[str, str | None, bool], RouteMap]) -> SessionStore:
+    """The store ``SWARMLOC_SESSION_STORE`` names: ``memory`` or ``redis://host:port/db``."""
+    url = settings.session_store
+    if url == "memory":
+        return InProcessStore(settings.session_snapshot)
+    if url.startswith(("redis://", "rediss://", "unix://")):
+        return RedisStore(url, resolve, RedisOptions(
+            idle_s=settings.session_idle_s, lock_lease_s=settings.session_lock_lease_s,
+            lock_wait_s=settings.session_lock_wait_s,
+            claim_lease_s=settings.zenoh_claim_lease_s, replica_id=settings.replica_id or ""))
+    raise ValueError(f"SWARMLOC_SESSION_STORE={url!r}: use 'memory' or redis://host:port/db")
 
 
 def _check_robot_id(robot_id: str) -> None:

@@ -23,6 +23,19 @@ class Settings(BaseSettings):
     default_estimator: EstimatorName = "dpso"
     max_sessions: int = Field(256, description="most concurrent robot sessions")
     session_idle_s: float = Field(600.0, description="idle sessions expire after this")
+    # where sessions live (service/store.py): in this process, or Redis shared by replicas
+    session_store: str = Field("memory", description="'memory' (in-process) or "
+                               "redis://host:port/db (shared by several replicas)")
+    session_snapshot: Path | None = Field(None, description="in-process store: write the "
+                                          "sessions here on SIGTERM, read them at start")
+    session_lock_lease_s: float = Field(10.0, gt=0, description="Redis: a robot's lock "
+                                        "expires this long after a crashed holder took it")
+    session_lock_wait_s: float = Field(5.0, ge=0, description="Redis: the longest a frame "
+                                       "waits for its robot's lock (then 409)")
+    zenoh_claim_lease_s: float = Field(5.0, gt=0, description="Redis: a replica serves a "
+                                       "robot's Zenoh traffic until this passes without any")
+    replica_id: str | None = Field(None, description="this replica's name in Redis claims "
+                                   "(default: host name and process id)")
     max_body_bytes: int = Field(8 * 1024 * 1024, description="largest accepted frame body")
     max_pixels: int = Field(16_000_000, description="largest accepted image (width*height)")
     max_map_bytes: int = Field(1 << 30, description="largest map upload (PUT /maps/NAME)")

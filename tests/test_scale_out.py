@@ -1,0 +1,261 @@
+"""Several real ``swarmloc serve`` replicas sharing a real ``redis-server``.
+
+Replica A also routes Zenoh (mode router, like zenohd in deploy/compose.yaml); replica B (a
+Zenoh peer) and the robot (a client) connect to it. Every estimate is checked against one
+in-process service that sees the same frames: bit for bit, whichever replica made it.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import zenoh
+
+from client.lab.processes import RedisServer, ServiceProcess
+from service.models import Estimate, SessionConfig
+from service.route_map import RouteMap, save_map
+from service.server import free_port
+from service.sessions import LocalizationService
+from service.settings import Settings
+
+SEED = 7
+
+
+@pytest.fixture(scope="module")
+def maps_dir(tmp_path_factory: pytest.TempPathFactory, small_map: RouteMap) -> Path:
+    d = tmp_path_factory.mktemp("replica_maps")
+    save_map(small_map, d / "small")
+    return d
+
+
+@pytest.fixture(scope="module")
+def replicas(tmp_path_factory: pytest.TempPathFactory, redis_srv: RedisServer,
+             maps_dir: Path) -> Iterator[dict[str, Any]]:
+    logs = tmp_path_factory.mktemp("replica_logs")
+    zenoh_ep = f"tcp/127.0.0.1:{free_port()}"
+    common = {"SWARMLOC_MAPS_DIR": str(maps_dir), "SWARMLOC_SESSION_STORE": redis_srv.url,
+              "SWARMLOC_ZENOH_MULTICAST_SCOUTING": "false", "SWARMLOC_WORKERS": "2",
+              "SWARMLOC_SESSION_LOCK_WAIT_S": "30"}
+    a = ServiceProcess("replica-a", {**common, "SWARMLOC_ZENOH_MODE": "router",
+                                     "SWARMLOC_ZENOH_LISTEN": json.dumps([zenoh_ep])}, logs)
+    b = ServiceProcess("replica-b", {**common, "SWARMLOC_ZENOH_MODE": "peer",
+                                     "SWARMLOC_ZENOH_LISTEN": "[]",
+                                     "SWARMLOC_ZENOH_CONNECT": json.dumps([zenoh_ep])}, logs)
+    a.start()
+    b.start()
+    try:
+        a.wait_ready()
+        b.wait_ready()
+        yield {"a": a, "b": b, "zenoh": zenoh_ep}
+    finally:
+        a.stop()
+        b.stop()
+
+
+@pytest.fixture(scope="module")
+def frames(sunny2) -> list[bytes]:
+    return [sunny2.image_path(i).read_bytes() for i in range(10, 22)]
+
+
+class Reference:
+    """One in-process service: what a single process answers to the same frames."""
+
+    def __init__(self, small_map: RouteMap, robot: str, estimator: str = "dpso") -> None:
+        self.svc = LocalizationService(Settings(zenoh_enabled=False),
+                                       maps={small_map.name: small_map})
+        self.robot = robot
+        self.svc.put_session(robot, SessionConfig(map="small", estimator=estimator, seed=SEED))
+
+    def frame(self, data: bytes, k: int) -> dict[str, Any]:
+        est = self.svc.process_frame(self.robot, data, content_type="image/png",
+            t=float(k), input_seq=k)
+        return est.model_dump()
+
+
+def _create(url: str, robot: str, estimator: str = "dpso") -> None:
+    r = httpx.put(f"{url}/sessions/{robot}", timeout=30,
+                  json={"map": "small", "estimator": estimator, "seed": SEED})
+    assert r.status_code in (200, 201), r.text
+
+
+def _post(url: str, robot: str, data: bytes, k: int) -> httpx.Response:
+    return httpx.post(f"{url}/sessions/{robot}/frames", params={"t": float(k), "seq": k},
+                      content=data, headers={"Content-Type": "image/png"}, timeout=60)
+
+
+def _est(r: httpx.Response) -> dict[str, Any]:
+    assert r.status_code == 200, r.text
+    return Estimate.model_validate(r.json()).model_dump()
+
+
+def _frames_of(url: str, robot: str) -> int:
+    r = httpx.get(f"{url}/sessions/{robot}", timeout=30)
+    assert r.status_code == 200, r.text
+    return int(r.json()["frames"])
+
+
+def test_frames_alternating_between_replicas_equal_one_process(
+        replicas, rdb, frames, small_map) -> None:
+    a, b = replicas["a"].url, replicas["b"].url
+    for estimator in ("dpso", "pf-l"):
+        robot = f"alt-{estimator}"
+        ref = Reference(small_map, robot, estimator)
+        _create(a, robot, estimator)
+        for k, data in enumerate(frames[:8]):
+            got = _est(_post(a if k % 2 == 0 else b, robot, data, k))
+            assert got == ref.frame(data, k), f"{estimator} frame {k}"
+        assert _frames_of(a, robot) == _frames_of(b, robot) == 8
+
+
+def test_a_repeated_frame_is_answered_not_applied(replicas, rdb, frames) -> None:
+    a, b = replicas["a"].url, replicas["b"].url
+    _create(a, "dup")
+    first = _est(_post(a, "dup", frames[0], 0))
+    second = _est(_post(a, "dup", frames[1], 1))
+    again = _est(_post(b, "dup", frames[1], 1))  # a retry that reached the other replica
+    assert again == second and again != first
+    assert _frames_of(b, "dup") == 2
+    old = _post(b, "dup", frames[0], 0)
+    assert old.status_code == 409 and "older than the last" in old.json()["error"]
+    # the same seq with another timestamp is a new frame (e.g. a robot that restarted)
+    r = httpx.post(f"{a}/sessions/dup/frames", params={"t": 2.0, "seq": 1},
+                   content=frames[2], headers={"Content-Type": "image/png"}, timeout=60)
+    assert _est(r)["seq"] == 3
+    assert _frames_of(a, "dup") == 3
+
+
+def test_concurrent_frames_for_one_robot_on_two_replicas(replicas, rdb, frames,
+                                                          small_map) -> None:
+    """Both replicas get the same frame at once: it is applied once and both answer it."""
+    a, b = replicas["a"].url, replicas["b"].url
+    ref = Reference(small_map, "both")
+    _create(b, "both")
+
+    def send(go: threading.Barrier, answers: dict[str, httpx.Response], name: str, url: str,
+             data: bytes, k: int) -> None:
+        go.wait()
+        answers[name] = _post(url, "both", data, k)
+
+    for k, data in enumerate(frames[:4]):
+        answers: dict[str, httpx.Response] = {}
+        go = threading.Barrier(2)
+        threads = [threading.Thread(target=send, args=(go, answers, n, u, data, k))
+                   for n, u in (("a", a), ("b", b))]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        expected = ref.frame(data, k)
+        assert _est(answers["a"]) == _est(answers["b"]) == expected
+    assert _frames_of(a, "both") == 4
+
+
+def test_a_crashed_holders_lock_expires(replicas, rdb, frames) -> None:
+    a = replicas["a"].url
+    _create(a, "held")
+    # a replica that took the robot's lock and died: nobody releases it, its lease runs out
+    rdb.set("swarmloc:lock:held", "dead-replica", px=1500)
+    r = _post(a, "held", frames[0], 0)  # waits (up to 30 s here) and then goes ahead
+    assert r.status_code == 200, r.text
+    assert rdb.get("swarmloc:lock:held") is None
+    assert _frames_of(a, "held") == 1
+
+
+def _zenoh_client(endpoint: str) -> zenoh.Session:
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(cfg)
+
+
+def test_zenoh_exactly_one_replica_serves_each_robot(replicas, rdb, frames) -> None:
+    robots = ["z1", "z2", "z3"]
+    published: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    z = _zenoh_client(replicas["zenoh"])
+    try:
+        sub = z.declare_subscriber(
+            "swarmloc/*/estimate",
+            lambda s: published[str(s.key_expr).split("/")[1]].append(
+                json.loads(s.payload.to_bytes())))
+        time.sleep(0.5)  # both replicas' declarations reach the client through the router
+        for robot in robots:  # queries: every queryable is asked, one replica answers
+            for k in range(2):
+                replies = list(z.get(
+                    f"swarmloc/{robot}/localize", payload=frames[k],
+                    attachment=json.dumps({"t": float(k), "seq": k}).encode(),
+                    target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                    timeout=60.0))
+                assert len(replies) == 1, f"{robot}: {len(replies)} replies"
+                assert replies[0].ok is not None, str(replies[0].err)
+                assert json.loads(replies[0].ok.payload.to_bytes())["seq"] == k + 1
+        for robot in robots:  # published frames: one estimate each, from one replica
+            for k in range(2, 4):
+                n = len(published[robot])
+                z.put(f"swarmloc/{robot}/frame", frames[k],
+                      attachment=json.dumps({"t": float(k), "seq": k}).encode())
+                deadline = time.monotonic() + 60
+                while len(published[robot]) == n and time.monotonic() < deadline:
+                    time.sleep(0.02)
+        time.sleep(1.0)  # a second replica's answer would arrive by now
+        sub.undeclare()
+    finally:
+        z.close()
+    for robot in robots:
+        seqs = [e.get("input_seq") for e in published[robot]]
+        assert seqs == [2, 3], f"{robot}: {published[robot]}"
+        assert [e["seq"] for e in published[robot]] == [3, 4]
+        assert _frames_of(replicas["b"].url, robot) == 4  # not 8: no frame went twice
+    owners = {rdb.get(f"swarmloc:claim:{r}") for r in robots}
+    assert owners <= {b"replica-a", b"replica-b"} and None not in owners
+
+
+def test_redis_restart_mid_stream(replicas, rdb, redis_srv, frames, small_map) -> None:
+    """Redis down: clear 503s, nothing applied; Redis back (append-only file): the stream
+    continues where it was, bit for bit."""
+    a, b = replicas["a"].url, replicas["b"].url
+    ref = Reference(small_map, "rr")
+    _create(a, "rr")
+    for k in range(3):
+        assert _est(_post(a if k % 2 else b, "rr", frames[k], k)) == ref.frame(frames[k], k)
+    redis_srv.stop()
+    try:
+        for url in (a, b):
+            r = _post(url, "rr", frames[3], 3)
+            assert r.status_code == 503, r.text
+            assert "session store unavailable" in r.json()["error"]
+        assert httpx.get(f"{a}/sessions/rr", timeout=30).status_code == 503
+    finally:
+        redis_srv.start()
+    for k in range(3, 6):
+        assert _est(_post(b if k % 2 else a, "rr", frames[k], k)) == ref.frame(frames[k], k)
+    assert _frames_of(a, "rr") == 6
+
+
+def test_kill_9_of_a_replica_mid_stream(replicas, rdb, frames, small_map) -> None:
+    """A replica dies (SIGKILL) mid-stream: the robot goes on on the other one, and on the
+    restarted replica: no session lost, no frame repeated, no re-initialisation."""
+    a, b = replicas["a"], replicas["b"]
+    ref = Reference(small_map, "k9")
+    _create(a.url, "k9")
+    expected = [ref.frame(data, k) for k, data in enumerate(frames[:9])]
+    for k in range(3):
+        assert _est(_post(a.url, "k9", frames[k], k)) == expected[k]
+    assert a.stop(signal.SIGKILL) == -signal.SIGKILL
+    # the robot's answer to frame 2 may have been lost: it sends it again to the other one
+    assert _est(_post(b.url, "k9", frames[2], 2)) == expected[2]
+    for k in range(3, 6):
+        assert _est(_post(b.url, "k9", frames[k], k)) == expected[k]
+    a.start().wait_ready()
+    for k in range(6, 9):
+        assert _est(_post(a.url, "k9", frames[k], k)) == expected[k]
+    assert _frames_of(a.url, "k9") == 9
