@@ -67,11 +67,18 @@ class MultiSwarmDPSO(DPSO):
         self.evidence = np.zeros(params.n_particles)
         self.monitor = DistinctnessMonitor(params.distinct_ratio, params.distinct_floor_m,
                                            params.distinct_far_m, params.ema_alpha)
+        self._reset_coasting()
 
     def _initialize(self) -> None:
         super()._initialize()
         self.evidence = np.zeros(self.params.n_particles)
         self.monitor.reset()
+        self._reset_coasting()
+
+    def _reset_coasting(self) -> None:
+        self.level: float | None = None  # EMA of the best match in good, non-weak frames
+        self.weak_frames = 0  # weak frames in a row
+        self.coast_step: np.ndarray | None = None  # tracked step (m/frame) kept while weak
 
     def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
         if self._needs_init:
@@ -81,6 +88,9 @@ class MultiSwarmDPSO(DPSO):
         if p.motion_prior and self.ema_step is not None and self._converged \
                 and not self.recovering:
             self.x = np.clip(self.x + self.ema_step, self.lower, self.upper)  # motion prior
+        elif self._coasting():  # carried through weak frames by the kept velocity
+            assert self.coast_step is not None
+            self.x = np.clip(self.x + self.coast_step, self.lower, self.upper)
         f, _, _ = fitness(self.x)
         self.evidence = p.evidence_decay * self.evidence + f
         # sub-swarms around the best particles of this frame (their attractors, as p^n in the
@@ -100,10 +110,17 @@ class MultiSwarmDPSO(DPSO):
         hypotheses = self._hypotheses(seeds, label, support, f, best_s)
 
         ids, scores = fitness.compared
-        ev = self.monitor.judge(np.asarray(self.index.positions)[ids], scores, pos,
-                                p.species_radius_m)
+        compared_xy = np.asarray(self.index.positions)[ids]
+        pos = image_centre(compared_xy, scores, pos, p.estimate_image_radius_m,
+                           p.estimate_image_power)
+        ev = self.monitor.judge(compared_xy, scores, pos, p.species_radius_m)
         status, lost = self._update_evidence_status(ev.good)
-        self.track_motion(pos)
+        weak = self._judge_weak(ev.best_m, ev.good)
+        if weak:  # keep the velocity: a weak frame's estimate lags where images look alike
+            self._point_prev = np.array(pos, float)
+        else:
+            self.track_motion(pos)
+            self.coast_step = None if self.ema_step is None else self.ema_step.copy()
         if self.recovery_phase(lost):
             status = Status.RECOVERING
 
@@ -116,6 +133,23 @@ class MultiSwarmDPSO(DPSO):
         speed, heading = self.motion(dt)
         return StepResult(pos, cov, heading, speed, status, lost or self.recovering, ev.best_m,
                           fitness.comparisons, spread, hypotheses)
+
+    def _coasting(self) -> bool:
+        """Whether this frame's swarm is carried by the kept velocity: the previous frame was
+        weak, the robot was being tracked, and the weak stretch is not too long."""
+        return (self.weak_frames > 0 and self.coast_step is not None and self._converged
+                and not self.recovering and self.weak_frames <= self.params.coast_max_frames)
+
+    def _judge_weak(self, best_m: float, good: bool) -> bool:
+        """A frame is weak when its best match falls below ``coast_ratio`` of the level seen
+        while tracking; strong, good frames update that level (EMA)."""
+        p = self.params
+        weak = self.level is not None and best_m < p.coast_ratio * self.level
+        if not weak and good:
+            a = p.level_alpha
+            self.level = best_m if self.level is None else (1 - a) * self.level + a * best_m
+        self.weak_frames = self.weak_frames + 1 if weak else 0
+        return weak
 
     def _update_evidence_status(self, good: bool) -> tuple[Status, bool]:
         p = self.params
@@ -186,6 +220,16 @@ class MultiSwarmDPSO(DPSO):
         v = np.where(below | above, -v, v)
         self.x, self.v = x, v
         self.evidence = np.where(fresh, 0.0, self.evidence)
+
+
+def image_centre(xy: np.ndarray, m: np.ndarray, around: np.ndarray, radius: float,
+                 power: float) -> np.ndarray:
+    """Centre of the compared map images within ``radius`` of ``around``, weighted by
+    m ** power; ``around`` itself where no image there matched."""
+    near = np.linalg.norm(xy - around, axis=1) <= radius
+    w = m[near] ** power
+    total = float(w.sum())
+    return (w @ xy[near]) / total if total > 0 else np.asarray(around, float)
 
 
 def weighted_centre(x: np.ndarray, w: np.ndarray) -> np.ndarray:

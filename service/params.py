@@ -144,6 +144,17 @@ class DPSOParams(CommonParams):
     # calibration: measured 67-70 % (seed 0) and 82 % (the test loop) of tracked frames
     # within accuracy_m at 0.6; 1.0 gave 79-98 %
     covariance_scale: float = 0.6
+    # the estimate is the centre of the map images compared within this radius (m) of the
+    # best group, weighted by m ** estimate_image_power: the place the images say, not where
+    # the particles happen to be (README: same light 1.08-1.14 m -> 0.91 m)
+    estimate_image_radius_m: float = 4.0
+    estimate_image_power: float = 8.0
+    # coasting: a frame whose best match is below coast_ratio x the level seen while tracking
+    # is weak; through weak frames the tracked velocity is kept (not learnt from the weak
+    # estimate) and the swarm is carried by it, for at most coast_max_frames frames
+    coast_ratio: float = 0.65
+    coast_max_frames: int = 30
+    level_alpha: float = 0.1  # EMA weight of the tracking level of the best match
 
     def validate(self) -> None:
         super().validate()
@@ -165,6 +176,13 @@ class DPSOParams(CommonParams):
         for name in ("dissolve_ratio", "hypothesis_ratio", "scout_ratio", "scout_ratio_recovery"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ParamError(f"{name} must be in [0, 1]")
+        for name in ("coast_ratio", "level_alpha"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ParamError(f"{name} must be in [0, 1]")
+        if self.estimate_image_radius_m < 0 or self.estimate_image_power < 0 \
+                or self.coast_max_frames < 0:
+            raise ParamError("estimate_image_radius_m, estimate_image_power and "
+                             "coast_max_frames must be >= 0")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,67 @@
+"""The multi-swarm DPSO's estimate: the images' place, and coasting through weak frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from client.dataset import Round
+from client.lab.experiments import SimilarityTable
+from service.localizer import Localizer
+from service.multi_swarm import image_centre
+from service.route_map import RouteMap
+
+
+def test_image_centre_weights_images_by_their_match() -> None:
+    xy = np.array([[0.0, 0.0], [2.0, 0.0], [30.0, 0.0]])
+    m = np.array([0.02, 0.01, 0.5])  # the far image is outside the radius
+    c = image_centre(xy, m, np.array([0.5, 0.0]), 4.0, 8.0)
+    assert c[0] == pytest.approx(2.0 / (2**8 + 1), abs=1e-9) and c[1] == 0.0
+    flat = image_centre(xy, m, np.array([0.5, 0.0]), 4.0, 0.0)  # power 0: plain centre
+    assert flat[0] == pytest.approx(1.0)
+    nothing = image_centre(xy, np.zeros(3), np.array([7.0, 1.0]), 4.0, 8.0)
+    assert nothing.tolist() == [7.0, 1.0]
+
+
+@pytest.fixture(scope="module")
+def table(small_map: RouteMap, sunny2: Round) -> SimilarityTable:
+    return SimilarityTable.from_round(small_map, sunny2)
+
+
+def _run_with_blackout(small_map: RouteMap, table: SimilarityTable, n: int,
+                       params: dict[str, float] | None, start: int, blackout: range
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """(estimates, speeds) of a run whose frames in ``blackout`` match every map image
+    equally weakly (as under a change of light where nothing stands out)."""
+    loc = Localizer(small_map, "dpso", params, seed=start)
+    out, speed = [], []
+    for it in range(blackout.stop + 15):
+        q = (start + it) % n
+        if it in blackout:
+            res = loc.estimator.step(lambda ids: np.full(len(ids), 0.003), float(it))
+        else:
+            res = loc.estimator.step(lambda ids, q=q: table.scores(q, ids), float(it))
+        out.append(res.position)
+        speed.append(res.speed_mps)
+    return np.array(out), np.array(speed)
+
+
+def test_weak_frames_keep_the_tracked_velocity_and_tracking_resumes(
+        small_map: RouteMap, table: SimilarityTable, sunny2: Round) -> None:
+    truth = sunny2.reference_xy
+    n = len(sunny2)
+    blackout = range(40, 50)
+    a, b = blackout.start - 1, blackout.stop - 1
+    for start in (0, n // 3, 2 * n // 3):
+        frames = (start + np.arange(blackout.stop + 15)) % n
+        est, speed = _run_with_blackout(small_map, table, n, None, start, blackout)
+        assert np.linalg.norm(est[a] - truth[frames[a]]) < 3  # tracking before
+        # through the weak frames the speed is the one tracked before them, not learnt from
+        # estimates that lag where every place looks alike
+        assert np.allclose(speed[a:b + 1], speed[a]) and speed[a] > 0.1
+        # after them the images take over again
+        assert np.linalg.norm(est[-1] - truth[frames[-1]]) < 3
+        # without coasting the weak estimates feed the speed
+        _, stall = _run_with_blackout(small_map, table, n, {"coast_ratio": 0.0}, start,
+                                      blackout)
+        assert not np.allclose(stall[a:b + 1], stall[a])
