@@ -771,6 +771,15 @@ def _register_experiment() -> None:
 _register_experiment()
 
 
+def _register_paper() -> None:
+    from client.paper_cli import paper
+
+    app.command("paper")(paper)
+
+
+_register_paper()
+
+
 def main() -> None:
     app()
 
