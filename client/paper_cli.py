@@ -76,7 +76,9 @@ def paper(
     sections = protocol(rounds, s)
     run_protocol(lab, rounds, s, on_section, progress)
     wall = time.time() - t0
-    meta = {"command": f"swarmloc paper {dataset} --out {out}" + (" --quick" if quick else ""),
+    opts = "".join(f" --{k.replace('_', '-')} {v}" for k, v in over.items())
+    meta = {"command": f"swarmloc paper {dataset} --out {out}" + (" --quick" if quick else "")
+            + opts,
             "started_utc": started, "wall_s": round(wall, 1),
             "load_average": list(os.getloadavg()), "cpus": os.cpu_count(),
             "settings": dataclasses.asdict(s), "rounds": rounds,
