@@ -138,6 +138,19 @@ class _LazyFeatures(Sequence[Features]):
         return f
 
 
+def _codes_of(m: RouteMap) -> Callable[[int], Features]:
+    def load(i: int) -> Features:
+        codes = np.asarray(m.codes[m.offsets[i]: m.offsets[i + 1]])
+        return Features(np.zeros((len(codes), 2), np.float32), codes)
+    return load
+
+
+def _extractor(rnd: Round, params: SiftParams) -> Callable[[int], Features]:
+    def load(i: int) -> Features:
+        return extract(rnd.load_image(i), params)
+    return load
+
+
 class Lab:
     """A dataset's maps, query features, similarity tables and nearest-image rasters."""
 
@@ -168,14 +181,11 @@ class Lab:
         if key not in self._queries:
             rnd = self.round(name)
             params = SiftParams.papers() if papers else SiftParams()
-            own = None if papers else self.map(name, False)  # built once, also as a map
-            if own is not None:
-                def load(i: int, m: RouteMap = own) -> Features:
-                    codes = np.asarray(m.codes[m.offsets[i]: m.offsets[i + 1]])
-                    return Features(np.zeros((len(codes), 2), np.float32), codes)
+            load: Callable[[int], Features]
+            if not papers:  # the round's own map (built once, also used as a map)
+                load = _codes_of(self.map(name, False))
             else:
-                def load(i: int, rnd: Round = rnd, params: SiftParams = params) -> Features:
-                    return extract(rnd.load_image(i), params)
+                load = _extractor(rnd, params)
             self._queries[key] = _LazyFeatures(load, len(rnd))
         return self._queries[key]
 
@@ -292,7 +302,7 @@ def tab4_pairs(rounds: Sequence[str], limit: int = 0) -> dict[str, list[tuple[st
 
 def protocol(rounds: Sequence[str], s: Settings) -> dict[str, list[Case]]:
     """Every case of every section, in the order they run (cheap sections first)."""
-    sc = {"map_round": SC_MAP, "query": SC_QUERY}
+    sc: dict[str, Any] = {"map_round": SC_MAP, "query": SC_QUERY}
     tab1 = [Case(dpso(n, v), **sc) for v in VARIANTS for n in s.sizes]
     tab1 += [Case(pf(k, n), **sc) for k in ("g", "l") for n in (100, 300)]
     tab2 = [Case(dpso(80, v, **mode).with_params(f"DPSO-80 ({v}, {name})", **mode), **sc,

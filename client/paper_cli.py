@@ -8,7 +8,7 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -36,8 +36,8 @@ def paper(
     from client.paper import Lab, Settings, iter_rounds, protocol, run_protocol, tab4_pairs
 
     s = Settings.quick() if quick else Settings()
-    over = {k: v for k, v in (("starts", starts), ("product_starts", product_starts),
-                              ("warmup", warmup)) if v is not None}
+    given = (("starts", starts), ("product_starts", product_starts), ("warmup", warmup))
+    over: dict[str, Any] = {k: v for k, v in given if v is not None}
     s = dataclasses.replace(s, seed=seed, threads=threads, **over)
     rounds = list(iter_rounds(dataset))
     need = {"sunny1", "cloudy1"}

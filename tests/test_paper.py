@@ -13,8 +13,7 @@ from typer.testing import CliRunner
 
 from client import paper_numbers as pn
 from client.cli import app
-from client.experiments import frame_sequence, run
-from client.paper import Lab
+from client.paper import Lab, frame_sequence, run
 from client.paper_engine import NearestGrid, run_batch
 from client.world import World
 
@@ -42,6 +41,7 @@ def test_batched_estimators_reproduce_the_service(tiny: Path) -> None:
     ids, dist = grid(pts)
     ref_ids, ref_dist = m.nearest(pts)
     assert np.array_equal(ids, ref_ids) and np.allclose(dist, ref_dist)
+    assert rnd.t is not None
     dt = float(np.median(np.diff(rnd.t)))
     for est, params in (("dpso", {"variant": "paper"}), ("pf-l", {"n_particles": 300}),
                         ("pf-g", {"n_particles": 100})):
