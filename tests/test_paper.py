@@ -24,7 +24,7 @@ ROUNDS = (("sunny1", 0, "sunny"), ("sunny2", 1, "sunny"), ("cloudy1", 3, "cloudy
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("paper_world")
-    world = World(seed=3, length_m=30.0)
+    world = World(seed=3, length_m=24.0)
     for name, index, cond in ROUNDS:
         world.render_round(root / name, index, cond)
     return root
