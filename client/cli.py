@@ -803,6 +803,15 @@ app.command("experiment")(experiment)
 app.command("sweep")(sweep)
 
 
+def _register_paper() -> None:
+    from client.paper_cli import paper
+
+    app.command("paper")(paper)
+
+
+_register_paper()
+
+
 def main() -> None:
     app()
 
