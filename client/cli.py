@@ -804,7 +804,7 @@ app.command("sweep")(sweep)
 
 
 def _register_paper() -> None:
-    from client.paper_cli import paper
+    from client.lab.paper_cli import paper
 
     app.command("paper")(paper)
 

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from client import paper_numbers as pn
 from client.cli import app
-from client.paper import Lab, frame_sequence, run
-from client.paper_engine import NearestGrid, run_batch
-from client.world import World
+from client.lab import paper_numbers as pn
+from client.lab.paper import Lab, frame_sequence, run
+from client.lab.paper_engine import NearestGrid, run_batch
+from client.lab.world import World
 
 ROUNDS = (("sunny1", 0, "sunny"), ("sunny2", 1, "sunny"), ("cloudy1", 3, "cloudy"),
           ("cloudy2", 4, "cloudy"))

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from client import paper_numbers as pn
-from client.paper import CaseResult
+from client.lab import paper_numbers as pn
+from client.lab.paper import CaseResult
 
 
 @dataclass

@@ -8,9 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from client import paper_numbers as pn
-from client.paper import CaseResult
-from client.paper_tables import pooled
+from client.lab import paper_numbers as pn
+from client.lab.paper import CaseResult
+from client.lab.paper_tables import pooled
 
 
 def _plt() -> Any:

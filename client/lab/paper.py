@@ -26,9 +26,10 @@ import numpy as np
 
 # ---- the one place that imports the lab modules (client/lab/ after the move) ------------------
 from client.dataset import Round, read_round
-from client.experiment_cli import map_for, save_table
-from client.experiments import SimilarityTable, frame_sequence, run
-from client.paper_engine import BatchResult, NearestGrid, run_batch
+from client.lab.experiment_cli import map_for, save_table
+from client.lab.experiments import SimilarityTable, run
+from client.lab.paper_engine import BatchResult, NearestGrid, run_batch
+from client.runs import frame_sequence
 from service.features import Features, SiftParams, extract
 from service.route_map import RouteMap
 

@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from service.params import DPSOParams, PFParams, params_for
+from service.params import DPSOParams, PFParams
+from service.registry import params_for
 
 GatherFn = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (q (R,), ids (R, N)) -> m (R, N)
 
@@ -79,7 +80,7 @@ def _grid_nearest() -> Callable[..., None]:
     if not _KERNEL:
         from service.matcher import _jit
 
-        def kernel(p, lo, cell, nx, ny, cand, safe, pos, ids, dist, ok):  # type: ignore[no-untyped-def]
+        def kernel(p, lo, cell, nx, ny, cand, safe, pos, ids, dist, ok):
             k = cand.shape[1]
             for i in range(p.shape[0]):
                 cx = int(np.floor((p[i, 0] - lo[0]) / cell))

@@ -31,9 +31,9 @@ def paper(
     """Fig. 4, Tab. 1/Fig. 8, Tab. 2/Fig. 6, Tab. 3, Tab. 4/Fig. 10: tables as Markdown and
     JSON with the papers' numbers beside ours (the faithful papers' DPSO and the product's
     DPSO in each), figures as PNG, settings and wall time in run.json."""
-    from client import paper_figures as figs
-    from client import paper_tables as tabs
-    from client.paper import Lab, Settings, iter_rounds, protocol, run_protocol, tab4_pairs
+    from client.lab import paper_figures as figs
+    from client.lab import paper_tables as tabs
+    from client.lab.paper import Lab, Settings, iter_rounds, protocol, run_protocol, tab4_pairs
 
     s = Settings.quick() if quick else Settings()
     given = (("starts", starts), ("product_starts", product_starts), ("warmup", warmup))
