@@ -408,10 +408,20 @@ def load_map(path: str | Path, verify: bool = True) -> RouteMap:
             offsets[-1] != len(arrays["codes"]) or np.any(np.diff(offsets) < 0) or \
             len(layers) != n or (n and layers.min() < 0):
         raise MapError(f"{path}: inconsistent arrays (positions/offsets/codes/layers)")
+    if not np.isfinite(positions).all():
+        raise MapError(f"{path}: image positions are not all finite numbers (NaN or inf)")
     try:
         names = json.loads(bytes(arrays["image_names"]).decode())
     except (UnicodeDecodeError, json.JSONDecodeError):
         raise MapError(f"{path}: image names are corrupted") from None
+    if not isinstance(names, list) or len(names) != n or \
+            not all(isinstance(x, str) for x in names):
+        got = len(names) if isinstance(names, list) else type(names).__name__
+        raise MapError(f"{path}: {got} image names for {n} image positions; every image "
+                       "needs one name")
+    if not isinstance(header.get("delta"), int | float) or \
+            not isinstance(header.get("feature"), dict):
+        raise MapError(f"{path}: header lacks the matching parameters (delta, feature)")
     meta = {k: v for k, v in header.items() if k not in ("name",)}
     name = str(header.get("name", path.stem))
     return RouteMap(name, meta, positions, names, arrays["codes"], offsets,
