@@ -42,7 +42,7 @@ except ImportError as _exc:  # the service imports this module only when ROS 2 i
                       ) from _exc
 
 from service.errors import BadRequest, InvalidParameters, PayloadTooLarge, UnsupportedMediaType
-from service.models import Estimate, PosePrior
+from service.models import Estimate, PosePrior, validated
 from service.settings import Settings
 
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
@@ -198,8 +198,10 @@ class Codec:
         cov = np.asarray(msg.pose.covariance, dtype=np.float64)
         if not (math.isfinite(p.x) and math.isfinite(p.y)):
             raise InvalidParameters(f"initial pose ({p.x}, {p.y}) is not finite")
-        radius = initial_pose_radius(float(cov[0]), float(cov[7]))
-        return PosePrior(x=float(p.x), y=float(p.y), radius=radius), str(msg.header.frame_id)
+        radius = initial_pose_radius(float(cov[0]), float(cov[7])) if len(cov) > 7 else 1.0
+        prior = validated(PosePrior, {"x": float(p.x), "y": float(p.y), "radius": radius},
+                          "initial pose")
+        return prior, str(msg.header.frame_id)
 
 
 def compressed_content_type(fmt: str) -> str | None:
