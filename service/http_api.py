@@ -10,10 +10,10 @@ from typing import Annotated, Any
 from urllib.parse import urlencode
 
 import anyio
-from fastapi import APIRouter, Depends, FastAPI, Query, Request, Response
+from fastapi import APIRouter, Depends, FastAPI, Path, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_swagger_ui_html
-from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service import __version__
@@ -37,6 +37,15 @@ from service.viewer import add_viewer
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
     code: {"model": ErrorBody} for code in (400, 401, 404, 409, 413, 415, 422, 503)}
+RobotId = Annotated[str, Path(pattern=r"^[A-Za-z0-9._-]{1,128}$",
+                             description="1-128 letters, digits, '-', '_' or '.'")]
+# OpenAPI links: what a client (and the stateful fuzzer) can do with a session it created
+_SESSION_LINKS = {
+    name: {"operationRef": f"#/paths/~1sessions~1{{robot_id}}{path}/{method}",
+           "parameters": {"robot_id": "$request.path.robot_id"}}
+    for name, path, method in (("GetSession", "", "get"), ("SendFrame", "~1frames", "post"),
+                               ("ResetSession", "~1reset", "post"),
+                               ("DeleteSession", "", "delete"))}
 _IMAGE_BODY = {
     "requestBody": {
         "required": True,
@@ -170,9 +179,11 @@ def api_router(service: LocalizationService) -> APIRouter:
             lock = gates[robot_id] = asyncio.Lock()
         return lock
 
-    @router.get("/metrics", tags=["health"])
-    async def metrics() -> Response:
-        return Response(service.metrics.render(), media_type="text/plain; version=0.0.4")
+    @router.get("/metrics", tags=["health"], response_class=PlainTextResponse)
+    async def metrics() -> PlainTextResponse:
+        """Prometheus text format."""
+        return PlainTextResponse(service.metrics.render(),
+                                 media_type="text/plain; version=0.0.4")
 
     @router.get("/maps", tags=["maps"])
     async def list_maps() -> list[MapSummary]:
@@ -185,8 +196,9 @@ def api_router(service: LocalizationService) -> APIRouter:
         return detail
 
     @router.put("/sessions/{robot_id}", tags=["sessions"],
-                responses={201: {"model": SessionInfo}})
-    async def put_session(robot_id: str, config: SessionConfig, response: Response
+                responses={201: {"model": SessionInfo, "links": _SESSION_LINKS},
+                           200: {"links": _SESSION_LINKS}})
+    async def put_session(robot_id: RobotId, config: SessionConfig, response: Response
                           ) -> SessionInfo:
         info, created = service.put_session(robot_id, config)
         response.status_code = 201 if created else 200
