@@ -9,6 +9,8 @@ from typing import TYPE_CHECKING, Annotated
 import numpy as np
 import typer
 
+from client.bench_load import register as register_load_bench
+
 if TYPE_CHECKING:
     from client.dataset import Round
     from client.transports import HttpClient
@@ -23,6 +25,7 @@ app.add_typer(world_app, name="world")
 app.add_typer(dataset_app, name="dataset")
 app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
+register_load_bench(bench_app)  # bench load, bench fuzz (client/bench_load.py)
 
 
 def _fail(msg: str) -> None:
@@ -404,6 +407,9 @@ def serve(
     = None,
     ros2: Annotated[bool | None, typer.Option(
         help="speak ROS 2 CDR messages on Zenoh too [SWARMLOC_ROS2_ENABLED]")] = None,
+    zenoh_config: Annotated[Path | None, typer.Option(
+        help="Zenoh JSON5 config file: TLS, user/password, ACL "
+             "[SWARMLOC_ZENOH_CONFIG_FILE]")] = None,
 ) -> None:
     """Run the localization service (HTTP + Zenoh). Flags override SWARMLOC_* variables."""
     from service.server import run
@@ -413,7 +419,7 @@ def serve(
         "host": host, "port": port, "maps_dir": maps_dir, "default_map": default_map,
         "default_estimator": default_estimator, "auth_token": token, "zenoh_enabled": zenoh,
         "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect,
-        "ros2_enabled": ros2}.items() if v is not None}
+        "ros2_enabled": ros2, "zenoh_config_file": zenoh_config}.items() if v is not None}
     settings = Settings(**overrides)
     if demo:
         from client.demo import ensure_demo_map

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import struct
 import tempfile
 from pathlib import Path
@@ -26,7 +27,9 @@ from service.sessions import LocalizationService
 from service.settings import Settings
 from service.zenoh_bridge import _frame_args, control, parse_attachment
 
-FUZZ = settings(max_examples=120, deadline=None, database=None,
+# `swarmloc bench fuzz --minutes N` raises the number of examples
+SCALE = float(os.environ.get("SWARMLOC_FUZZ_SCALE", "1"))
+FUZZ = settings(max_examples=int(60 * SCALE), deadline=None, database=None,
                 suppress_health_check=[HealthCheck.too_slow,
                                        HealthCheck.function_scoped_fixture])
 json_values = st.recursive(

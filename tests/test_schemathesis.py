@@ -5,6 +5,7 @@ type, body). Bounded to stay well under a minute."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 
 import hypothesis
@@ -19,6 +20,7 @@ from service.server import free_port, running_server
 from service.sessions import LocalizationService
 from service.settings import Settings
 
+SCALE = float(os.environ.get("SWARMLOC_FUZZ_SCALE", "1"))  # bench fuzz raises it
 CHECKS = [checks.not_a_server_error, checks.status_code_conformance,
           checks.content_type_conformance, checks.response_schema_conformance]
 
@@ -54,7 +56,7 @@ def test_every_operation_answers_without_5xx(api: str) -> None:
             continue
 
         @hypothesis.given(case=op.as_strategy())
-        @hypothesis.settings(max_examples=12, deadline=None, database=None,
+        @hypothesis.settings(max_examples=int(8 * SCALE), deadline=None, database=None,
                              suppress_health_check=list(HealthCheck))
         def run(case: schemathesis.Case) -> None:
             params = case.path_parameters or {}
@@ -92,7 +94,7 @@ def test_stateful_sessions_without_5xx(api: str) -> None:
 
     before = _frames(api)
     Workflow.run(settings=hypothesis.settings(
-        max_examples=15, stateful_step_count=6, deadline=None, database=None,
+        max_examples=int(10 * SCALE), stateful_step_count=6, deadline=None, database=None,
         suppress_health_check=list(HealthCheck)))
     print("frames localized along the links:", _frames(api) - before)
 
