@@ -161,18 +161,25 @@ def bench_load(maps_dir: Path, round_dir: Path, robots: list[int], per_robot: in
 
 
 def bench_soak(maps_dir: Path, round_dir: Path, total: int, robots: int,
-               emit: Callable[[str], None] = print, samples: int = 10) -> list[float]:
-    """``total`` frames from ``robots`` HTTP robots; the server's RSS after every tenth.
+               emit: Callable[[str], None] = print, samples: int = 10,
+               transport: str = "http") -> list[float]:
+    """``total`` frames from ``robots`` robots; the server's RSS after every tenth.
     Sessions are deleted and created again every block, as robots come and go."""
     frames = _frames(round_dir)
     block = max(1, total // samples)
     rss: list[float] = []
-    with service_process(maps_dir) as (url, _, pid):
+    with service_process(maps_dir) as (url, endpoint, pid):
         errors = 0
         lat: list[float] = []
+
+        def make() -> Client:
+            if transport == "http":
+                return HttpClient(url, timeout=300)
+            return ZenohClient([endpoint], mode="peer", timeout=300)
+
         for b in range(samples):
-            res = _run_robots("soak", lambda: HttpClient(url, timeout=300), robots, frames,
-                              max(1, block // robots), pid, f"soak{b}-")
+            res = _run_robots("soak", make, robots, frames, max(1, block // robots), pid,
+                              f"soak{b}-")
             errors += res.errors
             lat.append(res.p99_ms)
             rss.append(res.rss_mib)
@@ -180,8 +187,9 @@ def bench_soak(maps_dir: Path, round_dir: Path, total: int, robots: int,
                  f"p50={res.p50_ms:.1f} ms, p99={res.p99_ms:.1f} ms, rss={res.rss_mib:.1f} MiB")
         warm = rss[1:] or rss
         growth = (warm[-1] - warm[0]) / warm[0] * 100
-        emit(f"soak: {total} frames, errors={errors}; rss after warm-up {warm[0]:.1f} MiB, "
-             f"at the end {warm[-1]:.1f} MiB ({growth:+.1f} %), max {max(warm):.1f} MiB")
+        emit(f"soak ({transport}): {total} frames, errors={errors}; rss after warm-up "
+             f"{warm[0]:.1f} MiB, at the end {warm[-1]:.1f} MiB ({growth:+.1f} %), "
+             f"max {max(warm):.1f} MiB")
     return rss
 
 
@@ -262,6 +270,7 @@ def register(bench_app: typer.Typer) -> None:
         transports: Annotated[str, typer.Option(help="http,zenoh")] = "http,zenoh",
         soak: Annotated[int, typer.Option(help="soak: frames in all (0: none)")] = 0,
         soak_robots: Annotated[int, typer.Option(help="robots of the soak")] = 8,
+        soak_transport: Annotated[str, typer.Option(help="http or zenoh")] = "http",
         fairness: Annotated[int, typer.Option(help="heavy sessions beside a light robot "
                                                    "(0: no fairness run)")] = 0,
         heavy_particles: Annotated[int, typer.Option(help="particles of a heavy session")]
@@ -273,7 +282,7 @@ def register(bench_app: typer.Typer) -> None:
             bench_load(maps_dir, round_dir, counts, frames,
                        [t.strip() for t in transports.split(",") if t.strip()])
         if soak:
-            bench_soak(maps_dir, round_dir, soak, soak_robots)
+            bench_soak(maps_dir, round_dir, soak, soak_robots, transport=soak_transport)
         if fairness:
             bench_fairness(maps_dir, round_dir, fairness, heavy_particles, max(frames, 30))
 

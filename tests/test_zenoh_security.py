@@ -99,6 +99,18 @@ def tls_server(tmp_path_factory: pytest.TempPathFactory, small_map) -> Iterator[
                              "enable_mtls": True}},
             "auth": {"usrpwd": {"dictionary_file": str(d / "users.txt")}},
         },
+        # access control: robot1 may only use its own keys
+        "access_control": {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": [{"id": "own-keys", "permission": "allow",
+                       "flows": ["ingress", "egress"],
+                       "messages": ["put", "query", "reply", "declare_subscriber",
+                                    "declare_queryable"],
+                       "key_exprs": ["swarmloc/robot1/**"]}],
+            "subjects": [{"id": "robot1", "usernames": ["robot1"]}],
+            "policies": [{"rules": ["own-keys"], "subjects": ["robot1"]}],
+        },
     })
     settings = Settings(maps_dir=maps, host="127.0.0.1", port=free_port(), workers=2,
                         auth_token=TOKEN, zenoh_config_file=server_cfg)
@@ -149,6 +161,27 @@ def test_unauthorised_peers_are_refused(tls_server, who, use_rogue, cert, passwo
             z.session("robot1")
         finally:
             z.close()
+
+
+def test_access_control_keeps_a_robot_to_its_own_keys(tls_server, sunny2) -> None:
+    httpx.put(tls_server["url"] + "/sessions/robot2", json={"map": "small"},
+              headers={"Authorization": f"Bearer {TOKEN}"}).raise_for_status()
+    cfg = _client_cfg(tls_server, "robot1-acl", tls_server["good"], "secret1")
+    z = ZenohClient([tls_server["endpoint"]], config_file=cfg, timeout=3)
+    try:
+        try:  # its own keys pass the ACL: an answer, a session or a 404
+            z.session("robot1")
+        except SwarmlocError as exc:
+            assert exc.status == 404
+        for action in ({"action": "get"}, {"action": "delete"}):
+            with pytest.raises(SwarmlocError) as exc:
+                z._control("robot2", action)  # the ACL drops the query: no answer
+            assert exc.value.status == 0
+    finally:
+        z.close()
+    r = httpx.get(tls_server["url"] + "/sessions/robot2",
+                  headers={"Authorization": f"Bearer {TOKEN}"})
+    assert r.status_code == 200  # still there
 
 
 def test_plain_tcp_gets_nowhere(tls_server) -> None:
