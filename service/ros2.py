@@ -426,7 +426,9 @@ class Ros2Endpoints:
         robot = self.initialpose.robot(str(sample.key_expr))
         try:
             prior, frame_id = self.codec.initial_pose(sample.payload.to_bytes())
-            session = self.service.ensure_session(robot)
+            session = (self.service.ensure_session(robot)
+                       if self.settings.zenoh_creates_sessions
+                       else self.service.session(robot))
             expected = self.settings.ros2_frame_id or session.localizer.map.name
             if frame_id and frame_id not in (expected, "map"):
                 raise InvalidParameters(f"initial pose is in frame '{frame_id}'; send it in "
