@@ -113,6 +113,20 @@ def test_zenoh_reset_with_nan_is_refused_like_http(srv, sunny2) -> None:
         z.close()
 
 
+@pytest.mark.parametrize("params", [{"n_particles": 2.9}, {"omega": "fast"},
+                                    {"swarm": 3}, {"v0": 0.5}])
+def test_bad_params_get_the_same_422_over_http_and_zenoh(srv, params) -> None:
+    z = ZenohClient([srv["zenoh"]], mode="peer", timeout=20)
+    try:
+        with pytest.raises(SwarmlocError) as ez:
+            z.create_session("same422", "small", params=params)
+    finally:
+        z.close()
+    rh = srv["http"].put("/sessions/same422", json={"map": "small", "params": params})
+    assert ez.value.status == rh.status_code == 422
+    assert ez.value.message == rh.json()["error"]
+
+
 def test_estimator_state_never_stays_non_finite(small_map) -> None:
     loc = Localizer(small_map, "dpso", None, 0)
     est = loc.estimator
