@@ -106,10 +106,14 @@ def _robot_loop(client: Client, robot: str, frames: list[bytes], n: int, start: 
 
 
 def _run_robots(name: str, make: Callable[[], Client], robots: int, frames: list[bytes],
-                per_robot: int, pid: int, prefix: str) -> LoadResult:
+                per_robot: int, pid: int, prefix: str,
+                clients: list[Client] | None = None) -> LoadResult:
+    """``robots`` threads, each a robot with its own session; with ``clients`` the robots
+    use those connections (kept open by the caller), else a few new ones."""
     times: list[float] = []
     errors: list[str] = []
-    clients = [make() for _ in range(min(robots, 8))]  # robots share a few connections
+    own = clients is None
+    clients = clients or [make() for _ in range(min(robots, 8))]  # shared connections
     threads = [threading.Thread(target=_robot_loop, args=(
         clients[i % len(clients)], f"{prefix}{i}", frames, per_robot, 7 * i, times, errors))
         for i in range(robots)]
@@ -122,8 +126,9 @@ def _run_robots(name: str, make: Callable[[], Client], robots: int, frames: list
     for i in range(robots):
         with contextlib.suppress(SwarmlocError):
             clients[i % len(clients)].delete_session(f"{prefix}{i}")
-    for c in clients:
-        c.close()
+    if own:
+        for c in clients:
+            c.close()
     arr = np.array(times) if times else np.array([np.nan])
     return LoadResult(name, robots, len(times), len(errors), float(np.percentile(arr, 50)),
                       float(np.percentile(arr, 99)), len(times) / wall, rss_mib(pid),
@@ -162,7 +167,7 @@ def bench_load(maps_dir: Path, round_dir: Path, robots: list[int], per_robot: in
 
 def bench_soak(maps_dir: Path, round_dir: Path, total: int, robots: int,
                emit: Callable[[str], None] = print, samples: int = 10,
-               transport: str = "http") -> list[float]:
+               transport: str = "http", reconnect: bool = False) -> list[float]:
     """``total`` frames from ``robots`` robots; the server's RSS after every tenth.
     Sessions are deleted and created again every block, as robots come and go."""
     frames = _frames(round_dir)
@@ -177,9 +182,12 @@ def bench_soak(maps_dir: Path, round_dir: Path, total: int, robots: int,
                 return HttpClient(url, timeout=300)
             return ZenohClient([endpoint], mode="peer", timeout=300)
 
+        # robots come and go (new sessions every block); with reconnect their connections
+        # too, else the connections stay open as a fleet's would
+        kept = None if reconnect else [make() for _ in range(min(robots, 8))]
         for b in range(samples):
             res = _run_robots("soak", make, robots, frames, max(1, block // robots), pid,
-                              f"soak{b}-")
+                              f"soak{b}-", kept)
             errors += res.errors
             lat.append(res.p99_ms)
             rss.append(res.rss_mib)
@@ -187,7 +195,10 @@ def bench_soak(maps_dir: Path, round_dir: Path, total: int, robots: int,
                  f"p50={res.p50_ms:.1f} ms, p99={res.p99_ms:.1f} ms, rss={res.rss_mib:.1f} MiB")
         warm = rss[1:] or rss
         growth = (warm[-1] - warm[0]) / warm[0] * 100
-        emit(f"soak ({transport}): {total} frames, errors={errors}; rss after warm-up "
+        for c in kept or []:
+            c.close()
+        emit(f"soak ({transport}{', reconnecting' if reconnect else ''}): {total} frames, "
+             f"errors={errors}; rss after warm-up "
              f"{warm[0]:.1f} MiB, at the end {warm[-1]:.1f} MiB ({growth:+.1f} %), "
              f"max {max(warm):.1f} MiB")
     return rss
@@ -271,6 +282,8 @@ def register(bench_app: typer.Typer) -> None:
         soak: Annotated[int, typer.Option(help="soak: frames in all (0: none)")] = 0,
         soak_robots: Annotated[int, typer.Option(help="robots of the soak")] = 8,
         soak_transport: Annotated[str, typer.Option(help="http or zenoh")] = "http",
+        soak_reconnect: Annotated[bool, typer.Option(
+            help="soak robots open new connections every block")] = False,
         fairness: Annotated[int, typer.Option(help="heavy sessions beside a light robot "
                                                    "(0: no fairness run)")] = 0,
         heavy_particles: Annotated[int, typer.Option(help="particles of a heavy session")]
@@ -282,7 +295,8 @@ def register(bench_app: typer.Typer) -> None:
             bench_load(maps_dir, round_dir, counts, frames,
                        [t.strip() for t in transports.split(",") if t.strip()])
         if soak:
-            bench_soak(maps_dir, round_dir, soak, soak_robots, transport=soak_transport)
+            bench_soak(maps_dir, round_dir, soak, soak_robots, transport=soak_transport,
+                       reconnect=soak_reconnect)
         if fairness:
             bench_fairness(maps_dir, round_dir, fairness, heavy_particles, max(frames, 30))
 
