@@ -191,6 +191,7 @@ def test_zenoh_defaults_are_loopback_without_multicast() -> None:
     assert s.zenoh_listen == ["tcp/127.0.0.1:7447"] and not s.zenoh_multicast_scouting
     cfg = zenoh_config(mode="peer", listen=s.zenoh_listen)
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(cfg.get_json("transport/shared_memory/enabled")) is False
 
 
 def test_token_without_zenoh_security_refuses_to_start(tmp_path: Path) -> None:
