@@ -21,7 +21,7 @@ import typer
 
 from client.transports import Client, HttpClient, SwarmlocError, ZenohClient
 
-FUZZ_SUITE_S = 75.0  # seconds the fuzz tests take at scale 1 on the 2-core test machine
+FUZZ_SUITE_S = 35.0  # seconds per unit of scale the fuzz tests take on the 2-core machine
 
 
 @dataclass
