@@ -6,7 +6,8 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    SWARMLOC_MAPS_DIR=/app/maps
+    SWARMLOC_MAPS_DIR=/app/maps \
+    SWARMLOC_ZENOH_LISTEN='["tcp/0.0.0.0:7447"]'
 
 RUN useradd --create-home --uid 10001 swarmloc
 WORKDIR /app

@@ -272,14 +272,16 @@ class ZenohClient:
     """Request/response over the service's Zenoh queryables (``{prefix}/{robot}/...``)."""
 
     def __init__(self, connect: list[str] | None = None, prefix: str = "swarmloc",
-                 timeout: float = 30.0, mode: str = "client") -> None:
+                 timeout: float = 30.0, mode: str = "client",
+                 config_file: str | Path | None = None) -> None:
+        """``config_file``: a Zenoh JSON5 config (TLS/mTLS certificates, user/password) that
+        ``connect`` and ``mode`` are applied on top of."""
         import zenoh
 
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", json.dumps(mode))
-        if connect:
-            cfg.insert_json5("connect/endpoints", json.dumps(connect))
-        cfg.insert_json5("scouting/multicast/enabled", json.dumps(not connect))
+        from service.zenoh_config import zenoh_config
+
+        cfg = zenoh_config(config_file=config_file, mode=mode, connect=connect,
+                           multicast_scouting=None if config_file else not connect)
         self._z = zenoh.open(cfg)
         self.prefix = prefix.strip("/")
         self.timeout = timeout

@@ -26,10 +26,10 @@ def bearer_guard(settings: Settings, metrics: Metrics, allow_query: bool = False
         if not token:
             return
         scheme, _, given = request.headers.get("authorization", "").partition(" ")
-        if scheme.lower() == "bearer" and hmac.compare_digest(given.strip(), token):
+        if scheme.lower() == "bearer" and _same(given.strip(), token):
             return
         query = request.query_params.get("token") if allow_query else None
-        if query is not None and hmac.compare_digest(query, token):
+        if query is not None and _same(query, token):
             return
         metrics.rejected.labels("unauthorized").inc()
         hint = " or add '?token=<SWARMLOC_AUTH_TOKEN>' to the URL" if allow_query else ""
@@ -37,3 +37,10 @@ def bearer_guard(settings: Settings, metrics: Metrics, allow_query: bool = False
                            f"<SWARMLOC_AUTH_TOKEN>'{hint}")
 
     return guard
+
+
+def _same(given: str, token: str) -> bool:
+    """Constant-time comparison of any text (headers arrive as latin-1 text; compare_digest
+    refuses non-ASCII str, so compare the bytes)."""
+    return hmac.compare_digest(given.encode("utf-8", "surrogateescape"),
+                               token.encode("utf-8", "surrogateescape"))

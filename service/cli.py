@@ -34,6 +34,9 @@ def serve(
     = None,
     ros2: Annotated[bool | None, typer.Option(
         help="speak ROS 2 CDR messages on Zenoh too [SWARMLOC_ROS2_ENABLED]")] = None,
+    zenoh_config: Annotated[Path | None, typer.Option(
+        help="Zenoh JSON5 config file: TLS, user/password, ACL "
+             "[SWARMLOC_ZENOH_CONFIG_FILE]")] = None,
 ) -> None:
     """Run the localization service (HTTP + Zenoh). Flags override SWARMLOC_* variables."""
     try:
@@ -48,7 +51,7 @@ def serve(
         "host": host, "port": port, "maps_dir": maps_dir, "default_map": default_map,
         "default_estimator": default_estimator, "auth_token": token, "zenoh_enabled": zenoh,
         "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect,
-        "ros2_enabled": ros2}.items() if v is not None}
+        "ros2_enabled": ros2, "zenoh_config_file": zenoh_config}.items() if v is not None}
     settings = Settings(**overrides)
     if demo:
         from service.demo import ensure_demo_map

@@ -3,6 +3,9 @@ to fix. The Zenoh bridge sends the same status and message."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
+from typing import Any
+
 
 class ServiceError(Exception):
     status = 500
@@ -48,3 +51,19 @@ class InvalidParameters(ServiceError):
 
 class Unavailable(ServiceError):
     status = 503
+
+
+def describe_errors(errors: Iterable[Mapping[str, Any]]) -> str:
+    """pydantic / FastAPI validation errors as one line: ``where: what (got value)``. The
+    leading ``body`` of FastAPI's locations is dropped, so HTTP and Zenoh read the same."""
+    parts = []
+    for e in errors:
+        loc = [str(p) for p in e.get("loc", ())]
+        if loc and loc[0] == "body":
+            loc = loc[1:]
+        msg = str(e.get("msg", "invalid")).removeprefix("Value error, ")
+        given = e.get("input")
+        shown = f" (got {given!r})" if isinstance(given, int | float | str) and \
+            not isinstance(given, bool) and len(repr(given)) <= 40 else ""
+        parts.append(f"{'.'.join(loc) or 'value'}: {msg}{shown}")
+    return "; ".join(parts)

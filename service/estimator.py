@@ -16,6 +16,15 @@ from service.params import CommonParams
 _R68 = math.sqrt(-2.0 * math.log(1.0 - 0.68))
 
 
+class EstimatorStateError(RuntimeError):
+    """A step produced a non-finite state; the estimator re-initialised itself globally."""
+
+
+def _check_finite(what: str, *values: float) -> None:
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{what} must be finite, got {values}")
+
+
 class Status(StrEnum):
     INITIALIZING = "initializing"
     TRACKING = "tracking"
@@ -86,6 +95,7 @@ class Estimator:
         """Global re-initialisation, or around a known pose (like AMCL's initial pose)."""
         if near is not None:
             r = float(radius) if radius is not None else DEFAULT_PRIOR_RADIUS_M
+            _check_finite("reset pose and radius", float(near[0]), float(near[1]), r)
             self._init_near = (np.asarray(near, float), max(r, 0.0))
         else:
             self._init_near = None
@@ -109,6 +119,8 @@ class Estimator:
 
     def constrain(self, center: tuple[float, float], radius: float) -> None:
         """A pose prior for this frame: particles outside the disc are redrawn inside it."""
+        _check_finite("pose prior and radius", float(center[0]), float(center[1]),
+                      float(radius))
         x = self.particles()
         if x is None:
             self.reset(center, radius)
@@ -176,7 +188,31 @@ class Estimator:
 
     def step(self, similarity: SimilarityFn, t: float | None = None) -> StepResult:
         fitness = FrameFitness(self.index, similarity, self.params.penalty_sigma_m)
-        return self._step(fitness, t)
+        try:
+            result = self._step(fitness, t)
+        except ValueError:  # e.g. a KD-tree query refusing non-finite particles
+            if self._particles_finite():
+                raise
+            result = None
+        self.check_invariant(result)
+        assert result is not None
+        return result
+
+    def _particles_finite(self) -> bool:
+        x = self.particles()
+        return x is None or bool(np.isfinite(x).all())
+
+    def check_invariant(self, result: StepResult | None) -> None:
+        """The state stays finite: after a step whose particles or result are not, the
+        estimator re-initialises globally and raises EstimatorStateError, so the next frame
+        starts from a valid state instead of failing for good."""
+        ok = result is not None and self._particles_finite() and bool(
+            np.isfinite(result.position).all() and np.isfinite(result.covariance).all()
+            and math.isfinite(result.speed_mps) and math.isfinite(result.heading))
+        if not ok:
+            self.reset()
+            raise EstimatorStateError("the estimator's state became non-finite; it was "
+                                      "re-initialised (global placement)")
 
     def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
         raise NotImplementedError

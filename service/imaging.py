@@ -50,9 +50,12 @@ def header_size(data: bytes, fmt: str) -> tuple[int, int]:
     raise BadRequest("JPEG has no frame header (SOF); the file is truncated or corrupted")
 
 
-def decode_frame(data: bytes, content_type: str | None, max_bytes: int, max_pixels: int
-                 ) -> np.ndarray:
-    """Validated 8-bit grayscale image, or a ServiceError saying what is wrong."""
+def decode_frame(data: bytes, content_type: str | None, max_bytes: int, max_pixels: int,
+                 min_side: int = 1) -> np.ndarray:
+    """Validated 8-bit grayscale image, or a ServiceError saying what is wrong.
+
+    A JPEG's EXIF orientation is applied (as every camera app shows the photo), so the
+    decoded image may be the header's size turned by 90 degrees."""
     if len(data) > max_bytes:
         raise PayloadTooLarge(f"frame is {len(data)} bytes; the limit is {max_bytes} bytes")
     if not data:
@@ -67,14 +70,15 @@ def decode_frame(data: bytes, content_type: str | None, max_bytes: int, max_pixe
     if ctype in MEDIA_TYPES and MEDIA_TYPES[ctype] != fmt:
         raise BadRequest(f"content type says {ctype} but the body is a {fmt.upper()} image")
     w, h = header_size(data, fmt)
-    if w == 0 or h == 0:
-        raise BadRequest(f"image header says {w}x{h} pixels")
+    if w < min_side or h < min_side:
+        raise BadRequest(f"image is {w}x{h} pixels; frames need at least {min_side}x{min_side} "
+                         "pixels to carry features")
     if w * h > max_pixels:
         raise PayloadTooLarge(f"image is {w}x{h} = {w * h} pixels; the limit is {max_pixels}")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise BadRequest(f"the {fmt.upper()} image could not be decoded (corrupted data)")
-    if img.shape != (h, w):
+    if img.shape != (h, w) and not (fmt == "jpeg" and img.shape == (w, h)):
         raise BadRequest(f"decoded size {img.shape[::-1]} differs from the header {w}x{h}")
     return img
 

@@ -2,10 +2,20 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, Literal, Self, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic.json_schema import JsonDict
 
+from service.errors import InvalidParameters, describe_errors
+from service.params import DPSOParams, PFParams
+
+# the largest radius a prior may have (m): beyond it a prior says nothing
+MAX_PRIOR_RADIUS_M = 10_000.0
+# |x|, |y| of any pose at most (m); the service also checks the map's extent plus a margin
+COORD_LIMIT_M = 1e7
+
+M = TypeVar("M", bound=BaseModel)
 StatusName = Literal["initializing", "tracking", "recovering", "lost"]
 #: every estimator's name, listed once (``service.registry`` dispatches each to its class)
 EstimatorName = Literal["dpso", "pf-g", "pf-l"]
@@ -61,31 +71,99 @@ class ErrorBody(BaseModel):
     detail: Any | None = None
 
 
-class PosePrior(BaseModel):
-    """A known position with an uncertainty radius (like AMCL's initial pose)."""
 
-    x: float = Field(description="metres east in the map frame")
-    y: float = Field(description="metres north in the map frame")
-    radius: float = Field(DEFAULT_PRIOR_RADIUS_M, gt=0, le=10_000, description="search radius, m")
+
+class PosePrior(BaseModel):
+    """A known position with an uncertainty radius (like AMCL's initial pose). Finite, and
+    within the map's extent plus ``SWARMLOC_POSE_MARGIN_M`` (checked against the map)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    x: float = Field(description="metres east in the map frame", ge=-COORD_LIMIT_M,
+                     le=COORD_LIMIT_M)
+    y: float = Field(description="metres north in the map frame", ge=-COORD_LIMIT_M,
+                     le=COORD_LIMIT_M)
+    radius: float = Field(DEFAULT_PRIOR_RADIUS_M, description="search radius, m", gt=0,
+                                 le=MAX_PRIOR_RADIUS_M)
+
+
+def validated(model: type[M], data: Any, what: str) -> M:
+    """``model`` from ``data`` or InvalidParameters (422) with one line per problem: the
+    one validation of every transport, so HTTP and Zenoh give the same message."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise InvalidParameters(f"invalid {what}: {describe_errors(exc.errors())}") from None
+
+
+def pose_prior(x: float | None, y: float | None, radius: float | None) -> PosePrior | None:
+    """A prior from separate values (frame query, attachment): both x and y or neither."""
+    if x is None and y is None:
+        if radius is not None:
+            raise InvalidParameters("a prior radius needs prior x and y")
+        return None
+    if x is None or y is None:
+        raise InvalidParameters("a pose prior needs both x and y")
+    data = {"x": x, "y": y} | ({"radius": radius} if radius is not None else {})
+    return validated(PosePrior, data, "pose prior")
+
+
+_PARAMS_SCHEMA: JsonDict = {"anyOf": [DPSOParams.model_json_schema(), PFParams.model_json_schema()]}
 
 
 class SessionConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    map: str | None = Field(None, description="map name; default: the service's default map")
+    map: str | None = Field(None, max_length=128,
+                            description="map name; default: the service's default map")
     estimator: EstimatorName | None = Field(None, description="default: the service default")
-    params: dict[str, float | int] = Field(
-        default_factory=dict, description="estimator parameter overrides (see README)")
-    seed: int = Field(0, ge=0, description="random seed: same seed and frames, same estimates")
+    params: dict[str, Any] = Field(
+        default_factory=dict, json_schema_extra=_PARAMS_SCHEMA,
+        description="estimator parameter overrides: DPSOParams for dpso, PFParams for pf-g "
+        "and pf-l (strict types, finite, bounded; n_particles also by SWARMLOC_MAX_PARTICLES)")
+    seed: int = Field(0, ge=0, lt=2**63,
+                      description="random seed: same seed and frames, same estimates")
     initial_pose: PosePrior | None = None
 
 
 class ResetRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """``POST /sessions/{id}/reset`` and Zenoh ``{"action": "reset"}``: no pose (global
+    re-initialisation) or x and y (and optionally radius) near a pose."""
 
-    x: float | None = None
-    y: float | None = None
-    radius: float | None = Field(None, gt=0)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    x: float | None = Field(None, description="metres east in the map frame",
+                            ge=-COORD_LIMIT_M, le=COORD_LIMIT_M)
+    y: float | None = Field(None, description="metres north in the map frame",
+                            ge=-COORD_LIMIT_M, le=COORD_LIMIT_M)
+    radius: float | None = Field(None, description=f"search radius, m (default "
+                                 f"{DEFAULT_PRIOR_RADIUS_M})", gt=0,
+                                 le=MAX_PRIOR_RADIUS_M)
+
+    @model_validator(mode="after")
+    def _both_or_neither(self) -> Self:
+        if (self.x is None) != (self.y is None):
+            raise ValueError("reset near a pose needs both x and y")
+        if self.x is None and self.radius is not None:
+            raise ValueError("a reset radius needs x and y")
+        return self
+
+    def near(self) -> PosePrior | None:
+        if self.x is None or self.y is None:
+            return None
+        return PosePrior(x=self.x, y=self.y,
+                         radius=self.radius if self.radius is not None else DEFAULT_PRIOR_RADIUS_M)
+
+
+class FrameMeta(BaseModel):
+    """A Zenoh frame's attachment ``{"t", "seq", "prior"}``: the HTTP frame query."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+    t: float | None = Field(None, description="frame timestamp, s")
+    seq: int | None = Field(None, ge=-(2**63), lt=2**63,
+                            description="robot's frame sequence number")
+    prior: PosePrior | None = None
 
 
 class SessionInfo(BaseModel):

@@ -42,7 +42,7 @@ except ImportError as _exc:  # the service imports this module only when ROS 2 i
                       ) from _exc
 
 from service.errors import BadRequest, InvalidParameters, PayloadTooLarge, UnsupportedMediaType
-from service.models import Estimate, PosePrior
+from service.models import Estimate, PosePrior, validated
 from service.settings import Settings
 
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
@@ -198,8 +198,10 @@ class Codec:
         cov = np.asarray(msg.pose.covariance, dtype=np.float64)
         if not (math.isfinite(p.x) and math.isfinite(p.y)):
             raise InvalidParameters(f"initial pose ({p.x}, {p.y}) is not finite")
-        radius = initial_pose_radius(float(cov[0]), float(cov[7]))
-        return PosePrior(x=float(p.x), y=float(p.y), radius=radius), str(msg.header.frame_id)
+        radius = initial_pose_radius(float(cov[0]), float(cov[7])) if len(cov) > 7 else 1.0
+        prior = validated(PosePrior, {"x": float(p.x), "y": float(p.y), "radius": radius},
+                          "initial pose")
+        return prior, str(msg.header.frame_id)
 
 
 def compressed_content_type(fmt: str) -> str | None:
@@ -424,7 +426,9 @@ class Ros2Endpoints:
         robot = self.initialpose.robot(str(sample.key_expr))
         try:
             prior, frame_id = self.codec.initial_pose(sample.payload.to_bytes())
-            session = self.service.ensure_session(robot)
+            session = (self.service.ensure_session(robot)
+                       if self.settings.zenoh_creates_sessions
+                       else self.service.session(robot))
             expected = self.settings.ros2_frame_id or session.localizer.map.name
             if frame_id and frame_id not in (expected, "map"):
                 raise InvalidParameters(f"initial pose is in frame '{frame_id}'; send it in "

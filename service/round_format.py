@@ -29,8 +29,11 @@ class DatasetError(ValueError):
 def read_table(csv_path: Path) -> tuple[list[str], list[list[str]]]:
     if not csv_path.is_file():
         raise DatasetError(f"{csv_path}: missing (a round needs {POSES_FILE})")
-    with csv_path.open(newline="") as fh:
-        rows = [row for row in csv.reader(fh) if any(cell.strip() for cell in row)]
+    try:
+        with csv_path.open(newline="", encoding="utf-8") as fh:
+            rows = [row for row in csv.reader(fh) if any(cell.strip() for cell in row)]
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise DatasetError(f"{csv_path}: not a UTF-8 CSV file ({exc})") from None
     if not rows:
         raise DatasetError(f"{csv_path}: empty file, expected a header line like 'image,x,y'")
     header = [h.strip().lower() for h in rows[0]]
@@ -126,8 +129,8 @@ def dataset_origin(round_dir: Path) -> tuple[float, float] | None:
 
 def read_meta(meta_path: Path) -> dict:
     try:
-        meta = json.loads(meta_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise DatasetError(f"{meta_path}: not valid JSON ({exc})") from None
     if not isinstance(meta, dict):
         raise DatasetError(f"{meta_path}: expected a JSON object")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import json
+import math
 import os
 import struct
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -41,6 +42,10 @@ from service.geo import LocalFrame
 from service.matcher import PreparedSet, match_batch_u8, prepare
 
 MAGIC = b"SWMAP\x00\r\n"
+# the dtype of every stored array, as save_map writes them (anything else is refused)
+_DTYPES = {"positions": np.dtype("<f8"), "offsets": np.dtype("<i8"), "codes": np.dtype(np.uint8),
+           "keypoints": np.dtype("<f4"), "image_names": np.dtype(np.uint8),
+           "layers": np.dtype("<i8")}
 FORMAT_VERSION = 2
 SUFFIX = ".swmap"
 _ALIGN = 64
@@ -438,16 +443,21 @@ def load_map(path: str | Path, verify: bool = True) -> RouteMap:
     arrays: dict[str, np.ndarray] = {}
     try:
         layout = header["arrays"]
-        for key in ("positions", "offsets", "codes", "keypoints", "image_names", "layers"):
+        for key, want in _DTYPES.items():
             spec = layout[key]
-            begin = data_start + int(spec["offset"])
-            if begin + int(spec["nbytes"]) > size:
-                raise MapError(f"{path}: truncated file (array '{key}' runs past the end)")
+            dtype = np.dtype(spec["dtype"])
+            offset, nbytes = int(spec["offset"]), int(spec["nbytes"])
             shape = tuple(int(x) for x in spec["shape"])
-            arrays[key] = (np.memmap(path, dtype=np.dtype(spec["dtype"]), mode="r",
-                                     offset=begin, shape=shape)
-                           if int(spec["nbytes"]) else np.zeros(shape, np.dtype(spec["dtype"])))
-    except (KeyError, TypeError, ValueError) as exc:
+            if dtype != want or offset < 0 or any(d < 0 for d in shape) or \
+                    nbytes != math.prod(shape) * dtype.itemsize:
+                raise MapError(f"{path}: array '{key}' is described inconsistently (dtype "
+                               f"{spec['dtype']}, shape {spec['shape']}, {nbytes} bytes)")
+            begin = data_start + offset
+            if begin + nbytes > size:
+                raise MapError(f"{path}: truncated file (array '{key}' runs past the end)")
+            arrays[key] = (np.memmap(path, dtype=dtype, mode="r", offset=begin, shape=shape)
+                           if nbytes else np.zeros(shape, dtype))
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         if isinstance(exc, MapError):
             raise
         raise MapError(f"{path}: header does not describe the arrays ({exc})") from None
@@ -465,10 +475,34 @@ def load_map(path: str | Path, verify: bool = True) -> RouteMap:
             offsets[-1] != len(arrays["codes"]) or np.any(np.diff(offsets) < 0) or \
             len(layers) != n or (n and layers.min() < 0):
         raise MapError(f"{path}: inconsistent arrays (positions/offsets/codes/layers)")
+    if not np.isfinite(positions).all():
+        raise MapError(f"{path}: image positions are not all finite numbers (NaN or inf)")
     try:
         names = json.loads(bytes(arrays["image_names"]).decode())
     except (UnicodeDecodeError, json.JSONDecodeError):
         raise MapError(f"{path}: image names are corrupted") from None
+    if not isinstance(names, list) or len(names) != n or \
+            not all(isinstance(x, str) for x in names):
+        got = len(names) if isinstance(names, list) else type(names).__name__
+        raise MapError(f"{path}: {got} image names for {n} image positions; every image "
+                       "needs one name")
+    codes, kps = arrays["codes"], arrays["keypoints"]
+    if codes.ndim != 2 or codes.shape[1] != 128 or kps.shape != (len(codes), 2):
+        raise MapError(f"{path}: descriptor codes {codes.shape} / keypoints {kps.shape} do "
+                       "not have the shapes (n, 128) / (n, 2)")
+    delta, feature = header.get("delta"), header.get("feature")
+    if not isinstance(delta, int | float) or not 0 < delta <= 1 or \
+            not isinstance(feature, dict):
+        raise MapError(f"{path}: header lacks valid matching parameters (delta, feature)")
+    try:
+        sp = SiftParams(**{k: v for k, v in feature.items() if k != "type"})
+    except (TypeError, ValueError) as exc:
+        raise MapError(f"{path}: feature parameters are invalid ({exc})") from None
+    sizes = (sp.width, sp.height, sp.clahe_tile, sp.n_features)
+    if not all(type(v) is int for v in sizes) or not (
+            8 <= sp.width <= 8192 and 8 <= sp.height <= 8192 and 1 <= sp.clahe_tile <= 64
+            and sp.n_features >= 0):
+        raise MapError(f"{path}: feature parameters are invalid ({feature})")
     meta = {k: v for k, v in header.items() if k not in ("name",)}
     name = str(header.get("name", path.stem))
     return RouteMap(name, meta, positions, names, arrays["codes"], offsets,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import socket
 import threading
 import time
@@ -15,22 +16,22 @@ from fastapi import FastAPI
 from service.http_api import create_app
 from service.sessions import LocalizationService
 from service.settings import Settings
-from service.zenoh_bridge import ZenohBridge
+from service.zenoh_bridge import ZenohBridge, check_security
 
 log = logging.getLogger("swarmloc")
-# the longest uvicorn waits for open responses at shutdown
-SHUTDOWN_GRACE_S = 2
 
 
 class _Server(uvicorn.Server):
-    """uvicorn that ends the open event streams (GET /events) when it shuts down: they
-    never end by themselves, and uvicorn waits for open responses before it stops."""
+    """uvicorn with a bounded, draining shutdown: new frames get 503 at once, frames in
+    flight get ``shutdown_deadline_s`` (uvicorn's graceful timeout) and the open event
+    streams (GET /events) are ended, since they never end by themselves."""
 
     def __init__(self, config: uvicorn.Config, service: LocalizationService) -> None:
         super().__init__(config)
         self._service = service
 
     async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        self._service.begin_shutdown()
         self._service.events.close()
         await super().shutdown(sockets)
         # frames have stopped: the in-process store writes its snapshot (if configured);
@@ -38,10 +39,15 @@ class _Server(uvicorn.Server):
         self._service.close()
 
 
+def _uvicorn_config(app: FastAPI, settings: Settings, log_level: str) -> uvicorn.Config:
+    return uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level,
+                          timeout_graceful_shutdown=math.ceil(settings.shutdown_deadline_s))
+
+
 def build_app(settings: Settings) -> FastAPI:
+    if settings.zenoh_enabled:
+        check_security(settings)  # refuse before loading maps, with the reason
     service = LocalizationService(settings)
-    for name, err in service.load_errors.items():
-        log.warning("map %s not loaded: %s", name, err)
     hooks = [ZenohBridge(service)] if settings.zenoh_enabled else []
     return create_app(service, lifespan_hooks=hooks)
 
@@ -57,9 +63,7 @@ def run(settings: Settings) -> None:
     warm_up()  # compile (or load) the matcher's kernels before the first frame
     app = build_app(settings)
     log.info("maps loaded from %s: %s", settings.maps_dir, sorted(app.state.service.maps))
-    _Server(uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info",
-                           timeout_graceful_shutdown=SHUTDOWN_GRACE_S),
-            app.state.service).run()
+    _Server(_uvicorn_config(app, settings, "info"), app.state.service).run()
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -75,9 +79,8 @@ def running_server(service: LocalizationService, zenoh: bool = True,
     URL and stops the server on exit. Used by the latency benchmark and the tests."""
     s = service.settings
     hooks = [ZenohBridge(service)] if zenoh else []
-    server = _Server(uvicorn.Config(create_app(service, lifespan_hooks=hooks),
-                                    host=s.host, port=s.port, log_level="warning",
-                                    timeout_graceful_shutdown=SHUTDOWN_GRACE_S), service)
+    server = _Server(_uvicorn_config(create_app(service, lifespan_hooks=hooks), s, "warning"),
+                     service)
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + timeout_s

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.errors import Conflict, InvalidParameters, NotFound, Unavailable
+from service.errors import Conflict, InvalidParameters, NotFound, ServiceError, Unavailable
+from service.estimator import EstimatorStateError
 from service.events import EventHub
 from service.imaging import decode_frame
 from service.localizer import Localizer
@@ -32,7 +33,7 @@ from service.models import (
     SessionInfo,
 )
 from service.params import ParamError
-from service.route_map import MapError, RouteMap, list_maps, load_map
+from service.route_map import RouteMap, list_maps, load_map
 from service.settings import Settings
 from service.state_codec import StateError
 from service.store import (
@@ -57,6 +58,9 @@ class LocalizationService:
         self.maps: dict[str, RouteMap] = maps if maps is not None else {}
         self.load_errors: dict[str, str] = {}
         self._lock = threading.Lock()
+        self.draining = False  # shutting down: new frames get 503
+        self._in_flight = 0
+        self._idle = threading.Condition(threading.Lock())
         self.admin = MapAdmin(self)  # upload / replace / delete / build without a restart
         if maps is None:
             self.load_maps(settings.maps_dir)
@@ -85,15 +89,61 @@ class LocalizationService:
 
     # ---- maps ---------------------------------------------------------------------------
     def load_maps(self, directory: Path) -> None:
+        """Load every map file; a broken one is logged with its file name and skipped, the
+        others still load. Two files with the same map name: the first (by file name) wins
+        and the second is refused, naming both."""
         for path in list_maps(directory):
             try:
                 m = load_map(path)
-                self.maps[m.name] = m
-                self.metrics.map_loads.labels("startup", "ok").inc()
-            except MapError as exc:  # a broken map is reported, the others still load
-                self.load_errors[path.name] = str(exc)
+                if m.name in self.maps:
+                    first = self.maps[m.name].path
+                    raise ValueError(f"map name '{m.name}' is already loaded from "
+                                     f"{first.name if first else '?'}; rename one of them")
+            except Exception as exc:  # a broken map is reported, the others still load
+                msg = str(exc) if str(path) in str(exc) else f"{path}: {exc}"
+                self.load_errors[path.name] = msg
                 self.metrics.map_loads.labels("startup", "failed").inc()
+                log.error("map file %s skipped: %s", path, msg)
+                continue
+            self.maps[m.name] = m
+            self.metrics.map_loads.labels("startup", "ok").inc()
         self.metrics.maps.set(len(self.maps))
+
+    def check_pose(self, route_map: RouteMap, x: float, y: float, what: str) -> None:
+        """A pose must lie within the map's extent plus ``pose_margin_m``."""
+        lo, hi = route_map.bounds
+        m = self.settings.pose_margin_m
+        if not (lo[0] - m <= x <= hi[0] + m and lo[1] - m <= y <= hi[1] + m):
+            raise InvalidParameters(
+                f"{what} ({x:g}, {y:g}) is outside map '{route_map.name}': x must be in "
+                f"[{lo[0] - m:g}, {hi[0] + m:g}] and y in [{lo[1] - m:g}, {hi[1] + m:g}] m "
+                f"(its extent plus SWARMLOC_POSE_MARGIN_M={m:g})")
+
+    def is_heavy(self, robot_id: str) -> bool:
+        """A session over ``heavy_particles`` runs in its own smaller worker pool, so it
+        cannot starve the light robots (fair scheduling)."""
+        try:
+            s = self.store.get(robot_id)
+        except ServiceError:  # the store is down: the frame's own error will say so
+            return False
+        n = getattr(s.localizer.estimator.params, "n_particles", 0) if s else 0
+        return n > self.settings.heavy_particles
+
+    # ---- shutdown -----------------------------------------------------------------------
+    def begin_shutdown(self) -> None:
+        """From now on new frames get 503; frames in flight finish."""
+        self.draining = True
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Wait until no frame is in flight, at most ``timeout_s``; True when idle."""
+        deadline = time.monotonic() + timeout_s
+        with self._idle:
+            while self._in_flight:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._idle.wait(left)
+        return True
 
     @property
     def ready(self) -> bool:
@@ -157,6 +207,15 @@ class LocalizationService:
         map_name = config.map or self.default_map
         route_map = self.get_map(map_name)
         estimator = config.estimator or self.settings.default_estimator
+        n = config.params.get("n_particles") if isinstance(config.params, dict) else None
+        if isinstance(n, int) and not isinstance(n, bool) and n > self.settings.max_particles:
+            self.metrics.rejected.labels("cost_ceiling").inc()
+            raise InvalidParameters(f"invalid parameter: n_particles: {n} is over this "
+                                    f"service's ceiling of {self.settings.max_particles} "
+                                    "(SWARMLOC_MAX_PARTICLES)")
+        if config.initial_pose is not None:
+            self.check_pose(route_map, config.initial_pose.x, config.initial_pose.y,
+                            "initial_pose")
         try:
             loc = Localizer(route_map, estimator, config.params, config.seed)
         except ParamError as exc:
@@ -215,8 +274,11 @@ class LocalizationService:
             self._update_gauge()
         self.events.remove(robot_id)
 
-    def reset_session(self, robot_id: str, near: PosePrior | None) -> SessionInfo:
+    def reset_session(self, robot_id: str, near: PosePrior | None = None) -> SessionInfo:
         with self.store.locked(robot_id, strict_map=False) as s:
+            if near is not None:
+                self.check_pose(self.maps.get(s.localizer.map.name) or s.localizer.map,
+                                near.x, near.y, "reset pose")
             current = self.maps.get(s.localizer.map.name)
             if current is not None and (s.map_changed or current is not s.localizer.map):
                 old = s.localizer  # the map was replaced: a reset moves to the new version
@@ -253,19 +315,43 @@ class LocalizationService:
     def process_frame(self, robot_id: str, data: bytes | np.ndarray, *,
                       content_type: str | None = None, t: float | None = None,
                       prior: PosePrior | None = None, transport: str = "http",
-                      session: Session | None = None, input_seq: int | None = None
-                      ) -> Estimate:
+                      session: Session | None = None, input_seq: int | None = None,
+                      create: bool = False) -> Estimate:
         """Decode, validate, extract and step one frame; raises ServiceError on bad input.
 
         ``data`` is an encoded PNG/JPEG, or already validated 8-bit grayscale pixels (a ROS 2
-        sensor_msgs/Image, checked by service/ros2.py)."""
+        sensor_msgs/Image, checked by service/ros2.py). With ``create`` a missing session is
+        created with the defaults, but only once the frame has passed every check."""
+        if self.draining:
+            self.metrics.rejected.labels("shutting_down").inc()
+            raise Unavailable("the service is shutting down; send the frame to another "
+                              "replica or retry after the restart")
+        with self._idle:
+            self._in_flight += 1
+        try:
+            return self._process_frame(robot_id, data, content_type, t, prior, transport,
+                                       session, input_seq, create)
+        finally:
+            with self._idle:
+                self._in_flight -= 1
+                self._idle.notify_all()
+
+    def _process_frame(self, robot_id: str, data: bytes | np.ndarray, content_type: str | None,
+                       t: float | None, prior: PosePrior | None, transport: str,
+                       session: Session | None, input_seq: int | None, create: bool
+                       ) -> Estimate:
         t0 = time.perf_counter()
-        s = session or self.session(robot_id)
+        s = session if session is not None or create else self.session(robot_id)
         try:
             image = data if isinstance(data, np.ndarray) else decode_frame(
-                data, content_type, self.settings.max_body_bytes, self.settings.max_pixels)
+                data, content_type, self.settings.max_body_bytes, self.settings.max_pixels,
+                self.settings.min_frame_side)
             if t is not None and not math.isfinite(t):
                 raise InvalidParameters("timestamp t must be a finite number of seconds")
+            if s is None:
+                s = self.ensure_session(robot_id)
+            if prior is not None:
+                self.check_pose(s.localizer.map, prior.x, prior.y, "pose prior")
             loc = s.localizer
             features = loc.extract(image)
             with self.store.locked(robot_id) as s:
@@ -282,8 +368,11 @@ class LocalizationService:
                 if t is not None and s.last_t is not None and t < s.last_t:
                     raise Conflict(f"frame timestamp {t} is older than the last processed "
                                    f"frame ({s.last_t}); send frames in time order")
-                est = s.localizer.step(features, t,
-                                       (prior.x, prior.y, prior.radius) if prior else None)
+                try:
+                    est = s.localizer.step(features, t,
+                                           (prior.x, prior.y, prior.radius) if prior else None)
+                except EstimatorStateError as exc:  # re-initialised: the next frame works
+                    raise ServiceError(f"internal error: {exc}", 500) from None
                 if t is not None:
                     s.last_t = t
                 if input_seq is not None:

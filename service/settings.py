@@ -48,12 +48,36 @@ class Settings(BaseSettings):
                               "works; it sleeps the rest so robots keep their frame rate")
     auth_token: str | None = Field(None, description="if set, HTTP needs 'Bearer <token>'")
     workers: int = Field(0, description="frame-processing threads (0: 2 x number of CPUs)")
+    # ---- hardening: cost ceilings, input bounds, shutdown (README "Hardening")
+    max_particles: int = Field(20_000, ge=2, description="most particles a session may ask "
+                               "for (per-session cost ceiling; a frame's cost grows with it)")
+    heavy_particles: int = Field(2000, ge=2, description="sessions with more particles run "
+                                 "in their own quarter of the frame workers (fair scheduling)")
+    pose_margin_m: float = Field(1000.0, ge=0, description="pose priors, resets and initial "
+                                 "poses must lie within the map's extent plus this margin (m)")
+    min_frame_side: int = Field(16, ge=1, description="smallest accepted frame width/height "
+                                "(px): smaller frames cannot carry features")
+    shutdown_deadline_s: float = Field(10.0, gt=0, description="at shutdown, frames in "
+                                       "flight get this long to finish; new frames get 503")
+    # ---- Zenoh (service/zenoh_config.py builds the config; a file is the way to configure
+    # TLS/mTLS, user/password and access control)
     zenoh_enabled: bool = True
+    zenoh_config_file: Path | None = Field(
+        None, description="a Zenoh JSON5 config file (TLS, usrpwd, access_control, ...); the "
+        "zenoh_* settings below apply on top of it only where set explicitly")
     zenoh_mode: Literal["peer", "client", "router"] = "peer"
     zenoh_connect: list[str] = Field(default_factory=list, description="e.g. tcp/10.0.0.2:7447")
-    zenoh_listen: list[str] = Field(default_factory=lambda: ["tcp/0.0.0.0:7447"])
-    zenoh_multicast_scouting: bool = True
+    zenoh_listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"],
+                                    description="safe default: loopback only")
+    zenoh_multicast_scouting: bool = Field(False, description="multicast discovery (off by "
+                                           "default: it announces the service on the LAN)")
     zenoh_prefix: str = "swarmloc"
+    zenoh_unauthenticated: bool = Field(
+        False, description="accept starting Zenoh without a config file while HTTP needs a "
+        "token (Zenoh would then bypass the token; refused by default)")
+    zenoh_create_sessions: bool | None = Field(
+        None, description="a Zenoh frame for an unknown robot creates its session (default: "
+        "yes without SWARMLOC_AUTH_TOKEN, no with it)")
     # ROS 2 over Zenoh (service/ros2.py): topic templates, {robot} = the robot's namespace
     ros2_enabled: bool = Field(False, description="serve ROS 2 CDR messages on Zenoh too")
     ros2_key_format: Literal["ros2dds", "rmw_zenoh"] = Field(
@@ -88,3 +112,9 @@ class Settings(BaseSettings):
         """Threads that process frames, per transport (frames wait in OpenCV/BLAS most of
         the time with the GIL released, so twice the CPUs keeps them busy)."""
         return self.workers or 2 * (os.cpu_count() or 1)
+
+    @property
+    def zenoh_creates_sessions(self) -> bool:
+        if self.zenoh_create_sessions is not None:
+            return self.zenoh_create_sessions
+        return not self.auth_token

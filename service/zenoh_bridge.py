@@ -34,27 +34,31 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from pydantic import ValidationError
 
-from service.errors import BadRequest, InvalidParameters, ServiceError
+from service.errors import BadRequest, ServiceError
 from service.map_zenoh import declare_map_queryables
-from service.models import DEFAULT_PRIOR_RADIUS_M, PosePrior, SessionConfig
+from service.models import FrameMeta, PosePrior, ResetRequest, SessionConfig, validated
 from service.sessions import LocalizationService
 from service.settings import Settings
+from service.zenoh_config import service_zenoh_config
 
 log = logging.getLogger("swarmloc")
 
 
-def zenoh_config(settings: Settings) -> zenoh.Config:
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", json.dumps(settings.zenoh_mode))
-    if settings.zenoh_connect:
-        cfg.insert_json5("connect/endpoints", json.dumps(settings.zenoh_connect))
-    if settings.zenoh_listen:
-        cfg.insert_json5("listen/endpoints", json.dumps(settings.zenoh_listen))
-    cfg.insert_json5("scouting/multicast/enabled",
-                     json.dumps(settings.zenoh_multicast_scouting))
-    return cfg
+class ZenohSecurityError(RuntimeError):
+    """Zenoh would bypass the HTTP token: refused at start-up."""
+
+
+def check_security(settings: Settings) -> None:
+    """With a bearer token on HTTP, Zenoh must be secured too (a config file with TLS/mTLS,
+    user/password or access control), or the operator must accept it explicitly."""
+    if settings.auth_token and not settings.zenoh_config_file and \
+            not settings.zenoh_unauthenticated:
+        raise ZenohSecurityError(
+            "HTTP needs a bearer token but Zenoh has no authentication: give a Zenoh config "
+            "file with TLS/mTLS, user/password or access control (SWARMLOC_ZENOH_CONFIG_FILE, "
+            "README 'Hardening'), turn Zenoh off (SWARMLOC_ZENOH_ENABLED=false), or accept "
+            "an open Zenoh with SWARMLOC_ZENOH_UNAUTHENTICATED=true")
 
 
 @dataclass
@@ -83,13 +87,37 @@ def error_body(exc: ServiceError, robot: str, seq: int | None = None) -> dict[st
 
 
 def _frame_args(meta: dict[str, Any]) -> tuple[float | None, int | None, PosePrior | None]:
-    try:
-        t = float(meta["t"]) if meta.get("t") is not None else None
-        seq = int(meta["seq"]) if meta.get("seq") is not None else None
-        prior = PosePrior(**meta["prior"]) if meta.get("prior") else None
-    except (TypeError, ValueError, ValidationError) as exc:
-        raise InvalidParameters(f"bad attachment field: {exc}") from None
-    return t, seq, prior
+    m = validated(FrameMeta, meta, "attachment")
+    return m.t, m.seq, m.prior
+
+
+def _seq_of(meta: dict[str, Any]) -> int | None:
+    """The frame's seq for an error reply, when it is a plain integer."""
+    seq = meta.get("seq")
+    return seq if isinstance(seq, int) and not isinstance(seq, bool) and \
+        -(2**63) <= seq < 2**63 else None
+
+
+def control(service: LocalizationService, robot: str, body: Any) -> dict[str, Any]:
+    """One control message (``{robot}/control``): the same validation and answers as the
+    HTTP session routes. Raises ServiceError."""
+    if not isinstance(body, dict):
+        raise BadRequest("control payload must be a JSON object")
+    body = dict(body)
+    action = body.pop("action", "put")
+    if action == "put":
+        config = validated(SessionConfig, body, "request")
+        info, _ = service.put_session(robot, config)
+        return info.model_dump(mode="json")
+    if action == "get":
+        return service.session(robot).info().model_dump(mode="json")
+    if action == "delete":
+        service.delete_session(robot)
+        return {"deleted": robot}
+    if action == "reset":
+        near = validated(ResetRequest, body, "request").near()
+        return service.reset_session(robot, near).model_dump(mode="json")
+    raise BadRequest(f"unknown action {action!r}; use put, get, reset or delete")
 
 
 class ZenohBridge:
@@ -103,13 +131,18 @@ class ZenohBridge:
         self._decls: list[Any] = []
         self._pool = ThreadPoolExecutor(max_workers=self.settings.frame_workers,
                                         thread_name_prefix="zenoh-frames")
+        # sessions over heavy_particles get their own quarter of the workers (fairness)
+        self._heavy_pool = ThreadPoolExecutor(
+            max_workers=max(1, self.settings.frame_workers // 4),
+            thread_name_prefix="zenoh-heavy")
         self._slots: dict[str, _Frame | None] = {}
         self._busy: set[str] = set()
         self._lock = threading.Lock()
 
     # ---- lifecycle ----------------------------------------------------------------------
     def start(self) -> ZenohBridge:
-        s = zenoh.open(zenoh_config(self.settings))
+        check_security(self.settings)
+        s = zenoh.open(service_zenoh_config(self.settings))
         self._session = s
         p = self.prefix
         self._decls = [
@@ -126,10 +159,16 @@ class ZenohBridge:
         return self
 
     def close(self) -> None:
+        """Stop taking queries and frames; frames in flight get the shutdown deadline."""
         for d in self._decls:
             d.undeclare()
         self._decls = []
-        self._pool.shutdown(wait=True)
+        self.service.begin_shutdown()
+        for pool in (self._pool, self._heavy_pool):
+            pool.shutdown(wait=False, cancel_futures=True)
+        if not self.service.wait_idle(self.settings.shutdown_deadline_s):
+            log.warning("Zenoh frames still running after the %.1f s shutdown deadline",
+                        self.settings.shutdown_deadline_s)
         if self._session is not None:
             self._session.close()
             self._session = None
@@ -162,13 +201,12 @@ class ZenohBridge:
         """The estimate or error body; None when another replica serves the robot."""
         if not self._serves(robot):
             return None
-        seq = frame.meta.get("seq")
+        seq = _seq_of(frame.meta)
         try:
             t, seq, prior = _frame_args(frame.meta)
-            session = self.service.ensure_session(robot)
             est = self.service.process_frame(
                 robot, frame.data, content_type=frame.content_type, t=t, prior=prior,
-                transport="zenoh", session=session, input_seq=seq)
+                transport="zenoh", input_seq=seq, create=self.settings.zenoh_creates_sessions)
             return est.model_dump(mode="json")
         except ServiceError as exc:
             return error_body(exc, robot, seq)
@@ -199,7 +237,13 @@ class ZenohBridge:
             if robot in self._busy:
                 return
             self._busy.add(robot)
-        self._pool.submit(self._drain, robot)
+        pool = self._heavy_pool if self.service.is_heavy(robot) else self._pool
+        try:
+            pool.submit(self._drain, robot)
+        except RuntimeError:  # shutting down: the pool takes no more work
+            with self._lock:
+                self._busy.discard(robot)
+                self._slots[robot] = None
 
     def _drain(self, robot: str) -> None:
         while True:
@@ -226,6 +270,7 @@ class ZenohBridge:
         att = query.attachment.to_bytes() if query.attachment else None
 
         def work() -> None:
+            body: dict[str, Any] | None
             try:
                 meta = parse_attachment(att)
                 body = self._localize(robot, _Frame(data, meta))
@@ -234,49 +279,45 @@ class ZenohBridge:
             if body is None:  # another replica serves this robot: no reply from here
                 query.drop()
                 return
-            payload = json.dumps(body).encode()
-            if "error" in body:
-                query.reply_err(payload, encoding=zenoh.Encoding.APPLICATION_JSON)
-            else:
-                query.reply(query.key_expr, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
-            query.drop()
+            answer(query, body)
 
-        self._pool.submit(work)
+        pool = self._heavy_pool if self.service.is_heavy(robot) else self._pool
+        try:
+            pool.submit(work)
+        except RuntimeError:  # shutting down
+            answer(query, error_body(ServiceError("the service is shutting down", 503), robot))
 
     def _on_control(self, query: zenoh.Query) -> None:
+        """Every control query gets an answer: the reply, or an error reply (from the replica
+        that serves the robot; the others stay silent)."""
         robot = self._robot(str(query.key_expr))
         if not self._serves(robot):
             query.drop()
             return
         try:
-            body = json.loads(query.payload.to_bytes()) if query.payload else {"action": "get"}
-            if not isinstance(body, dict):
-                raise BadRequest("control payload must be a JSON object")
-            action = body.pop("action", "put")
-            if action == "put":
-                try:
-                    config = SessionConfig(**body)
-                except ValidationError as exc:
-                    raise InvalidParameters(f"invalid session config: {exc}") from None
-                info, _ = self.service.put_session(robot, config)
-                reply: dict[str, Any] = info.model_dump(mode="json")
-            elif action == "get":
-                reply = self.service.session(robot).info().model_dump(mode="json")
-            elif action == "delete":
-                self.service.delete_session(robot)
-                reply = {"deleted": robot}
-            elif action == "reset":
-                near = None
-                if body.get("x") is not None and body.get("y") is not None:
-                    near = PosePrior(x=body["x"], y=body["y"],
-                                     radius=body.get("radius") or DEFAULT_PRIOR_RADIUS_M)
-                reply = self.service.reset_session(robot, near).model_dump(mode="json")
-            else:
-                raise BadRequest(f"unknown action '{action}'; use put, get, reset or delete")
-            query.reply(query.key_expr, json.dumps(reply).encode(),
-                        encoding=zenoh.Encoding.APPLICATION_JSON)
-        except (ServiceError, json.JSONDecodeError, UnicodeDecodeError, ValidationError) as exc:
-            err = exc if isinstance(exc, ServiceError) else BadRequest(
-                f"bad control message: {exc}")
-            query.reply_err(json.dumps(error_body(err, robot)).encode(),
-                            encoding=zenoh.Encoding.APPLICATION_JSON)
+            raw = query.payload.to_bytes() if query.payload else b""
+            try:
+                body = json.loads(raw) if raw else {"action": "get"}
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise BadRequest(f"control payload is not JSON: {exc}") from None
+            reply: dict[str, Any] = control(self.service, robot, body)
+        except ServiceError as exc:
+            reply = error_body(exc, robot)
+        except Exception as exc:  # never leave a query open
+            log.exception("control query for robot %s failed", robot)
+            reply = error_body(ServiceError(f"internal error: {exc}"), robot)
+        answer(query, reply)
+
+
+def answer(query: zenoh.Query, body: dict[str, Any]) -> None:
+    """Reply (or reply_err for an error body) and finish the query, whatever happens."""
+    try:
+        payload = json.dumps(body).encode()
+        if "error" in body:
+            query.reply_err(payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+        else:
+            query.reply(query.key_expr, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+    except Exception:
+        log.exception("a Zenoh reply failed")
+    finally:
+        query.drop()

@@ -106,7 +106,8 @@ def guarded_server(tmp_path_factory: pytest.TempPathFactory, small_map) -> Itera
     save_map(small_map, maps / "small")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     settings = Settings(maps_dir=maps, host="127.0.0.1", port=free_port(), auth_token=TOKEN,
-                        zenoh_listen=[endpoint], zenoh_multicast_scouting=False, workers=2)
+                        zenoh_listen=[endpoint], zenoh_multicast_scouting=False, workers=2,
+                        zenoh_unauthenticated=True)  # loopback only, accepted here
     service = LocalizationService(settings)
     with running_server(service) as url:
         yield {"url": url, "zenoh": endpoint, "service": service}

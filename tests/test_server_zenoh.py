@@ -14,14 +14,11 @@ import zenoh
 
 from client.transports import HttpClient, LocalClient, SwarmlocError, ZenohClient
 from service.server import free_port
+from service.zenoh_config import zenoh_config
 
 
 def _peer(endpoint: str) -> zenoh.Session:
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
-    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(cfg)
+    return zenoh.open(zenoh_config(mode="peer", connect=[endpoint]))
 
 
 def _replay(client, robot: str, rnd, frames: range, seed: int) -> list[tuple]:

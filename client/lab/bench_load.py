@@ -1,0 +1,267 @@
+"""``swarmloc bench load`` and ``swarmloc bench fuzz``: load, soak, fairness and a long fuzz
+run against a real service in its own process (``python -m service``), whose resident memory
+is read from /proc. Numbers are printed, never asserted."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from client.transports import Client, HttpClient, SwarmlocError, ZenohClient
+
+FUZZ_SUITE_S = 35.0  # seconds per unit of scale the fuzz tests take on the 2-core machine
+
+
+@dataclass
+class LoadResult:
+    name: str
+    robots: int
+    frames: int
+    errors: int
+    p50_ms: float
+    p99_ms: float
+    frames_per_s: float
+    rss_mib: float
+    error_samples: list[str] = field(default_factory=list)
+
+    def line(self) -> str:
+        return (f"{self.name:<22} robots={self.robots:<3} frames={self.frames:<6} "
+                f"errors={self.errors:<3} p50={self.p50_ms:7.1f} ms  p99={self.p99_ms:7.1f} ms"
+                f"  {self.frames_per_s:6.1f} frames/s  rss={self.rss_mib:6.1f} MiB")
+
+
+def _free_port() -> int:
+    from service.server import free_port
+
+    return free_port()
+
+
+def rss_mib(pid: int) -> float:
+    """Resident memory of a process (Linux /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+@contextlib.contextmanager
+def service_process(maps_dir: Path, **env: str) -> Iterator[tuple[str, str, int]]:
+    """``python -m service`` on loopback; yields (http url, zenoh endpoint, pid)."""
+    port, zport = _free_port(), _free_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    full = {**os.environ, "SWARMLOC_MAPS_DIR": str(maps_dir), "SWARMLOC_HOST": "127.0.0.1",
+            "SWARMLOC_PORT": str(port), "SWARMLOC_ZENOH_LISTEN": f'["{endpoint}"]',
+            "SWARMLOC_SESSION_IDLE_S": "3600", **env}
+    proc = subprocess.Popen([sys.executable, "-m", "service"], env=full,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            if proc.poll() is not None:
+                raise RuntimeError("the service did not start: " + proc.stderr.read().decode()
+                                   if proc.stderr else "")
+            with contextlib.suppress(httpx.HTTPError):
+                if httpx.get(url + "/readyz", timeout=2).status_code == 200:
+                    break
+            if time.monotonic() > deadline:
+                raise RuntimeError("the service did not become ready within 120 s")
+            time.sleep(0.3)
+        yield url, endpoint, proc.pid
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def _robot_loop(client: Client, robot: str, frames: list[bytes], n: int, start: int,
+                times: list[float], errors: list[str], params: dict | None = None) -> None:
+    try:
+        client.create_session(robot, None, "dpso", params, 0)
+    except SwarmlocError as exc:
+        errors.append(f"{robot} create: {exc}")
+        return
+    for k in range(n):
+        t0 = time.perf_counter()
+        try:
+            client.localize(robot, frames[(start + k) % len(frames)], t=float(k))
+        except SwarmlocError as exc:
+            errors.append(f"{robot} frame {k}: {exc}")
+            continue
+        times.append(1e3 * (time.perf_counter() - t0))
+
+
+def _run_robots(name: str, make: Callable[[], Client], robots: int, frames: list[bytes],
+                per_robot: int, pid: int, prefix: str,
+                clients: list[Client] | None = None) -> LoadResult:
+    """``robots`` threads, each a robot with its own session; with ``clients`` the robots
+    use those connections (kept open by the caller), else a few new ones."""
+    times: list[float] = []
+    errors: list[str] = []
+    own = clients is None
+    clients = clients or [make() for _ in range(min(robots, 8))]  # shared connections
+    threads = [threading.Thread(target=_robot_loop, args=(
+        clients[i % len(clients)], f"{prefix}{i}", frames, per_robot, 7 * i, times, errors))
+        for i in range(robots)]
+    t0 = time.perf_counter()
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    wall = time.perf_counter() - t0
+    for i in range(robots):
+        with contextlib.suppress(SwarmlocError):
+            clients[i % len(clients)].delete_session(f"{prefix}{i}")
+    if own:
+        for c in clients:
+            c.close()
+    arr = np.array(times) if times else np.array([np.nan])
+    return LoadResult(name, robots, len(times), len(errors), float(np.percentile(arr, 50)),
+                      float(np.percentile(arr, 99)), len(times) / wall, rss_mib(pid),
+                      errors[:3])
+
+
+def _frames(round_dir: Path, limit: int = 60) -> list[bytes]:
+    from client.dataset import read_round
+
+    rnd = read_round(round_dir)
+    return [rnd.image_path(i).read_bytes() for i in range(min(limit, len(rnd)))]
+
+
+def bench_load(maps_dir: Path, round_dir: Path, robots: list[int], per_robot: int,
+               transports: list[str], emit: Callable[[str], None] = print) -> list[LoadResult]:
+    """p50/p99, errors, throughput and server RSS for each robot count and transport."""
+    frames = _frames(round_dir)
+    out = []
+    with service_process(maps_dir) as (url, endpoint, pid):
+        emit(f"service pid {pid}, rss at start {rss_mib(pid):.1f} MiB")
+        for transport in transports:
+            for n in robots:
+                def make(t: str = transport) -> Client:
+                    if t == "http":
+                        return HttpClient(url, timeout=300)
+                    return ZenohClient([endpoint], mode="peer", timeout=300)
+
+                res = _run_robots(f"{transport}", make, n, frames, per_robot, pid,
+                                  f"{transport}-{n}-")
+                emit(res.line())
+                for e in res.error_samples:
+                    emit(f"    error: {e}")
+                out.append(res)
+    return out
+
+
+def bench_soak(maps_dir: Path, round_dir: Path, total: int, robots: int,
+               emit: Callable[[str], None] = print, samples: int = 10,
+               transport: str = "http", reconnect: bool = False) -> list[float]:
+    """``total`` frames from ``robots`` robots; the server's RSS after every tenth.
+    Sessions are deleted and created again every block, as robots come and go."""
+    frames = _frames(round_dir)
+    block = max(1, total // samples)
+    rss: list[float] = []
+    with service_process(maps_dir) as (url, endpoint, pid):
+        errors = 0
+        lat: list[float] = []
+
+        def make() -> Client:
+            if transport == "http":
+                return HttpClient(url, timeout=300)
+            return ZenohClient([endpoint], mode="peer", timeout=300)
+
+        # robots come and go (new sessions every block); with reconnect their connections
+        # too, else the connections stay open as a fleet's would
+        kept = None if reconnect else [make() for _ in range(min(robots, 8))]
+        for b in range(samples):
+            res = _run_robots("soak", make, robots, frames, max(1, block // robots), pid,
+                              f"soak{b}-", kept)
+            errors += res.errors
+            lat.append(res.p99_ms)
+            rss.append(res.rss_mib)
+            emit(f"soak block {b + 1}/{samples}: {(b + 1) * block} frames, errors={errors}, "
+                 f"p50={res.p50_ms:.1f} ms, p99={res.p99_ms:.1f} ms, rss={res.rss_mib:.1f} MiB")
+        warm = rss[1:] or rss
+        growth = (warm[-1] - warm[0]) / warm[0] * 100
+        for c in kept or []:
+            c.close()
+        emit(f"soak ({transport}{', reconnecting' if reconnect else ''}): {total} frames, "
+             f"errors={errors}; rss after warm-up "
+             f"{warm[0]:.1f} MiB, at the end {warm[-1]:.1f} MiB ({growth:+.1f} %), "
+             f"max {max(warm):.1f} MiB")
+    return rss
+
+
+def bench_fairness(maps_dir: Path, round_dir: Path, heavy: int, heavy_particles: int,
+                   per_robot: int, emit: Callable[[str], None] = print) -> tuple[float, float]:
+    """A light robot's p99 alone, then beside ``heavy`` sessions with ``heavy_particles``."""
+    frames = _frames(round_dir)
+    with service_process(maps_dir) as (url, _, pid):
+        alone = _run_robots("light alone", lambda: HttpClient(url, timeout=300), 1, frames,
+                            per_robot, pid, "alone-")
+        emit(alone.line())
+        stop = threading.Event()
+        heavy_errors: list[str] = []
+
+        def heavy_loop(i: int) -> None:
+            c = HttpClient(url, timeout=300)
+            rid = f"heavy{i}"
+            try:
+                c.create_session(rid, None, "dpso", {"n_particles": heavy_particles}, i)
+                k = 0
+                while not stop.is_set():
+                    c.localize(rid, frames[k % len(frames)], t=float(k))
+                    k += 1
+            except SwarmlocError as exc:
+                heavy_errors.append(str(exc))
+            finally:
+                c.close()
+
+        threads = [threading.Thread(target=heavy_loop, args=(i,)) for i in range(heavy)]
+        for th in threads:
+            th.start()
+        time.sleep(2.0)  # the heavy sessions are running
+        loaded = _run_robots(f"light + {heavy} heavy", lambda: HttpClient(url, timeout=300),
+                             1, frames, per_robot, pid, "loaded-")
+        stop.set()
+        for th in threads:
+            th.join()
+        emit(loaded.line())
+        emit(f"fairness: light p99 {loaded.p99_ms:.1f} ms beside {heavy} sessions of "
+             f"{heavy_particles} particles vs {alone.p99_ms:.1f} ms alone = "
+             f"{loaded.p99_ms / alone.p99_ms:.2f}x (heavy errors: {len(heavy_errors)})")
+    return alone.p99_ms, loaded.p99_ms
+
+
+def bench_fuzz(minutes: float, seed: int | None = None,
+               emit: Callable[[str], None] = print) -> int:
+    """The suite's fuzz tests (hypothesis parsers + schemathesis), for ``minutes`` in all,
+    with many more examples; returns pytest's exit code."""
+    import pytest
+
+    tests = Path(__file__).resolve().parent.parent / "tests"
+    files = [tests / "test_fuzz_parsers.py", tests / "test_schemathesis.py"]
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        emit(f"the fuzz tests are not here ({missing}): run from a source checkout")
+        return 2
+    # the suite's examples take about FUZZ_SUITE_S; scale them to the wanted minutes
+    os.environ["SWARMLOC_FUZZ_SCALE"] = f"{max(1.0, 60.0 * minutes / FUZZ_SUITE_S):.2f}"
+    args = ["-q", "-x", "-p", "no:cacheprovider", *map(str, files)]
+    if seed is not None:
+        args.append(f"--hypothesis-seed={seed}")
+    t0 = time.perf_counter()
+    code = int(pytest.main(args))
+    emit(f"fuzz: {time.perf_counter() - t0:.0f} s, exit code {code} "
+         f"({'no failures' if code == 0 else 'FAILURES, see above'})")
+    return code
