@@ -59,4 +59,4 @@ def test_the_wheel_ships_the_viewer_files(tmp_path: Path) -> None:
     demo = [p.relative_to(ROOT).as_posix() for p in (ROOT / "service" / "demo" / "round").iterdir()]
     assert "service/demo/round/poses.csv" in demo and len(demo) > 50
     assert set(demo) <= names, sorted(set(demo) - names)
-    assert "client/lab/world.py" in names
+    assert "client/lab/world/__init__.py" in names
