@@ -3,23 +3,27 @@
 The swarm moves as in the papers (Eqs. 4-6, self-adaptive v0, recovery boost), with these
 changes, each measured in README "Localization across lighting":
 
-- **Motion prior.** While tracking, every particle is carried by the tracked velocity of the
-  estimate before the frame is evaluated, so the swarm stays on the robot and stays tight.
+- **Coasting.** A frame whose best match falls below ``coast_ratio`` of the level seen while
+  tracking is weak: its estimate does not feed the tracked velocity, and the next frame's
+  swarm is carried by the velocity tracked before (at most ``coast_max_frames`` frames), as a
+  particle filter's motion model carries its particles through frames that say little.
 - **Evidence along paths.** Each particle accumulates its fitness with a decay
   (A <- lambda A + f, in the spirit of sequence matching); redrawn particles start from zero.
-  The attractor of a sub-swarm is its particle with the most accumulated evidence, so one
-  spurious match cannot pull the swarm away unless the evidence persists.
+  A sub-swarm's support is the most evidence one of its particles carries, so one spurious
+  match cannot move the estimate to another sub-swarm unless the evidence persists.
 - **Sub-swarms (speciation).** Particles are grouped each frame around seeds taken in order of
-  accumulated evidence (species PSO, Li 2004; Parrott & Li 2006 for moving optima): a particle
+  this frame's fitness (species PSO, Li 2004; Parrott & Li 2006 for moving optima): a particle
   within ``species_radius_m`` of a seed belongs to its species and is attracted to it. Each
-  species is a hypothesis; its support is the evidence of its seed. The estimate follows the
-  best-supported species; the others are reported as ``hypotheses``. A species whose support
-  falls below ``dissolve_ratio`` of the best is dissolved and its particles become scouts.
+  species is a hypothesis, supported by the most evidence one of its particles carries. The
+  estimate follows the best-supported species; the others are reported as ``hypotheses``. A
+  species whose support falls below ``dissolve_ratio`` of the best is dissolved and its
+  particles join the best one.
 - **Scouts.** A few particles with the least evidence are redrawn at random map images every
   frame (more while recovering). They are the background the lost detection measures against,
   and the way the swarm discovers a place it is not searching.
-- **The estimate** is the fitness-weighted centre of the best species, not one particle; its
-  covariance is that species' spread, scaled to a calibrated 68 % radius.
+- **The estimate** is the place the images say: the centre of the map images compared near
+  the best species, weighted by m ** ``estimate_image_power``; its covariance is that
+  species' spread, scaled to a calibrated 68 % radius.
 - **Lost detection** is relative (service/lost_detection.py): recovery starts when no match
   stands out for ``lost_frames`` frames, not when matches are merely weak.
 """
