@@ -58,10 +58,12 @@ def test_report_files_and_plots(reports, tmp_path: Path, small_map) -> None:
 def test_baseline_catches_a_worse_configuration(reports, server, sunny2) -> None:
     _, good = reports["local"]
     assert compare(good, good) == []
-    # a deliberately worse DPSO: a handful of particles without random perturbation
+    # a deliberately worse DPSO: a handful of particles without random perturbation, the
+    # estimate from the particles alone (the images' place would rescue even 4 particles)
     worse_cfg = ReplayConfig("small", "dpso", {"n_particles": 4, "phi0": 0.0,
-                                               "quantum_ratio": 0.0}, seed=3, start=10,
-                             length=LENGTH)
+                                               "quantum_ratio": 0.0,
+                                               "estimate_image_radius_m": 0.0},
+                             seed=3, start=10, length=LENGTH)
     client = LocalClient(server["maps"])
     runs = replay(client, sunny2, worse_cfg, robot_id="worse")
     worse = build_report(sunny2, worse_cfg, runs, "local")
