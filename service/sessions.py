@@ -123,7 +123,7 @@ class LocalizationService:
         """A session over ``heavy_particles`` runs in its own smaller worker pool, so it
         cannot starve the light robots (fair scheduling)."""
         try:
-            s = self.store.get(robot_id)
+            s = self.store.peek(robot_id)
         except ServiceError:  # the store is down: the frame's own error will say so
             return False
         n = getattr(s.localizer.estimator.params, "n_particles", 0) if s else 0

@@ -110,6 +110,11 @@ class SessionStore(ABC):
         """Whether this replica serves the robot's Zenoh traffic (always, unshared)."""
         return True
 
+    def peek(self, robot_id: str) -> Session | None:
+        """The session as this replica last saw it, for decisions that do not change it
+        (which worker pool a frame goes to); no round trip where a copy is at hand."""
+        return self.get(robot_id)
+
     def close(self) -> None:  # noqa: B027 (optional for a store)
         """Release resources (and write a snapshot where configured)."""
 
@@ -388,6 +393,10 @@ class RedisStore(SessionStore):
                                ) from None
 
     # ---- the interface ----------------------------------------------------------------
+    def peek(self, robot_id: str) -> Session | None:
+        cached = self._cache.get(robot_id)
+        return cached if cached is not None else self.get(robot_id)
+
     def get(self, robot_id: str) -> Session | None:
         cached = self._cache.get(robot_id)
         with self._io():
