@@ -148,6 +148,10 @@ class MultiSwarmDPSO(DPSO):
         """A frame is weak when its best match falls below ``coast_ratio`` of the level seen
         while tracking; strong, good frames update that level (EMA)."""
         p = self.params
+        if self.weak_frames >= p.coast_max_frames:
+            # weak for longer than coasting may last: a lasting change of the match level
+            # (less texture, other light) is the new normal, not a stretch to carry through
+            self.level = None
         weak = self.level is not None and best_m < p.coast_ratio * self.level
         if not weak and good:
             a = p.level_alpha

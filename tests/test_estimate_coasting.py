@@ -65,3 +65,16 @@ def test_weak_frames_keep_the_tracked_velocity_and_tracking_resumes(
         _, stall = _run_with_blackout(small_map, table, n, {"coast_ratio": 0.0}, start,
                                       blackout)
         assert not np.allclose(stall[a:b + 1], stall[a])
+
+
+def test_a_lasting_drop_of_the_match_level_becomes_the_new_level(small_map: RouteMap) -> None:
+    loc = Localizer(small_map, "dpso", {"coast_max_frames": 5}, seed=0)
+    est = loc.estimator
+    judge = est._judge_weak  # type: ignore[attr-defined]
+    for _ in range(10):  # tracking at a level of 0.04
+        assert not judge(0.04, True)
+    weak = [judge(0.01, True) for _ in range(12)]  # the level drops to a quarter for good
+    assert weak[:5] == [True] * 5  # coasted through as a weak stretch at first ...
+    assert not any(weak[5:])  # ... then 0.01 is the new normal
+    assert est.level == pytest.approx(0.01)  # type: ignore[attr-defined]
+    assert judge(0.005, True)  # and a drop below 0.65 of it is weak again
