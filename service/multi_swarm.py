@@ -132,8 +132,8 @@ class MultiSwarmDPSO(DPSO):
         # ahead), so the swarm does not trail the robot where matches are weak
         lead = self.ema_step if p.predict_attractor and self.ema_step is not None else 0.0
         attractor = self.x[seeds][np.where(label >= 0, label, best_s)] + lead
-        weak = (label >= 0) & (support[label.clip(0)] < p.dissolve_ratio * support[best_s])
-        self._move_species(attractor, self.x[seeds[best_s]] + lead, weak)
+        dissolve = (label >= 0) & (support[label.clip(0)] < p.dissolve_ratio * support[best_s])
+        self._move_species(attractor, self.x[seeds[best_s]] + lead, dissolve)
         speed, heading = self.motion(dt)
         return StepResult(pos, cov, heading, speed, status, lost or self.recovering, ev.best_m,
                           fitness.comparisons, spread, hypotheses)
