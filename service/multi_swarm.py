@@ -81,8 +81,7 @@ class MultiSwarmDPSO(DPSO):
 
     def _reset_coasting(self) -> None:
         self.level: float | None = None  # EMA of the best match in good, non-weak frames
-        self.weak_frames = 0  # weak frames in a row
-        self.coast_step: np.ndarray | None = None  # tracked step (m/frame) kept while weak
+        self.weak_frames = 0  # weak frames in a row (their estimates do not feed ema_step)
 
     def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
         if self._needs_init:
@@ -93,8 +92,8 @@ class MultiSwarmDPSO(DPSO):
                 and not self.recovering:
             self.x = np.clip(self.x + self.ema_step, self.lower, self.upper)  # motion prior
         elif self._coasting():  # carried through weak frames by the kept velocity
-            assert self.coast_step is not None
-            self.x = np.clip(self.x + self.coast_step, self.lower, self.upper)
+            assert self.ema_step is not None
+            self.x = np.clip(self.x + self.ema_step, self.lower, self.upper)
         f, _, _ = fitness(self.x)
         self.evidence = p.evidence_decay * self.evidence + f
         # sub-swarms around the best particles of this frame (their attractors, as p^n in the
@@ -119,12 +118,8 @@ class MultiSwarmDPSO(DPSO):
                            p.estimate_image_power)
         ev = self.monitor.judge(compared_xy, scores, pos, p.species_radius_m)
         status, lost = self._update_evidence_status(ev.good)
-        weak = self._judge_weak(ev.best_m, ev.good)
-        if weak:  # keep the velocity: a weak frame's estimate lags where images look alike
-            self._point_prev = np.array(pos, float)
-        else:
-            self.track_motion(pos)
-            self.coast_step = None if self.ema_step is None else self.ema_step.copy()
+        # a weak frame's estimate lags where images look alike: it does not teach the velocity
+        self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))
         if self.recovery_phase(lost):
             status = Status.RECOVERING
 
@@ -141,7 +136,7 @@ class MultiSwarmDPSO(DPSO):
     def _coasting(self) -> bool:
         """Whether this frame's swarm is carried by the kept velocity: the previous frame was
         weak, the robot was being tracked, and the weak stretch is not too long."""
-        return (self.weak_frames > 0 and self.coast_step is not None and self._converged
+        return (self.weak_frames > 0 and self.ema_step is not None and self._converged
                 and not self.recovering and self.weak_frames <= self.params.coast_max_frames)
 
     def _judge_weak(self, best_m: float, good: bool) -> bool:
