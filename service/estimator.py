@@ -117,6 +117,17 @@ class Estimator:
         ids = self.rng.integers(0, len(self._map_positions), n)
         return self._map_positions[ids] + self.rng.normal(0, self.params.init_spread_m, (n, 2))
 
+    def sample_map_positions_near(self, centre: np.ndarray, inner: float, outer: float, n: int
+                                  ) -> np.ndarray:
+        """Positions around map images drawn among those between ``inner`` and ``outer``
+        metres of ``centre`` (the nearest image where none is)."""
+        d = np.linalg.norm(self._map_positions - centre, axis=1)
+        near = np.flatnonzero((d >= inner) & (d <= outer))
+        if not len(near):
+            near = np.array([int(np.argmin(d))])
+        ids = near[self.rng.integers(0, len(near), n)]
+        return self._map_positions[ids] + self.rng.normal(0, self.params.init_spread_m, (n, 2))
+
     def constrain(self, center: tuple[float, float], radius: float) -> None:
         """A pose prior for this frame: particles outside the disc are redrawn inside it."""
         _check_finite("pose prior and radius", float(center[0]), float(center[1]),

@@ -19,8 +19,12 @@ changes, each measured in README "Localization across lighting":
   species whose support falls below ``dissolve_ratio`` of the best is dissolved and its
   particles join the best one.
 - **Scouts.** A few particles with the least evidence are redrawn at random map images every
-  frame (more while recovering). They are the background the lost detection measures against,
-  and the way the swarm discovers a place it is not searching.
+  frame (more while recovering). They are the background the lost detection measures
+  against, and the way the swarm discovers a place it is not searching.
+- **Local scouts.** While tracking, every ``local_scout_every``-th frame, a few more are
+  redrawn at map images 4-15 m from the estimate: the local search a particle filter's motion
+  noise gives. A swarm that stalled (the robot set off after a stop while weak matches kept
+  the estimate still) finds the robot again through them.
 - **The estimate** is the place the images say: the centre of the map images compared near
   the best species, weighted by m ** ``estimate_image_power``; its covariance is that
   species' spread, scaled to a calibrated 68 % radius.
@@ -29,6 +33,8 @@ changes, each measured in README "Localization across lighting":
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -69,6 +75,7 @@ class MultiSwarmDPSO(DPSO):
     def __init__(self, index: MapIndex, params: DPSOParams, rng: np.random.Generator) -> None:
         super().__init__(index, params, rng)
         self.evidence = np.zeros(params.n_particles)
+        self.frame_count = 0  # frames stepped (local scouts run every local_scout_every-th)
         self.monitor = DistinctnessMonitor(params.distinct_ratio, params.distinct_floor_m,
                                            params.distinct_far_m, params.ema_alpha)
         self._reset_coasting()
@@ -94,6 +101,7 @@ class MultiSwarmDPSO(DPSO):
         elif self._coasting():  # carried through weak frames by the kept velocity
             assert self.ema_step is not None
             self.x = np.clip(self.x + self.ema_step, self.lower, self.upper)
+        self.frame_count += 1
         f, _, _ = fitness(self.x)
         self.evidence = p.evidence_decay * self.evidence + f
         # sub-swarms around the best particles of this frame (their attractors, as p^n in the
@@ -128,7 +136,7 @@ class MultiSwarmDPSO(DPSO):
         lead = self.ema_step if p.predict_attractor and self.ema_step is not None else 0.0
         attractor = self.x[seeds][np.where(label >= 0, label, best_s)] + lead
         dissolve = (label >= 0) & (support[label.clip(0)] < p.dissolve_ratio * support[best_s])
-        self._move_species(attractor, self.x[seeds[best_s]] + lead, dissolve)
+        self._move_species(attractor, self.x[seeds[best_s]] + lead, dissolve, pos + lead)
         speed, heading = self.motion(dt)
         return StepResult(pos, cov, heading, speed, status, lost or self.recovering, ev.best_m,
                           fitness.comparisons, spread, hypotheses)
@@ -182,7 +190,8 @@ class MultiSwarmDPSO(DPSO):
             out.append(Hypothesis(float(c[0]), float(c[1]), float(support[s] / total)))
         return tuple(out)
 
-    def _move_species(self, attractor: np.ndarray, p_n: np.ndarray, weak: np.ndarray) -> None:
+    def _move_species(self, attractor: np.ndarray, p_n: np.ndarray, weak: np.ndarray,
+                      around: np.ndarray) -> None:
         """Eqs. 4-5 towards each particle's species seed; Eq. 6 quantum particles around the
         best seed; scouts (weak species and the least evidence) redrawn at map images."""
         p, rng, n = self.params, self.rng, self.params.n_particles
@@ -209,20 +218,31 @@ class MultiSwarmDPSO(DPSO):
             x[joiners] = p_n + sigma * rng.normal(0.0, 1.0, (nj, 2))
             v[joiners] = 0.0
         fresh |= joiners
-        # scouts: the particles with the least evidence, redrawn at random map images
+        # scouts: the particles with the least evidence, redrawn at random map images; and
+        # while tracking, every local_scout_every-th frame, local scouts around the estimate
         n_scouts = round((p.scout_ratio_recovery if self.recovering else p.scout_ratio) * n)
-        candidates = np.flatnonzero(~fresh)
-        scouts = candidates[np.argsort(self.evidence[candidates], kind="stable")[:n_scouts]]
-        if len(scouts):
-            x[scouts] = self.sample_map_positions(len(scouts))
-            v[scouts] = 0.0
-        fresh[scouts] = True
+        self._redraw_least_evidence(x, v, fresh, n_scouts, self.sample_map_positions)
+        if not self.recovering and self.frame_count % p.local_scout_every == 0:
+            self._redraw_least_evidence(
+                x, v, fresh, round(p.local_scout_ratio * n),
+                lambda k: self.sample_map_positions_near(
+                    around, p.local_scout_inner_m, p.local_scout_radius_m, k))
         below, above = x < self.lower, x > self.upper
         x = np.where(below, 2 * self.lower - x, np.where(above, 2 * self.upper - x, x))
         x = np.clip(x, self.lower, self.upper)
         v = np.where(below | above, -v, v)
         self.x, self.v = x, v
         self.evidence = np.where(fresh, 0.0, self.evidence)
+
+    def _redraw_least_evidence(self, x: np.ndarray, v: np.ndarray, fresh: np.ndarray, k: int,
+                               draw: Callable[[int], np.ndarray]) -> None:
+        """Redraw the ``k`` not yet fresh particles with the least evidence at ``draw(k)``."""
+        candidates = np.flatnonzero(~fresh)
+        chosen = candidates[np.argsort(self.evidence[candidates], kind="stable")[:k]]
+        if len(chosen):
+            x[chosen] = draw(len(chosen))
+            v[chosen] = 0.0
+            fresh[chosen] = True
 
 
 def image_centre(xy: np.ndarray, m: np.ndarray, around: np.ndarray, radius: float,

@@ -182,6 +182,21 @@ class DPSOParams(CommonParams):
         30, ge=0, le=100_000, description="weak frames in a row coasted through at most")
     level_alpha: float = Field(
         0.1, ge=0, le=1, description="EMA weight of the tracking level of the best match")
+    local_scout_ratio: float = Field(
+        0.1, ge=0, le=1, description="share of particles redrawn at map images between "
+        "local_scout_inner_m and local_scout_radius_m of the estimate every "
+        "local_scout_every-th frame while tracking: the local search a particle filter's "
+        "motion noise gives, so a swarm that stalls (the robot started off after a stop, "
+        "the estimate kept still) finds the robot that moved on (across light 1.48 / 1.43 m "
+        "-> 1.23 / 1.31 m; 0 switches it off)")
+    local_scout_radius_m: float = Field(
+        15.0, ge=0, le=1e5, description="outer radius of the local scouts (m)")
+    local_scout_inner_m: float = Field(
+        4.0, ge=0, le=1e5, description="inner radius of the local scouts (m): the images "
+        "nearer are compared by the swarm and the estimate already")
+    local_scout_every: int = Field(
+        2, ge=1, le=1000, description="local scouts every this many frames (a stall grows "
+        "over tens of frames; every 2nd frame halves their comparisons)")
 
     @model_validator(mode="after")
     def _consistent(self) -> Self:

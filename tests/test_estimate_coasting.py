@@ -78,3 +78,52 @@ def test_a_lasting_drop_of_the_match_level_becomes_the_new_level(small_map: Rout
     assert not any(weak[5:])  # ... then 0.01 is the new normal
     assert est.level == pytest.approx(0.01)  # type: ignore[attr-defined]
     assert judge(0.005, True)  # and a drop below 0.65 of it is weak again
+
+
+def _annulus_comparisons(small_map: RouteMap, table: SimilarityTable, n: int,
+                         params: dict[str, float] | None) -> list[int]:
+    """Per frame after convergence: map images compared 4-15 m from the previous estimate."""
+    loc = Localizer(small_map, "dpso", params, seed=1)
+    xy = np.asarray(small_map.positions)
+    counts, prev = [], None
+    for it in range(40):
+        asked: list[np.ndarray] = []
+
+        def sim(ids: np.ndarray, q: int = it % n) -> np.ndarray:
+            asked.append(np.asarray(ids))
+            return table.scores(q, ids)
+
+        res = loc.estimator.step(sim, float(it))
+        if prev is not None and it >= 20:
+            d = np.linalg.norm(xy[np.unique(np.concatenate(asked))] - prev, axis=1)
+            counts.append(int(((d >= 4) & (d <= 15)).sum()))
+        prev = res.position
+    return counts
+
+
+def test_local_scouts_search_around_the_estimate_every_other_frame(
+        small_map: RouteMap, table: SimilarityTable, sunny2: Round) -> None:
+    n = len(sunny2)
+    counts = _annulus_comparisons(small_map, table, n, None)
+    # every other frame, round(0.1 * 80) = 8 scouts land 4-15 m from the estimate (some may
+    # share an image, and the global scouts land anywhere)
+    assert max(counts[0::2]) >= 5 or max(counts[1::2]) >= 5
+    busy = counts[0::2] if max(counts[0::2]) >= 5 else counts[1::2]
+    assert min(busy) >= 4
+    # without them the swarm compares next to nothing there
+    quiet = _annulus_comparisons(small_map, table, n, {"local_scout_ratio": 0.0})
+    assert np.mean(quiet) < 0.5 * np.mean(busy)
+
+
+def test_map_positions_near_lie_in_the_annulus(small_map: RouteMap) -> None:
+    est = Localizer(small_map, "dpso", {"init_spread_m": 0.0}, seed=0).estimator
+    xy = np.asarray(small_map.positions)
+    centre = xy[len(xy) // 2]
+    pts = est.sample_map_positions_near(centre, 4.0, 15.0, 200)
+    d = np.linalg.norm(pts - centre, axis=1)
+    assert (d >= 4.0).all() and (d <= 15.0).all()
+    assert len(np.unique(pts, axis=0)) > 5  # drawn among many images, not one
+    # nothing in the annulus: the nearest image instead
+    far = est.sample_map_positions_near(np.array([1e4, 1e4]), 0.0, 1.0, 3)
+    nearest = xy[np.argmin(np.linalg.norm(xy - np.array([1e4, 1e4]), axis=1))]
+    assert np.allclose(far, nearest)
