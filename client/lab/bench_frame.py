@@ -19,7 +19,8 @@ Per frame and path:
 - ``transport``: what remains of the robot's round trip (HTTP parsing, thread hand-offs,
   loopback, the client library); split in ``request`` (from the client's call to the start
   of ``process_frame``) and ``response`` (from its end to the client holding the
-  ``Estimate``; includes the serialisation).
+  ``Estimate``; includes the serialisation). In process, ``transport`` is the call of
+  ``LocalClient`` around ``process_frame`` (microseconds).
 
 In process, a frame is ``process_frame`` on the encoded bytes (what ``LocalClient`` does).
 The three robots (in process, HTTP, Zenoh) have sessions with the same seed and get the same
@@ -228,10 +229,9 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
                         p.stages[stage].append(rec[stage])
                     p.stages["glue"].append(rec["total"] - inner)
                     p.stages["serialise"].append(ser)
-                    remote = name != "in-process"
-                    p.stages["transport"].append(rtt - rec["total"] - ser if remote else 0.0)
-                    p.stages["request"].append(1e3 * (rec["start"] - t0) if remote else 0.0)
-                    p.stages["response"].append(1e3 * (t1 - rec["end"]) if remote else 0.0)
+                    p.stages["transport"].append(rtt - rec["total"] - ser)
+                    p.stages["request"].append(1e3 * (rec["start"] - t0))
+                    p.stages["response"].append(1e3 * (t1 - rec["end"]))
                     p.server.append(rec["total"])
                     p.total.append(rtt)
                     if name == "in-process":
