@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -167,18 +168,18 @@ def _frames(round_dir: Path, limit: int = 60) -> list[bytes]:
     return [rnd.image_path(i).read_bytes() for i in range(min(limit, len(rnd)))]
 
 
-class _GatedLocal(LocalClient):
-    """The service's own ``process_frame`` in this process, at most ``workers`` frames at a
-    time (as the HTTP route's and the Zenoh bridge's worker pools allow)."""
+class _PooledLocal(LocalClient):
+    """The service's own ``process_frame`` in this process, run by a pool of ``workers``
+    threads in arrival order (as the HTTP route's limiter and the Zenoh bridge's pool do)."""
 
-    def __init__(self, service: Any, gate: threading.BoundedSemaphore) -> None:
+    def __init__(self, service: Any, pool: ThreadPoolExecutor) -> None:
         super().__init__(service=service)
-        self._gate = gate
+        self._pool = pool
 
     def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
                  seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
-        with self._gate:
-            return super().localize(robot_id, image, t, seq, prior)
+        parent = super().localize
+        return self._pool.submit(parent, robot_id, image, t, seq, prior).result()
 
 
 @contextlib.contextmanager
@@ -194,8 +195,8 @@ def local_service(maps_dir: Path) -> Iterator[Callable[[], Client]]:
     limit_native_threads(settings)
     warm_up()
     service = LocalizationService(settings)
-    gate = threading.BoundedSemaphore(settings.frame_workers)
-    yield lambda: _GatedLocal(service, gate)
+    with ThreadPoolExecutor(settings.frame_workers, thread_name_prefix="local-frames") as pool:
+        yield lambda: _PooledLocal(service, pool)
 
 
 def bench_load(maps_dir: Path, round_dir: Path, robots: list[int], per_robot: int,
