@@ -40,7 +40,8 @@ def register(bench_app: typer.Typer) -> None:
         = "sunny1",
         query: Annotated[str, typer.Option(help="comma-separated query rounds")]
         = "sunny2,cloudy1",
-        types: Annotated[str, typer.Option(help="rootsift, orb, akaze")] = "rootsift,orb,akaze",
+        types: Annotated[str, typer.Option(help="rootsift, orb (500 features), orbN (N), akaze")]
+        = "rootsift,orb,akaze",
         methods: Annotated[str, typer.Option(help="lab method names")] = "DPSO-80,PF-l-300",
         starts: Annotated[int, typer.Option(help="runs from evenly spaced start images")] = 3,
         warmup: Annotated[int, typer.Option(help="frames of global convergence not scored")]

@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-TYPES = ("rootsift", "orb", "akaze")
-ORB_FEATURES = 1500
+TYPES = ("rootsift", "orb", "akaze")  # "orbN": ORB keeping the N best features
+ORB_FEATURES = 500  # OpenCV's default
 HAMMING_RATIO = 0.8  # Lowe's ratio on Hamming distances (ORB's usual setting)
 
 
@@ -49,16 +49,18 @@ def akaze_available() -> bool:
 
 def extractor(kind: str) -> Callable[[np.ndarray], np.ndarray]:
     """image -> descriptors: uint8 codes (RootSIFT, (n, 128)) or packed bits (ORB (n, 32),
-    AKAZE's MLDB (n, 61))."""
+    AKAZE's MLDB (n, 61)). ``orb`` keeps OpenCV's default 500 features, ``orbN`` N."""
     import cv2
 
     from service.features import extract
 
     if kind == "rootsift":
         return lambda image: extract(image).codes
-    if kind == "orb":
+    if kind.startswith("orb") and (kind[3:].isdigit() or kind == "orb"):
+        n = int(kind[3:] or ORB_FEATURES)
+
         def make() -> Any:
-            return cv2.ORB_create(nfeatures=ORB_FEATURES)
+            return cv2.ORB_create(nfeatures=n)
     elif kind == "akaze":
         if not akaze_available():
             raise ValueError("this OpenCV has no AKAZE (OpenCV 5 moved it to the contrib "
