@@ -151,10 +151,8 @@ def _serialise_ms(transport: str, est: Any, repeats: int = 3) -> float:
     does them (HTTP: the route's JSON body and httpx's ``json()`` + ``Estimate(**...)``;
     Zenoh: ``json.dumps(model_dump(mode="json"))`` and ``json.loads`` + ``Estimate(**...)``;
     in process: the answer's ``model_copy``, already in ``glue``, so 0)."""
-    from service import http_api
+    from service.http_api import estimate_json
     from service.models import Estimate
-
-    encode = getattr(http_api, "estimate_json", lambda e: e.model_dump_json().encode())
 
     if transport == "in-process":
         return 0.0
@@ -162,7 +160,7 @@ def _serialise_ms(transport: str, est: Any, repeats: int = 3) -> float:
     for _ in range(repeats):
         t0 = time.perf_counter()
         if transport == "http":
-            raw = encode(est)
+            raw = estimate_json(est)
         else:
             raw = json.dumps(est.model_dump(mode="json")).encode()
         Estimate(**json.loads(raw))
@@ -175,8 +173,11 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
                 workers: int = 0) -> FrameBench:
     """Per-frame stage times in process and over each transport, in one run (see the module
     docstring). ``maps_dir`` must hold one map (or a map named ``demo``)."""
+    import cv2
+
     from client.dataset import read_round
     from client.transports import Client, HttpClient, LocalClient, ZenohClient
+    from service.features import extract
     from service.matcher import warm_up
     from service.server import free_port, limit_native_threads, running_server
     from service.sessions import LocalizationService
@@ -211,14 +212,14 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
                 c.create_session(f"bench-{name}", route_map.name, "dpso", None, seed)
             for k, frame in enumerate(data):
                 order = names[k % len(names):] + names[: k % len(names)]
-                answers = {}
+                answers: dict[str, str] = {}
                 for name in order:
                     robot = f"bench-{name}"
                     t0 = time.perf_counter()
                     est = clients[name].localize(robot, frame, t=float(k), seq=k + 1)
                     t1 = time.perf_counter()
                     rtt = 1e3 * (t1 - t0)
-                    answers[name] = (est.x, est.y, est.comparisons, est.status)
+                    answers[name] = est.model_dump_json(exclude={"robot_id"})
                     if k < warmup:
                         continue
                     rec = server_ms.pop((robot, k + 1))
@@ -243,11 +244,7 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
         finally:
             for c in clients.values():
                 c.close()
-    from service.features import extract
-
     params = route_map.sift_params
-    import cv2
-
     for frame in data[warmup: warmup + 20]:
         img = cv2.imdecode(np.frombuffer(frame, np.uint8), cv2.IMREAD_GRAYSCALE)
         features.append(len(extract(img, params)))
