@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import typer
 
+from client.lab.bench_frame_cli import register as register_frame_bench
 from client.lab.bench_load_cli import register as register_load_bench
 from client.lab.experiment_cli import experiment, sweep
 from service.cli import serve
@@ -39,6 +40,7 @@ app.add_typer(dataset_app, name="dataset")
 app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
 register_load_bench(bench_app)  # bench load, bench fuzz (client/lab/bench_load_cli.py)
+register_frame_bench(bench_app)  # bench frame (client/lab/bench_frame_cli.py)
 
 
 def _fail(msg: str) -> NoReturn:

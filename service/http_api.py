@@ -221,7 +221,8 @@ def api_router(service: LocalizationService) -> APIRouter:
     async def reset_session(robot_id: str, body: ResetRequest | None = None) -> SessionInfo:
         return service.reset_session(robot_id, body.near() if body is not None else None)
 
-    @router.post("/sessions/{robot_id}/frames", tags=["frames"], openapi_extra=_IMAGE_BODY)
+    @router.post("/sessions/{robot_id}/frames", tags=["frames"], openapi_extra=_IMAGE_BODY,
+                 response_model=Estimate)
     async def post_frame(
         robot_id: str,
         request: Request,
@@ -232,7 +233,7 @@ def api_router(service: LocalizationService) -> APIRouter:
         prior_y: Annotated[float | None, Query(description="pose prior, m north")] = None,
         prior_radius: Annotated[float | None, Query(
             gt=0, le=MAX_PRIOR_RADIUS_M, description="prior radius, m")] = None,
-    ) -> Estimate:
+    ) -> Response:
         if service.draining:
             raise Unavailable("the service is shutting down; retry after the restart")
         session = service.session(robot_id)
@@ -241,12 +242,19 @@ def api_router(service: LocalizationService) -> APIRouter:
         async with gate(robot_id):
             lim = heavy_limiter if service.is_heavy(robot_id) else limiter
             return await anyio.to_thread.run_sync(
-                lambda: service.process_frame(
+                lambda: Response(estimate_json(service.process_frame(
                     robot_id, body, content_type=request.headers.get("content-type"), t=t,
-                    prior=prior, transport="http", session=session, input_seq=seq),
+                    prior=prior, transport="http", session=session, input_seq=seq)),
+                    media_type="application/json"),
                 limiter=lim)
 
     return router
+
+
+def estimate_json(est: Estimate) -> bytes:
+    """The answer to a frame, serialised once by pydantic (in the frame's worker thread):
+    FastAPI would validate the returned model again and encode it in the event loop."""
+    return est.model_dump_json().encode()
 
 
 def jsonable_errors(exc: RequestValidationError) -> list[dict]:

@@ -52,14 +52,24 @@ def build_app(settings: Settings) -> FastAPI:
     return create_app(service, lifespan_hooks=hooks)
 
 
-def run(settings: Settings) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+def limit_native_threads(settings: Settings) -> None:
+    """Robots run in parallel threads: one BLAS thread each and ``opencv_threads`` OpenCV
+    threads, not pools of threads per call fighting over the cores (OpenCV's idle workers
+    spin after each parallel call and delay the threads that answer the robots). Process-wide;
+    features and estimates do not depend on it."""
+    import cv2
     from threadpoolctl import threadpool_limits
 
+    threadpool_limits(1, "blas")
+    if settings.opencv_threads:
+        cv2.setNumThreads(settings.opencv_threads)
+
+
+def run(settings: Settings) -> None:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     from service.matcher import warm_up
 
-    # robots run in parallel threads: one BLAS thread each, not threads fighting over cores
-    threadpool_limits(1, "blas")
+    limit_native_threads(settings)
     warm_up()  # compile (or load) the matcher's kernels before the first frame
     app = build_app(settings)
     log.info("maps loaded from %s: %s", settings.maps_dir, sorted(app.state.service.maps))

@@ -48,6 +48,8 @@ class Settings(BaseSettings):
                               "works; it sleeps the rest so robots keep their frame rate")
     auth_token: str | None = Field(None, description="if set, HTTP needs 'Bearer <token>'")
     workers: int = Field(0, description="frame-processing threads (0: 2 x number of CPUs)")
+    opencv_threads: int = Field(1, ge=0, description="OpenCV's own threads per call (0: its "
+                                "default, all CPUs); frames already run in parallel threads")
     # ---- hardening: cost ceilings, input bounds, shutdown (README "Hardening")
     max_particles: int = Field(20_000, ge=2, description="most particles a session may ask "
                                "for (per-session cost ceiling; a frame's cost grows with it)")

@@ -11,13 +11,16 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
 
-from client.transports import Client, HttpClient, SwarmlocError, ZenohClient
+from client.transports import Client, HttpClient, LocalClient, SwarmlocError, ZenohClient
+from service.models import Estimate, PosePrior
 
 FUZZ_SUITE_S = 35.0  # seconds per unit of scale the fuzz tests take on the 2-core machine
 
@@ -33,11 +36,38 @@ class LoadResult:
     frames_per_s: float
     rss_mib: float
     error_samples: list[str] = field(default_factory=list)
+    cpu_pct: float = float("nan")  # the service's CPU time / wall time during the run (%)
+    drops: int = 0  # Zenoh frames replaced by a newer one (swarmloc_zenoh_dropped_frames_total)
 
     def line(self) -> str:
         return (f"{self.name:<22} robots={self.robots:<3} frames={self.frames:<6} "
-                f"errors={self.errors:<3} p50={self.p50_ms:7.1f} ms  p99={self.p99_ms:7.1f} ms"
-                f"  {self.frames_per_s:6.1f} frames/s  rss={self.rss_mib:6.1f} MiB")
+                f"errors={self.errors:<3} drops={self.drops:<3} p50={self.p50_ms:7.1f} ms  "
+                f"p99={self.p99_ms:7.1f} ms  {self.frames_per_s:6.1f} frames/s  "
+                f"cpu={self.cpu_pct:5.0f} %  {self.frames_per_cpu_s:5.1f} frames/CPU-s  "
+                f"rss={self.rss_mib:6.1f} MiB")
+
+    @property
+    def frames_per_cpu_s(self) -> float:
+        """Frames per second of the service's CPU time: what a frame costs it, whatever share
+        of the shared cores it got during the run."""
+        return 100 * self.frames_per_s / self.cpu_pct if self.cpu_pct > 0 else float("nan")
+
+
+def cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process so far (Linux /proc, all its threads)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _dropped(url: str | None) -> int:
+    """The service's count of dropped Zenoh frames (0 without a server)."""
+    if url is None:
+        return 0
+    with contextlib.suppress(httpx.HTTPError):
+        for line in httpx.get(url + "/metrics", timeout=10).text.splitlines():
+            if line.startswith("swarmloc_zenoh_dropped_frames_total "):
+                return int(float(line.split()[1]))
+    return 0
 
 
 def _free_port() -> int:
@@ -62,7 +92,7 @@ def service_process(maps_dir: Path, **env: str) -> Iterator[tuple[str, str, int]
     full = {**os.environ, "SWARMLOC_MAPS_DIR": str(maps_dir), "SWARMLOC_HOST": "127.0.0.1",
             "SWARMLOC_PORT": str(port), "SWARMLOC_ZENOH_LISTEN": f'["{endpoint}"]',
             "SWARMLOC_SESSION_IDLE_S": "3600", **env}
-    proc = subprocess.Popen([sys.executable, "-m", "service"], env=full,
+    proc = subprocess.Popen([sys.executable, "-m", "service", "serve"], env=full,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     url = f"http://127.0.0.1:{port}"
     try:
@@ -105,9 +135,11 @@ def _robot_loop(client: Client, robot: str, frames: list[bytes], n: int, start: 
 
 def _run_robots(name: str, make: Callable[[], Client], robots: int, frames: list[bytes],
                 per_robot: int, pid: int, prefix: str,
-                clients: list[Client] | None = None) -> LoadResult:
+                clients: list[Client] | None = None, url: str | None = None) -> LoadResult:
     """``robots`` threads, each a robot with its own session; with ``clients`` the robots
-    use those connections (kept open by the caller), else a few new ones."""
+    use those connections (kept open by the caller), else a few new ones. ``pid`` is the
+    service's process (its CPU time and memory are read), ``url`` its HTTP address (for the
+    dropped-frame count)."""
     times: list[float] = []
     errors: list[str] = []
     own = clients is None
@@ -115,12 +147,15 @@ def _run_robots(name: str, make: Callable[[], Client], robots: int, frames: list
     threads = [threading.Thread(target=_robot_loop, args=(
         clients[i % len(clients)], f"{prefix}{i}", frames, per_robot, 7 * i, times, errors))
         for i in range(robots)]
+    drops0, cpu0 = _dropped(url), cpu_s(pid)
     t0 = time.perf_counter()
     for th in threads:
         th.start()
     for th in threads:
         th.join()
     wall = time.perf_counter() - t0
+    cpu = 100 * (cpu_s(pid) - cpu0) / wall
+    drops = _dropped(url) - drops0
     for i in range(robots):
         with contextlib.suppress(SwarmlocError):
             clients[i % len(clients)].delete_session(f"{prefix}{i}")
@@ -130,7 +165,7 @@ def _run_robots(name: str, make: Callable[[], Client], robots: int, frames: list
     arr = np.array(times) if times else np.array([np.nan])
     return LoadResult(name, robots, len(times), len(errors), float(np.percentile(arr, 50)),
                       float(np.percentile(arr, 99)), len(times) / wall, rss_mib(pid),
-                      errors[:3])
+                      errors[:3], cpu, drops)
 
 
 def _frames(round_dir: Path, limit: int = 60) -> list[bytes]:
@@ -140,26 +175,81 @@ def _frames(round_dir: Path, limit: int = 60) -> list[bytes]:
     return [rnd.image_path(i).read_bytes() for i in range(min(limit, len(rnd)))]
 
 
+class _PooledLocal(LocalClient):
+    """The service's own ``process_frame`` in this process, run by a pool of ``workers``
+    threads in arrival order (as the HTTP route's limiter and the Zenoh bridge's pool do)."""
+
+    def __init__(self, service: Any, pool: ThreadPoolExecutor) -> None:
+        super().__init__(service=service)
+        self._pool = pool
+
+    def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
+                 seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
+        parent = super().localize
+        return self._pool.submit(parent, robot_id, image, t, seq, prior).result()
+
+
+@contextlib.contextmanager
+def local_service(maps_dir: Path) -> Iterator[Callable[[], Client]]:
+    """The in-process baseline: a ``LocalizationService`` in this process, set up as
+    ``swarmloc serve`` sets up its own (native thread limits, matcher warmed up)."""
+    from service.matcher import warm_up
+    from service.server import limit_native_threads
+    from service.sessions import LocalizationService
+    from service.settings import Settings
+
+    settings = Settings(maps_dir=maps_dir, zenoh_enabled=False, session_idle_s=3600)
+    limit_native_threads(settings)
+    warm_up()
+    service = LocalizationService(settings)
+    with ThreadPoolExecutor(settings.frame_workers, thread_name_prefix="local-frames") as pool:
+        yield lambda: _PooledLocal(service, pool)
+
+
 def bench_load(maps_dir: Path, round_dir: Path, robots: list[int], per_robot: int,
                transports: list[str], emit: Callable[[str], None] = print) -> list[LoadResult]:
-    """p50/p99, errors, throughput and server RSS for each robot count and transport."""
+    """p50/p99, errors, drops, throughput, the service's CPU and RSS for each robot count
+    and transport (``http``, ``zenoh``: a service in its own process; ``local``: the same
+    frames through ``process_frame`` in this process, no transport; its CPU and RSS are this
+    process's). With ``local`` among them, each transport's frames/s is also given as a
+    ratio to the local frames/s of the same robot count (measured next to it)."""
     frames = _frames(round_dir)
     out = []
-    with service_process(maps_dir) as (url, endpoint, pid):
-        emit(f"service pid {pid}, rss at start {rss_mib(pid):.1f} MiB")
-        for transport in transports:
-            for n in robots:
+    remote = [t for t in transports if t != "local"]
+    with contextlib.ExitStack() as stack:
+        url = endpoint = None
+        pid = os.getpid()
+        if remote:
+            url, endpoint, pid = stack.enter_context(service_process(maps_dir))
+            emit(f"service pid {pid}, rss at start {rss_mib(pid):.1f} MiB")
+        local = stack.enter_context(local_service(maps_dir)) if "local" in transports else None
+        for n in robots:
+            fps: dict[str, float] = {}
+            per_cpu: dict[str, float] = {}
+            for transport in transports:
                 def make(t: str = transport) -> Client:
                     if t == "http":
-                        return HttpClient(url, timeout=300)
-                    return ZenohClient([endpoint], mode="peer", timeout=300)
+                        return HttpClient(str(url), timeout=300)
+                    return ZenohClient([str(endpoint)], mode="peer", timeout=300)
 
-                res = _run_robots(f"{transport}", make, n, frames, per_robot, pid,
-                                  f"{transport}-{n}-")
+                if transport == "local":
+                    assert local is not None
+                    res = _run_robots("local", local, n, frames, per_robot, os.getpid(),
+                                      f"local-{n}-")
+                else:
+                    res = _run_robots(f"{transport}", make, n, frames, per_robot, pid,
+                                      f"{transport}-{n}-", url=url)
                 emit(res.line())
                 for e in res.error_samples:
                     emit(f"    error: {e}")
                 out.append(res)
+                fps[transport] = res.frames_per_s
+                per_cpu[transport] = res.frames_per_cpu_s
+            if "local" in fps:
+                for t in remote:
+                    emit(f"{n} robots: {t} {fps[t]:.2f} frames/s / local {fps['local']:.2f} "
+                         f"frames/s = {fps[t] / fps['local']:.2f} (target >= 0.8); per CPU-s "
+                         f"of the service: {per_cpu[t] / per_cpu['local']:.2f}")
     return out
 
 

@@ -19,6 +19,9 @@ def register(bench_app: typer.Typer) -> None:
         robots: Annotated[str, typer.Option(help="robot counts")] = "1,4,16,64",
         frames: Annotated[int, typer.Option(help="frames per robot")] = 20,
         transports: Annotated[str, typer.Option(help="http,zenoh")] = "http,zenoh",
+        via: Annotated[str | None, typer.Option(
+            help="transports to compare, of http, zenoh, local (in process, no transport: "
+                 "the baseline of the frames/s ratios); replaces --transports")] = None,
         soak: Annotated[int, typer.Option(help="soak: frames in all (0: none)")] = 0,
         soak_robots: Annotated[int, typer.Option(help="robots of the soak")] = 8,
         soak_transport: Annotated[str, typer.Option(help="http or zenoh")] = "http",
@@ -29,13 +32,17 @@ def register(bench_app: typer.Typer) -> None:
         heavy_particles: Annotated[int, typer.Option(help="particles of a heavy session")]
         = 5000,
     ) -> None:
-        """Load (p50/p99, errors, RSS per robot count and transport), soak, fairness."""
+        """Load (frames/s, p50/p99, errors, drops, the service's CPU and RSS per robot count
+        and transport; with local among --via, transport/local frames/s), soak, fairness."""
         from client.lab.bench_load import bench_fairness, bench_load, bench_soak
 
         counts = [int(x) for x in robots.split(",") if x.strip()]
+        chosen = [t.strip() for t in (via or transports).split(",") if t.strip()]
+        unknown = [t for t in chosen if t not in ("http", "zenoh", "local")]
+        if unknown:
+            raise typer.BadParameter(f"unknown transport(s) {unknown}: use http, zenoh, local")
         if counts:
-            bench_load(maps_dir, round_dir, counts, frames,
-                       [t.strip() for t in transports.split(",") if t.strip()])
+            bench_load(maps_dir, round_dir, counts, frames, chosen)
         if soak:
             bench_soak(maps_dir, round_dir, soak, soak_robots, transport=soak_transport,
                        reconnect=soak_reconnect)

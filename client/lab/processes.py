@@ -113,7 +113,7 @@ class ServiceProcess:
 
     def start(self) -> ServiceProcess:
         exe = Path(sys.executable).with_name("swarmloc")
-        cmd = [str(exe), "serve"] if exe.exists() else [sys.executable, "-m", "service"]
+        cmd = [str(exe), "serve"] if exe.exists() else [sys.executable, "-m", "service", "serve"]
         with open(self.log_path, "ab") as log:
             self.proc = subprocess.Popen(cmd, env=self.env, stdout=log,
                                          stderr=subprocess.STDOUT)
