@@ -89,7 +89,8 @@ def _annulus_comparisons(small_map: RouteMap, table: SimilarityTable, n: int,
     for it in range(40):
         asked: list[np.ndarray] = []
 
-        def sim(ids: np.ndarray, q: int = it % n) -> np.ndarray:
+        def sim(ids: np.ndarray, q: int = it % n,
+                asked: list[np.ndarray] = asked) -> np.ndarray:
             asked.append(np.asarray(ids))
             return table.scores(q, ids)
 
