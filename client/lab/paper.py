@@ -7,6 +7,8 @@ features (plain SIFT, map pruned as in Sec. 6) and are vectorised over runs
 (client/paper_engine.py): every test image is a start image, as in the papers. The product's
 multi-swarm DPSO runs on the product's features (CLAHE + RootSIFT, unpruned), one run at a
 time (its speciation does not vectorise), from ``product_starts`` evenly spaced start images.
+Cases run in ``workers`` processes (client/lab/paper_pool.py); a case that recurs in several
+tables is run once.
 
 Similarities m(frame, map image) are computed on first use and kept per map checksum in
 DATASET/.maps (shared with ``swarmloc experiment``), so a rerun costs estimator time only.
@@ -96,7 +98,8 @@ class CaseResult:
 @dataclass(frozen=True)
 class Settings:
     starts: int = 0  # start images per case for the vectorised methods; 0 = every test image
-    product_starts: int = 8  # start images per case for the product's DPSO (one run each)
+    product_starts: int = 48  # start images per case for the product's DPSO (one run each:
+    # every test image would cost ~2 h of CPU; docs/paper.md "What the full protocol costs")
     warmup: int = 20
     seed: int = 0
     speeds: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0, 4.0)
