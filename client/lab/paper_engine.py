@@ -35,8 +35,8 @@ GatherFn = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (q (R,), ids (R, N)
 class NearestGrid:
     """Exact nearest map image for many points: raster candidates + k-d tree fallback."""
 
-    def __init__(self, positions: np.ndarray, cell_m: float = 0.1, margin_m: float = 12.0,
-                 k: int = 6) -> None:
+    def __init__(self, positions: np.ndarray, cell_m: float = 0.3, margin_m: float = 12.0,
+                 k: int = 10) -> None:
         from scipy.spatial import cKDTree
 
         self.pos = np.asarray(positions, float)
@@ -55,7 +55,7 @@ class NearestGrid:
         # k-th candidate is farther than that (or there are no more images)
         safe = (dist[:, -1] > dist[:, 0] + 2 * math.sqrt(2) * cell_m / 2) \
             | (k == len(self.pos))
-        self.candidates = idx.astype(np.int32)
+        self.candidates = idx.astype(np.int16 if len(self.pos) < 2**15 else np.int32)  # compact
         self.safe = safe
 
     def __call__(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -170,9 +170,43 @@ def _pf_update_kernel(f: Arr, total: Arr, x: Arr, v: Arr, u0: Arr, est: Arr, spr
             v_new[r, k, 1] = v[r, j, 1]
 
 
+def _dpso_move_kernel(x: Arr, v: Arr, p_n: Arr, r0: Arr, r2: Arr, z: Arr, k: Arr, v0: Arr,
+                      phi2: Arr, high: Arr, delta: Arr, lower: Arr, upper: Arr, omega: float,
+                      phi0: float, high_factor: float, x_out: Arr, v_out: Arr) -> None:
+    """``DPSO._move`` of every run, the operations of ``BatchDPSO.move`` in the same order
+    (the random numbers drawn before, by NumPy)."""
+    nv = np.empty(2)
+    for r in range(x.shape[0]):
+        for i in range(x.shape[1]):
+            for d in range(2):
+                a = omega * v[r, i, d]
+                b = phi0 * r0[r, i, d] * delta[d] * v0[r]
+                c = phi2[r] * r2[r, i, d] * (p_n[r, d] - x[r, i, d])
+                nv[d] = a + b + c
+            q0 = nv[0] / delta[0]
+            q1 = nv[1] / delta[1]
+            norm = np.sqrt(q0 * q0 + q1 * q1)
+            limit = v0[r] * (high_factor if high[i] else 1.0)
+            fac = min(1.0, limit / max(norm, 1e-12))
+            for d in range(2):
+                vd = nv[d] * fac
+                xd = x[r, i, d] + vd
+                if i < k[r]:
+                    xd = p_n[r, d] + delta[d] * z[r, i, d]
+                    vd = 0.0
+                if xd < lower[d]:
+                    xd = 2 * lower[d] - xd
+                    vd = -vd
+                elif xd > upper[d]:
+                    xd = 2 * upper[d] - xd
+                    vd = -vd
+                x_out[r, i, d] = min(max(xd, lower[d]), upper[d])
+                v_out[r, i, d] = vd
+
+
 _SOURCES: dict[str, Callable[..., None]] = {
     "nearest": _nearest_kernel, "distinct": _distinct_kernel, "pf_linear": _pf_linear_kernel,
-    "pf_update": _pf_update_kernel}
+    "pf_update": _pf_update_kernel, "dpso_move": _dpso_move_kernel}
 _COMPILED: dict[str, Callable[..., None]] = {}
 
 
@@ -320,24 +354,13 @@ class BatchDPSO(_Common):
         p, rng, n, r = self.p, self.rng, self.p.n_particles, self.r
         r0 = rng.uniform(-1.0, 1.0, (r, n, 2))
         r2 = rng.uniform(0.0, 1.0, (r, n, 2))
-        v = p.omega * self.v + p.phi0 * r0 * self.delta * self.v0[:, None, None] \
-            + self.phi2[:, None, None] * r2 * (p_n[:, None, :] - self.x)
-        norm = np.linalg.norm(v / self.delta, axis=-1)
-        limit = self.v0[:, None] * np.where(self.high_energy, p.high_energy_factor, 1.0)
-        v *= np.minimum(1.0, limit / np.maximum(norm, 1e-12))[..., None]
-        x = self.x + v
         k = np.minimum(np.round(self.q_r * n).astype(np.int64), n - int(self.high_energy.sum()))
         kmax = int(k.max())
-        if kmax:
-            z = rng.normal(0.0, p.quantum_sigma, (r, kmax, 2))
-            quantum = np.arange(kmax)[None, :] < k[:, None]
-            xq = p_n[:, None, :] + self.delta * z
-            x[:, :kmax] = np.where(quantum[..., None], xq, x[:, :kmax])
-            v[:, :kmax] = np.where(quantum[..., None], 0.0, v[:, :kmax])
-        below, above = x < self.lower, x > self.upper
-        x = np.where(below, 2 * self.lower - x, np.where(above, 2 * self.upper - x, x))
-        x = np.clip(x, self.lower, self.upper)
-        v = np.where(below | above, -v, v)
+        z = rng.normal(0.0, p.quantum_sigma, (r, kmax, 2)) if kmax else np.zeros((r, 1, 2))
+        x, v = np.empty_like(self.x), np.empty_like(self.v)
+        _kernel("dpso_move")(self.x, self.v, np.ascontiguousarray(p_n), r0, r2, z, k, self.v0,
+                             self.phi2, self.high_energy, self.delta, self.lower, self.upper,
+                             float(p.omega), float(p.phi0), float(p.high_energy_factor), x, v)
         self.x, self.v = x, v
 
 
