@@ -22,7 +22,7 @@ def paper(
         help="start images per case for the papers' DPSO and the filters (0 = every test "
              "image, the papers' protocol)")] = None,
     product_starts: Annotated[int | None, typer.Option(
-        help="start images per case for the product's DPSO (one run at a time; default 48)")
+        help="start images per case for the product's DPSO (one run at a time; default 24)")
     ] = None,
     warmup: Annotated[int | None, typer.Option(help="frames not scored (global start)")] = None,
     seed: int = 0,
