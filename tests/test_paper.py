@@ -88,3 +88,35 @@ def test_paper_quick_writes_every_table_and_figure(tiny: Path, tmp_path: Path) -
         assert img is not None and img.shape[0] > 100 and img.shape[1] > 100, png
     meta = json.loads((out / "run.json").read_text())
     assert meta["settings"]["starts"] == 4 and meta["wall_s"] > 0
+
+
+def test_worker_processes_give_the_numbers_of_one_process(tiny: Path) -> None:
+    """Cases in two worker processes, the product's runs split into slices: the same numbers
+    as all runs here, in order, and the similarities the workers computed reach the parent."""
+    from client.lab.paper import Case, CaseResult, Settings, dpso, merge_results, pf
+    from client.lab.paper_pool import Task, run_tasks, tasks_of
+
+    sections = {"t": [Case(pf("l", 100), "sunny1", "cloudy1"),
+                      Case(dpso(40, "product"), "sunny1", "cloudy1", speed=2.0)]}
+    got: dict[int, dict[int, list[tuple[int, CaseResult]]]] = {}
+    filled = {}
+    for workers in (1, 2):
+        lab = Lab(tiny, threads=1)
+        s = Settings(starts=3, product_starts=5, product_chunk=2, warmup=2, workers=workers)
+        out: dict[int, list[tuple[int, CaseResult]]] = {}
+
+        def done(t: Task, r: CaseResult, out: dict = out) -> None:
+            out.setdefault(t.index, []).append((t.runs[0] if t.runs else 0, r))
+
+        tasks = list(tasks_of(lab, sections, s))
+        assert [t.runs for t in tasks] == [None, (0, 2), (2, 4), (4, 5)]
+        run_tasks(lab, tasks, s, done)
+        got[workers] = out
+        filled[workers] = np.isfinite(lab.table("sunny1", "cloudy1", False).table).sum()
+    for i in (0, 1):
+        one, two = (merge_results([r for _, r in sorted(got[w][i], key=lambda p: p[0])])
+                    for w in (1, 2))
+        assert len(one.run_error) == (3 if i == 0 else 5)
+        np.testing.assert_array_equal(one.run_error, two.run_error)
+        np.testing.assert_array_equal(one.run_comparisons, two.run_comparisons)
+    assert filled[2] == filled[1] > 0

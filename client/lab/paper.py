@@ -7,6 +7,8 @@ features (plain SIFT, map pruned as in Sec. 6) and are vectorised over runs
 (client/paper_engine.py): every test image is a start image, as in the papers. The product's
 multi-swarm DPSO runs on the product's features (CLAHE + RootSIFT, unpruned), one run at a
 time (its speciation does not vectorise), from ``product_starts`` evenly spaced start images.
+Cases run in ``workers`` processes (client/lab/paper_pool.py); a case that recurs in several
+tables is run once.
 
 Similarities m(frame, map image) are computed on first use and kept per map checksum in
 DATASET/.maps (shared with ``swarmloc experiment``), so a rerun costs estimator time only.
@@ -14,10 +16,11 @@ DATASET/.maps (shared with ``swarmloc experiment``), so a rerun costs estimator 
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import permutations, product
 from pathlib import Path
 from typing import Any
@@ -26,7 +29,7 @@ import numpy as np
 
 # ---- the one place that imports the lab modules (client/lab/ after the move) ------------------
 from client.dataset import Round, read_round
-from client.lab.experiment_cli import map_for, save_table
+from client.lab.experiment_cli import map_for
 from client.lab.experiments import SimilarityTable, run
 from client.lab.paper_engine import BatchResult, NearestGrid, run_batch
 from client.runs import frame_sequence
@@ -95,7 +98,8 @@ class CaseResult:
 @dataclass(frozen=True)
 class Settings:
     starts: int = 0  # start images per case for the vectorised methods; 0 = every test image
-    product_starts: int = 8  # start images per case for the product's DPSO (one run each)
+    product_starts: int = 24  # start images per case for the product's DPSO (one run each:
+    # every test image would cost ~2 h of CPU; docs/paper.md "What the full protocol costs")
     warmup: int = 20
     seed: int = 0
     speeds: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0, 4.0)
@@ -105,6 +109,8 @@ class Settings:
     grid_v: tuple[int, ...] = (1, 2, 3)
     pair_limit: int = 0  # Tab. 4 cases per scenario; 0 = every ordered pair
     threads: int = 2  # similarity computations in parallel (numba releases the GIL)
+    workers: int = 2  # cases in parallel processes (1: in this process)
+    product_chunk: int = 8  # product runs per task of a worker (the runs are independent)
 
     @classmethod
     def quick(cls) -> Settings:
@@ -163,6 +169,7 @@ class Lab:
         self._queries: dict[tuple[str, bool], _LazyFeatures] = {}
         self._tables: dict[tuple[str, str, bool], SimilarityTable] = {}
         self._grids: dict[str, NearestGrid] = {}
+        self._pool = ThreadPoolExecutor(threads) if threads > 1 else None
 
     def round(self, name: str) -> Round:
         if name not in self._rounds:
@@ -210,13 +217,29 @@ class Lab:
         return self._grids[map_round]
 
     def save(self) -> None:
+        """Write the tables, merged with what is on disk (another run may have added to it)."""
         for t in self._tables.values():
-            save_table(t)
+            path = t.cache_path
+            if path is None:
+                continue
+            if path.is_file():
+                try:
+                    disk = np.load(path)
+                except (OSError, ValueError):  # a torn or foreign file: ours replaces it
+                    disk = None
+                if disk is not None and disk.shape == t.table.shape:
+                    fill_missing(t.table, disk)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp.npy")
+            with open(tmp, "wb") as fh:
+                np.save(fh, t.table)
+                fh.flush()
+                os.fsync(fh.fileno())
+            tmp.replace(path)
 
     def gather(self, table: SimilarityTable) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
         """m(q_r, ids[r, j]) for all runs at once; missing entries computed per query row,
         rows in parallel threads."""
-        pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+        pool = self._pool
 
         def fill(qv: int, need: np.ndarray) -> None:
             table.scores(qv, need)
@@ -242,8 +265,16 @@ class Lab:
         return gather
 
 
-def run_case(lab: Lab, case: Case, s: Settings, seed: int) -> CaseResult:
-    """All runs of one case; scored after the warm-up."""
+def fill_missing(table: np.ndarray, known: np.ndarray) -> None:
+    """Fill the NaN entries of ``table`` from ``known`` (same shape), in place."""
+    miss = np.isnan(table)
+    table[miss] = known[miss]
+
+
+def run_case(lab: Lab, case: Case, s: Settings, seed: int,
+             runs: tuple[int, int] | None = None) -> CaseResult:
+    """All runs of one case (or, for the product's DPSO, the runs ``runs[0]:runs[1]``; the
+    k-th run has seed ``seed + k`` wherever it runs); scored after the warm-up."""
     t0 = time.perf_counter()
     m = case.method
     rnd = lab.round(case.query)
@@ -263,10 +294,11 @@ def run_case(lab: Lab, case: Case, s: Settings, seed: int) -> CaseResult:
         err, comps, spread = res.errors, res.comparisons.astype(float), res.spread_m
     else:
         starts = starts_of(n, s.product_starts)
-        runs = [run(route_map, table, rnd, m.estimator, params, seed=seed + k, start=st,
-                    speed=case.speed, kidnap=case.kidnap) for k, st in enumerate(starts)]
-        err = np.stack([r.errors for r in runs])
-        comps = np.stack([r.comparisons for r in runs]).astype(float)
+        lo, hi = runs if runs is not None else (0, len(starts))
+        one = [run(route_map, table, rnd, m.estimator, params, seed=seed + k, start=starts[k],
+                   speed=case.speed, kidnap=case.kidnap) for k in range(lo, hi)]
+        err = np.stack([r.errors for r in one])
+        comps = np.stack([r.comparisons for r in one]).astype(float)
         spread = np.full(err.shape, np.nan)
     recovered = np.zeros(0)
     if case.kidnap:
@@ -274,6 +306,20 @@ def run_case(lab: Lab, case: Case, s: Settings, seed: int) -> CaseResult:
     return CaseResult(case, err[:, w:].mean(axis=1), comps[:, w:].mean(axis=1),
                       err.mean(axis=0), spread.mean(axis=0), recovered,
                       time.perf_counter() - t0)
+
+
+def merge_results(parts: Sequence[CaseResult]) -> CaseResult:
+    """One case's result from the results of its run slices, in run order."""
+    if len(parts) == 1:
+        return parts[0]
+    runs = np.array([len(p.run_error) for p in parts], float)
+    w = runs / runs.sum()
+    return CaseResult(parts[0].case, np.concatenate([p.run_error for p in parts]),
+                      np.concatenate([p.run_comparisons for p in parts]),
+                      sum(wi * p.error_curve for wi, p in zip(w, parts, strict=True)),
+                      sum(wi * p.spread_curve for wi, p in zip(w, parts, strict=True)),
+                      np.concatenate([p.recovered for p in parts]),
+                      sum(p.seconds for p in parts))
 
 
 def _frames_until_back(err: np.ndarray, since: int, within_m: float = 5.0, hold: int = 5
@@ -302,7 +348,7 @@ def tab4_pairs(rounds: Sequence[str], limit: int = 0) -> dict[str, list[tuple[st
 
 
 def protocol(rounds: Sequence[str], s: Settings) -> dict[str, list[Case]]:
-    """Every case of every section, in the order they run (cheap sections first)."""
+    """Every case of every section, in the order they run."""
     sc: dict[str, Any] = {"map_round": SC_MAP, "query": SC_QUERY}
     tab1 = [Case(dpso(n, v), **sc) for v in VARIANTS for n in s.sizes]
     tab1 += [Case(pf(k, n), **sc) for k in ("g", "l") for n in (100, 300)]
@@ -326,7 +372,8 @@ def protocol(rounds: Sequence[str], s: Settings) -> dict[str, list[Case]]:
     tab4 = [Case(meth, mp, q) for mp, q in order
             for meth in (pf("g", 300), pf("l", 100), pf("l", 300), dpso(80, "paper"),
                          dpso(80, "product"))]
-    return {"tab1": tab1, "tab2": tab2, "fig4": fig4, "tab3": tab3, "tab4": tab4}
+    # Tab. 4 (the headline) before the long Tab. 3 grid: a cut-short run still has it
+    return {"tab1": tab1, "tab2": tab2, "fig4": fig4, "tab4": tab4, "tab3": tab3}
 
 
 def driven_speed(rnd: Round) -> float:
@@ -350,33 +397,78 @@ def with_driven_speed(cases: list[Case], v_r: float) -> list[Case]:
     return out
 
 
+def same_cases(sections: dict[str, list[Case]]) -> dict[tuple[str, int], list[tuple[str, int]]]:
+    """Cases that repeat an earlier one (same estimator, parameters, features, rounds, speed
+    and kidnapping; e.g. DPSO-80 on sunny1/cloudy1 in Tab. 1, Tab. 2, Fig. 4 and Tab. 4),
+    by the first occurrence: they are run once and reported in each place."""
+    first: dict[tuple[Any, ...], tuple[str, int]] = {}
+    copies: dict[tuple[str, int], list[tuple[str, int]]] = {}
+    for name, cases in sections.items():
+        for i, c in enumerate(cases):
+            m = c.method
+            key = (m.estimator, tuple(sorted(m.params)), m.papers_features, c.map_round,
+                   c.query, c.speed, c.kidnap)
+            if key in first:
+                copies.setdefault(first[key], []).append((name, i))
+            else:
+                first[key] = (name, i)
+    return copies
+
+
 def run_protocol(lab: Lab, rounds: Sequence[str], s: Settings,
                  on_section: Callable[[str, list[CaseResult]], None] | None = None,
                  progress: bool = True) -> dict[str, list[CaseResult]]:
-    """Run every case with a progress bar; ``on_section`` gets each finished section."""
+    """Run every case (``s.workers`` processes) with a progress bar; ``on_section`` gets each
+    finished section in protocol order, and Tab. 4 so far after every fifth case of it."""
     from tqdm import tqdm
+
+    from client.lab.paper_pool import Task, run_tasks, tasks_of
 
     sections = protocol(rounds, s)
     sections["tab3"] = with_driven_speed(sections["tab3"], driven_speed(lab.round(SC_QUERY)))
-    total = sum(len(v) for v in sections.values())
+    copies = same_cases(sections)
+    skip = {c for cs in copies.values() for c in cs}
+    tasks = list(tasks_of(lab, sections, s, skip))
+    parts_left: dict[tuple[str, int], int] = dict.fromkeys(skip, 1)
+    for t in tasks:
+        parts_left[t.section, t.index] = parts_left.get((t.section, t.index), 0) + 1
+    parts: dict[tuple[str, int], list[tuple[int, CaseResult]]] = {}
     out: dict[str, list[CaseResult]] = {}
-    bar = tqdm(total=total, desc="paper cases", unit="case", disable=not progress)
-    k = 0
-    for name, cases in sections.items():
-        res = []
-        for case in cases:
-            bar.set_postfix_str(f"{name}: {case.method.label} {case.map_round}/{case.query}")
-            res.append(run_case(lab, case, s, s.seed + 1000 * k))
-            k += 1
-            bar.update()
-            if name == "tab4" and on_section is not None and len(res) % 5 == 0 \
-                    and len(res) < len(cases):
+    order = list(sections)
+    bar = tqdm(total=len(parts_left), desc="paper cases", unit="case", disable=not progress)
+
+    def finished(name: str) -> list[CaseResult]:
+        return [merge_results([r for _, r in sorted(parts[name, i], key=lambda p: p[0])])
+                for i in range(len(sections[name])) if parts_left[name, i] == 0]
+
+    def done(t: Task, res: CaseResult) -> None:
+        key = (t.section, t.index)
+        parts.setdefault(key, []).append((t.runs[0] if t.runs else 0, res))
+        parts_left[key] -= 1
+        if parts_left[key]:
+            return
+        bar.update()
+        if key in copies:  # the same case elsewhere in the protocol: the same runs
+            merged = merge_results([r for _, r in sorted(parts[key], key=lambda p: p[0])])
+            for sec, i in copies[key]:
+                parts[sec, i] = [(0, replace(merged, case=sections[sec][i]))]
+                parts_left[sec, i] = 0
+                bar.update()
+        bar.set_postfix_str(f"{t.section}: {t.case.method.label} {t.case.map_round}/"
+                            f"{t.case.query}")
+        while order and all(parts_left[order[0], i] == 0 for i in range(len(sections[order[0]]))):
+            name = order.pop(0)
+            out[name] = finished(name)
+            lab.save()
+            if on_section is not None:
+                on_section(name, out[name])
+        if t.section == "tab4" and "tab4" in order and on_section is not None:
+            so_far = finished("tab4")
+            if len(so_far) % 5 == 0:
                 lab.save()
-                on_section(name, res)  # partial Tab. 4 after each round pair
-        lab.save()
-        out[name] = res
-        if on_section is not None:
-            on_section(name, res)
+                on_section("tab4", so_far)  # partial Tab. 4 after each round pair's worth
+
+    run_tasks(lab, tasks, s, done)
     bar.close()
     return out
 

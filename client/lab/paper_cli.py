@@ -22,10 +22,14 @@ def paper(
         help="start images per case for the papers' DPSO and the filters (0 = every test "
              "image, the papers' protocol)")] = None,
     product_starts: Annotated[int | None, typer.Option(
-        help="start images per case for the product's DPSO (one run at a time)")] = None,
+        help="start images per case for the product's DPSO (one run at a time; default 24)")
+    ] = None,
     warmup: Annotated[int | None, typer.Option(help="frames not scored (global start)")] = None,
     seed: int = 0,
-    threads: Annotated[int, typer.Option(help="similarity computations in parallel")] = 2,
+    threads: Annotated[int, typer.Option(help="similarity computations in parallel threads "
+                                            "(without worker processes)")] = 2,
+    workers: Annotated[int, typer.Option(help="cases in parallel worker processes "
+                                            "(1: all in this process)")] = 2,
     progress: Annotated[bool, typer.Option(help="progress bar over the cases")] = True,
 ) -> None:
     """Fig. 4, Tab. 1/Fig. 8, Tab. 2/Fig. 6, Tab. 3, Tab. 4/Fig. 10: tables as Markdown and
@@ -38,7 +42,7 @@ def paper(
     s = Settings.quick() if quick else Settings()
     given = (("starts", starts), ("product_starts", product_starts), ("warmup", warmup))
     over: dict[str, Any] = {k: v for k, v in given if v is not None}
-    s = dataclasses.replace(s, seed=seed, threads=threads, **over)
+    s = dataclasses.replace(s, seed=seed, threads=threads, workers=workers, **over)
     rounds = list(iter_rounds(dataset))
     need = {"sunny1", "cloudy1"}
     if not need <= set(rounds):
@@ -76,14 +80,20 @@ def paper(
     sections = protocol(rounds, s)
     run_protocol(lab, rounds, s, on_section, progress)
     wall = time.time() - t0
+    import resource
+
+    cpu = sum(getattr(resource.getrusage(who), f) for who in (resource.RUSAGE_SELF,
+              resource.RUSAGE_CHILDREN) for f in ("ru_utime", "ru_stime"))
     opts = "".join(f" --{k.replace('_', '-')} {v}" for k, v in over.items())
     meta = {"command": f"swarmloc paper {dataset} --out {out}" + (" --quick" if quick else "")
             + opts,
             "started_utc": started, "wall_s": round(wall, 1),
+            "cpu_s": round(cpu, 1),  # this process and its workers, user + system
             "load_average": list(os.getloadavg()), "cpus": os.cpu_count(),
             "settings": dataclasses.asdict(s), "rounds": rounds,
             "case_seconds": {k: round(sum(r.seconds for r in v), 1) for k, v in done.items()},
             "files": written}
     (out / "run.json").write_text(json.dumps(meta, indent=1))
-    typer.echo(f"wall time {wall / 60:.1f} min, load average {os.getloadavg()[0]:.2f}; "
+    typer.echo(f"wall time {wall / 60:.1f} min, CPU time {cpu / 60:.1f} min (this process and "
+               f"its workers), load average {os.getloadavg()[0]:.2f}; "
                f"wrote {len(written)} files to {out}")

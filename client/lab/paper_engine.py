@@ -28,14 +28,15 @@ import numpy as np
 from service.params import DPSOParams, PFParams
 from service.registry import params_for
 
+Arr = np.ndarray
 GatherFn = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (q (R,), ids (R, N)) -> m (R, N)
 
 
 class NearestGrid:
     """Exact nearest map image for many points: raster candidates + k-d tree fallback."""
 
-    def __init__(self, positions: np.ndarray, cell_m: float = 0.1, margin_m: float = 12.0,
-                 k: int = 6) -> None:
+    def __init__(self, positions: np.ndarray, cell_m: float = 0.3, margin_m: float = 12.0,
+                 k: int = 10) -> None:
         from scipy.spatial import cKDTree
 
         self.pos = np.asarray(positions, float)
@@ -54,7 +55,7 @@ class NearestGrid:
         # k-th candidate is farther than that (or there are no more images)
         safe = (dist[:, -1] > dist[:, 0] + 2 * math.sqrt(2) * cell_m / 2) \
             | (k == len(self.pos))
-        self.candidates = idx.astype(np.int32)
+        self.candidates = idx.astype(np.int16 if len(self.pos) < 2**15 else np.int32)  # compact
         self.safe = safe
 
     def __call__(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -64,7 +65,7 @@ class NearestGrid:
         ids = np.empty(len(p), np.int64)
         dist = np.empty(len(p))
         ok = np.empty(len(p), np.bool_)
-        _grid_nearest()(p, self.lo, self.cell, self.shape[0], self.shape[1], self.candidates,
+        _kernel("nearest")(p, self.lo, self.cell, self.shape[0], self.shape[1], self.candidates,
                         self.safe, self.pos, ids, dist, ok)
         if not ok.all():
             bad = ~ok
@@ -72,39 +73,150 @@ class NearestGrid:
         return ids.reshape(shp), dist.reshape(shp)
 
 
-_KERNEL: list[Callable[..., None]] = []
+def _nearest_kernel(p: Arr, lo: Arr, cell: float, nx: int, ny: int, cand: Arr, safe: Arr,
+                    pos: Arr, ids: Arr, dist: Arr, ok: Arr) -> None:
+    k = cand.shape[1]
+    for i in range(p.shape[0]):
+        cx = int(np.floor((p[i, 0] - lo[0]) / cell))
+        cy = int(np.floor((p[i, 1] - lo[1]) / cell))
+        if cx < 0 or cy < 0 or cx >= nx or cy >= ny:
+            ok[i] = False
+            continue
+        c = cx * ny + cy
+        ok[i] = safe[c]
+        best = np.inf
+        bj = 0
+        for j in range(k):
+            idx = cand[c, j]
+            dx = pos[idx, 0] - p[i, 0]
+            dy = pos[idx, 1] - p[i, 1]
+            d2 = dx * dx + dy * dy
+            if d2 < best:
+                best = d2
+                bj = idx
+        ids[i] = bj
+        dist[i] = np.sqrt(best)
 
 
-def _grid_nearest() -> Callable[..., None]:
-    """The numba kernel of ``NearestGrid`` (compiled on first use, cached on disk)."""
-    if not _KERNEL:
+def _distinct_kernel(ids: Arr, n_images: int, out: Arr) -> None:
+    stamp = np.full(n_images, -1, np.int64)
+    for r in range(ids.shape[0]):
+        c = 0
+        for j in range(ids.shape[1]):
+            i = ids[r, j]
+            if stamp[i] != r:
+                stamp[i] = r
+                c += 1
+        out[r] = c
+
+
+def _pf_linear_kernel(x: Arr, v: Arr, c: Arr, s: Arr, scale: Arr, dt: float) -> None:
+    """Eqs. 7-8 in place, the operations of ``ParticleFilter._predict`` in the same order."""
+    for r in range(x.shape[0]):
+        for i in range(x.shape[1]):
+            vx = v[r, i, 0]
+            vy = v[r, i, 1]
+            nvx = scale[r, i] * (c[r, i] * vx - s[r, i] * vy)
+            nvy = scale[r, i] * (s[r, i] * vx + c[r, i] * vy)
+            v[r, i, 0] = nvx
+            v[r, i, 1] = nvy
+            x[r, i, 0] = x[r, i, 0] + nvx * dt
+            x[r, i, 1] = x[r, i, 1] + nvy * dt
+
+
+def _pf_update_kernel(f: Arr, total: Arr, x: Arr, v: Arr, u0: Arr, est: Arr, spread: Arr,
+                      x_new: Arr, v_new: Arr) -> None:
+    """Weights, weighted-mean estimate, spread and low-variance resampling of every run
+    (``ParticleFilter._step``; the cumulative sum and the search are those of NumPy)."""
+    n = x.shape[1]
+    w = np.empty(n)
+    cum = np.empty(n)
+    for r in range(x.shape[0]):
+        tot = total[r]
+        for i in range(n):
+            w[i] = f[r, i] / tot if tot > 0 else 1.0 / n
+        ex = 0.0
+        ey = 0.0
+        mx = 0.0
+        my = 0.0
+        for i in range(n):
+            ex += w[i] * x[r, i, 0]
+            ey += w[i] * x[r, i, 1]
+            mx += x[r, i, 0]
+            my += x[r, i, 1]
+        est[r, 0] = ex
+        est[r, 1] = ey
+        mx /= n
+        my /= n
+        sp = 0.0
+        for i in range(n):
+            dx = x[r, i, 0] - mx
+            dy = x[r, i, 1] - my
+            sp += np.sqrt(dx * dx + dy * dy)
+        spread[r] = sp / n
+        acc = 0.0
+        for i in range(n):
+            acc += w[i]
+            cum[i] = acc
+        cum[n - 1] = 1.0
+        j = 0
+        for k in range(n):
+            u = u0[r] + k / n
+            while j < n - 1 and cum[j] < u:  # searchsorted(cum, u, side="left")
+                j += 1
+            x_new[r, k, 0] = x[r, j, 0]
+            x_new[r, k, 1] = x[r, j, 1]
+            v_new[r, k, 0] = v[r, j, 0]
+            v_new[r, k, 1] = v[r, j, 1]
+
+
+def _dpso_move_kernel(x: Arr, v: Arr, p_n: Arr, r0: Arr, r2: Arr, z: Arr, k: Arr, v0: Arr,
+                      phi2: Arr, high: Arr, delta: Arr, lower: Arr, upper: Arr, omega: float,
+                      phi0: float, high_factor: float, x_out: Arr, v_out: Arr) -> None:
+    """``DPSO._move`` of every run, the operations of ``BatchDPSO.move`` in the same order
+    (the random numbers drawn before, by NumPy)."""
+    nv = np.empty(2)
+    for r in range(x.shape[0]):
+        for i in range(x.shape[1]):
+            for d in range(2):
+                a = omega * v[r, i, d]
+                b = phi0 * r0[r, i, d] * delta[d] * v0[r]
+                c = phi2[r] * r2[r, i, d] * (p_n[r, d] - x[r, i, d])
+                nv[d] = a + b + c
+            q0 = nv[0] / delta[0]
+            q1 = nv[1] / delta[1]
+            norm = np.sqrt(q0 * q0 + q1 * q1)
+            limit = v0[r] * (high_factor if high[i] else 1.0)
+            fac = min(1.0, limit / max(norm, 1e-12))
+            for d in range(2):
+                vd = nv[d] * fac
+                xd = x[r, i, d] + vd
+                if i < k[r]:
+                    xd = p_n[r, d] + delta[d] * z[r, i, d]
+                    vd = 0.0
+                if xd < lower[d]:
+                    xd = 2 * lower[d] - xd
+                    vd = -vd
+                elif xd > upper[d]:
+                    xd = 2 * upper[d] - xd
+                    vd = -vd
+                x_out[r, i, d] = min(max(xd, lower[d]), upper[d])
+                v_out[r, i, d] = vd
+
+
+_SOURCES: dict[str, Callable[..., None]] = {
+    "nearest": _nearest_kernel, "distinct": _distinct_kernel, "pf_linear": _pf_linear_kernel,
+    "pf_update": _pf_update_kernel, "dpso_move": _dpso_move_kernel}
+_COMPILED: dict[str, Callable[..., None]] = {}
+
+
+def _kernel(name: str) -> Callable[..., None]:
+    """A numba kernel of this module (compiled on first use, cached on disk)."""
+    if name not in _COMPILED:
         from service.matcher import _jit
 
-        def kernel(p, lo, cell, nx, ny, cand, safe, pos, ids, dist, ok):
-            k = cand.shape[1]
-            for i in range(p.shape[0]):
-                cx = int(np.floor((p[i, 0] - lo[0]) / cell))
-                cy = int(np.floor((p[i, 1] - lo[1]) / cell))
-                if cx < 0 or cy < 0 or cx >= nx or cy >= ny:
-                    ok[i] = False
-                    continue
-                c = cx * ny + cy
-                ok[i] = safe[c]
-                best = np.inf
-                bj = 0
-                for j in range(k):
-                    idx = cand[c, j]
-                    dx = pos[idx, 0] - p[i, 0]
-                    dy = pos[idx, 1] - p[i, 1]
-                    d2 = dx * dx + dy * dy
-                    if d2 < best:
-                        best = d2
-                        bj = idx
-                ids[i] = bj
-                dist[i] = np.sqrt(best)
-
-        _KERNEL.append(_jit(kernel))
-    return _KERNEL[0]
+        _COMPILED[name] = _jit(_SOURCES[name])
+    return _COMPILED[name]
 
 
 @dataclass
@@ -125,9 +237,9 @@ class BatchResult:
 
 def distinct_per_row(ids: np.ndarray, n_images: int) -> np.ndarray:
     """Number of distinct values in each row of an (R, N) id array."""
-    seen = np.zeros((ids.shape[0], n_images), bool)
-    seen[np.arange(ids.shape[0])[:, None], ids] = True
-    return seen.sum(axis=1)
+    out = np.empty(ids.shape[0], np.int64)
+    _kernel("distinct")(np.ascontiguousarray(ids), n_images, out)
+    return out
 
 
 class _Common:
@@ -242,24 +354,13 @@ class BatchDPSO(_Common):
         p, rng, n, r = self.p, self.rng, self.p.n_particles, self.r
         r0 = rng.uniform(-1.0, 1.0, (r, n, 2))
         r2 = rng.uniform(0.0, 1.0, (r, n, 2))
-        v = p.omega * self.v + p.phi0 * r0 * self.delta * self.v0[:, None, None] \
-            + self.phi2[:, None, None] * r2 * (p_n[:, None, :] - self.x)
-        norm = np.linalg.norm(v / self.delta, axis=-1)
-        limit = self.v0[:, None] * np.where(self.high_energy, p.high_energy_factor, 1.0)
-        v *= np.minimum(1.0, limit / np.maximum(norm, 1e-12))[..., None]
-        x = self.x + v
         k = np.minimum(np.round(self.q_r * n).astype(np.int64), n - int(self.high_energy.sum()))
         kmax = int(k.max())
-        if kmax:
-            z = rng.normal(0.0, p.quantum_sigma, (r, kmax, 2))
-            quantum = np.arange(kmax)[None, :] < k[:, None]
-            xq = p_n[:, None, :] + self.delta * z
-            x[:, :kmax] = np.where(quantum[..., None], xq, x[:, :kmax])
-            v[:, :kmax] = np.where(quantum[..., None], 0.0, v[:, :kmax])
-        below, above = x < self.lower, x > self.upper
-        x = np.where(below, 2 * self.lower - x, np.where(above, 2 * self.upper - x, x))
-        x = np.clip(x, self.lower, self.upper)
-        v = np.where(below | above, -v, v)
+        z = rng.normal(0.0, p.quantum_sigma, (r, kmax, 2)) if kmax else np.zeros((r, 1, 2))
+        x, v = np.empty_like(self.x), np.empty_like(self.v)
+        _kernel("dpso_move")(self.x, self.v, np.ascontiguousarray(p_n), r0, r2, z, k, self.v0,
+                             self.phi2, self.high_energy, self.delta, self.lower, self.upper,
+                             float(p.omega), float(p.phi0), float(p.high_energy_factor), x, v)
         self.x, self.v = x, v
 
 
@@ -284,10 +385,7 @@ class BatchPF(_Common):
             return
         rot = rng.normal(0.0, math.radians(p.sigma_rot_deg), (r, n))  # Eq. 7
         scale = np.exp(rng.normal(0.0, p.sigma_acc, (r, n)))
-        c, s = np.cos(rot), np.sin(rot)
-        vx, vy = self.v[..., 0], self.v[..., 1]
-        self.v = scale[..., None] * np.stack([c * vx - s * vy, s * vx + c * vy], -1)
-        self.x = self.x + self.v * dt  # Eq. 8
+        _kernel("pf_linear")(self.x, self.v, np.cos(rot), np.sin(rot), scale, dt)  # Eq. 8
 
     def step(self, fitness: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], t: float
              ) -> tuple[np.ndarray, np.ndarray]:
@@ -299,20 +397,15 @@ class BatchPF(_Common):
         f, m = fitness(self.x)
         n = self.p.n_particles
         total = f.sum(axis=1)
-        w = np.where((total > 0)[:, None], f / np.where(total > 0, total, 1.0)[:, None], 1.0 / n)
-        est = np.einsum("rn,rnk->rk", w, self.x)
-        spread = np.linalg.norm(self.x - self.x.mean(axis=1)[:, None], axis=-1).mean(axis=1)
+        u = self.rng.uniform(0.0, 1.0 / n, self.r)
+        est = np.empty((self.r, 2))
+        spread = np.empty(self.r)
+        x_new, v_new = np.empty_like(self.x), np.empty_like(self.v)
+        _kernel("pf_update")(np.ascontiguousarray(f), total, self.x, self.v, u, est, spread,
+                             x_new, v_new)
         self.track_motion(est)
         self.update_status(m.max(axis=1))
-        # low-variance resampling per run: rows shifted apart by their index, one searchsorted
-        c = np.cumsum(w, axis=1)
-        c[:, -1] = 1.0
-        u = self.rng.uniform(0.0, 1.0 / n, self.r)[:, None] + np.arange(n)[None, :] / n
-        off = np.arange(self.r)[:, None] * 2.0
-        idx = np.searchsorted((c + off).ravel(), (u + off).ravel(), side="left")
-        idx = idx.reshape(self.r, n) - np.arange(self.r)[:, None] * n
-        rr = np.arange(self.r)[:, None]
-        self.x, self.v = self.x[rr, idx], self.v[rr, idx]
+        self.x, self.v = x_new, v_new
         return est, spread
 
 
