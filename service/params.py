@@ -86,6 +86,11 @@ class CommonParams(_Params):
         2.0, ge=0, le=1000, description="global start (m): particles are placed around "
         "randomly drawn map images with this spread; localisation is only possible near map "
         "images, uniform placement would waste most particles off the route")
+    place_candidates: int = Field(
+        10, ge=0, le=1000, description="while searching (global start, not yet converged, "
+        "lost or recovering), random placements are drawn around the top-k images of the "
+        "map's place index for the frame instead of random map images (service/"
+        "place_index.py); 0, or a map without an index: random map images")
 
 
 class DPSOParams(CommonParams):
