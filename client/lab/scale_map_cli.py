@@ -53,3 +53,25 @@ def register(world_app: typer.Typer, bench_app: typer.Typer) -> None:
         for path in assemble_maps(out, [s for s in sizes if s <= images]):
             typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
         typer.echo(f"done in {time.perf_counter() - t0:.0f} s")
+
+    @bench_app.command("scale-map")
+    def scale_map_cmd(
+        route_dir: Annotated[Path, typer.Argument(help="a 'swarmloc world long-route' dir")],
+        sizes: Annotated[str, typer.Option(help="map sizes (route-N.swmap)")]
+        = "400,4000,40000",
+        server_frames: Annotated[int, typer.Option(
+            help="frames sent over HTTP to a service process per size (0: no server)")] = 100,
+        relocal: Annotated[bool, typer.Option(
+            help="fresh starts and kidnaps on the largest map")] = True,
+        baseline: Annotated[bool, typer.Option(
+            help="the same relocalisation runs with random placements (no index)")] = False,
+    ) -> None:
+        """File size, open time, service start-up and RSS, per-frame localizer time and
+        comparisons while tracking for each map size; relocalisation on the largest."""
+        from client.lab.bench_scale_map import run_bench
+
+        try:
+            run_bench(route_dir, sorted(int(s) for s in sizes.split(",") if s.strip()),
+                      server_frames, relocal, baseline, typer.echo)
+        except FileNotFoundError as exc:
+            raise typer.BadParameter(str(exc)) from None
