@@ -85,6 +85,10 @@ class Estimator:
         # candidate places (k, 2) of this frame from the map's place index (PlaceSeeder);
         # None: random placements are drawn around random map images
         self.place_candidates: np.ndarray | None = None
+        # the place seeder's checks while tracking (kept here, with the estimator's state,
+        # so that a session moved between replicas continues identically)
+        self.place_frames = 0  # tracked frames seen by the seeder
+        self.place_disagree = 0  # periodic index checks in a row that disagreed
         self._needs_init = True
         self._bad = 0
         self._good = 0

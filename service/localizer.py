@@ -65,7 +65,9 @@ class Localizer:
         """Candidate places of this frame for a searching estimator (service/place_index.py);
         a no-op without a place index."""
         if self.seeder is not None:
-            self.seeder.before_step(self.estimator, codes)
+            last = self.last
+            self.seeder.before_step(self.estimator, codes, None if last is None
+                                    else np.array([last.x, last.y]))
 
     def _estimate(self, res: StepResult, t: float | None) -> Estimate:
         x, y = (float(v) for v in res.position)

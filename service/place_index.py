@@ -170,6 +170,8 @@ class Seedable(Protocol):
     """What the seeder needs of an estimator (service/estimator.py)."""
 
     place_candidates: np.ndarray | None
+    place_frames: int
+    place_disagree: int
 
     def wants_places(self) -> bool: ...
 
@@ -177,26 +179,59 @@ class Seedable(Protocol):
 class PlaceSeeder:
     """Per frame: the top-k candidate places for an estimator that is searching, else none.
 
-    ``last_query_s`` is the time of this frame's index query (0 when none ran) and
+    While the estimator tracks, the index is asked every ``check_every`` frames whether the
+    tracked place is among its top ``check_top`` candidates (within ``far_m``). The swarm's
+    own lost detection judges a match against the background of the images it compares; on a
+    large map a wrong place whose best match is weak but above that background can look like
+    a good track (a kidnapped robot then "tracks" the old place for ever). After
+    ``disagree_checks`` checks in a row that disagree, this frame's candidates are given to
+    the estimator anyway: its scouts are drawn there, and a place that matches better takes
+    over. ``last_query_s`` is the time of this frame's index query (0 when none ran) and
     ``queries`` counts them, for the benchmarks' honest accounting.
     """
 
-    def __init__(self, index: PlaceIndex, positions: np.ndarray, k: int) -> None:
+    def __init__(self, index: PlaceIndex, positions: np.ndarray, k: int, check_every: int = 3,
+                 check_top: int = 3, far_m: float = 10.0, disagree_checks: int = 2) -> None:
         self.index = index
         self.positions = np.asarray(positions, float)
         self.k = k
+        self.check_every = check_every
+        self.check_top = check_top
+        self.far_m = far_m
+        self.disagree_checks = disagree_checks
         self.last_query_s = 0.0
         self.queries = 0
         self.last_ids = np.zeros(0, np.int64)
 
-    def before_step(self, estimator: Seedable, codes: np.ndarray) -> None:
-        self.last_query_s = 0.0
-        if self.k <= 0 or not estimator.wants_places():
-            estimator.place_candidates = None
-            return
+    def _query(self, codes: np.ndarray) -> np.ndarray:
         t0 = time.perf_counter()
         ids, _ = self.index.query(codes, self.k)
         self.last_query_s = time.perf_counter() - t0
         self.queries += 1
         self.last_ids = ids
-        estimator.place_candidates = self.positions[ids] if len(ids) else None
+        return ids
+
+    def before_step(self, estimator: Seedable, codes: np.ndarray,
+                    estimate: np.ndarray | None = None) -> None:
+        """Set ``estimator.place_candidates`` for this frame; ``estimate``: the position
+        reported for the previous frame."""
+        self.last_query_s = 0.0
+        estimator.place_candidates = None
+        if self.k <= 0:
+            return
+        if estimator.wants_places():
+            estimator.place_disagree = 0
+            ids = self._query(codes)
+            estimator.place_candidates = self.positions[ids] if len(ids) else None
+            return
+        estimator.place_frames += 1
+        if estimate is None or estimator.place_frames % self.check_every:
+            return
+        ids = self._query(codes)
+        if not len(ids):
+            return
+        near = np.linalg.norm(self.positions[ids[: self.check_top]] - estimate, axis=1)
+        estimator.place_disagree = 0 if (near <= self.far_m).any() else \
+            estimator.place_disagree + 1
+        if estimator.place_disagree >= self.disagree_checks:
+            estimator.place_candidates = self.positions[ids]
