@@ -9,6 +9,7 @@ import numpy as np
 from service.estimator import StepResult
 from service.features import Features, extract
 from service.models import Estimate, EstimatorName, Hypothesis
+from service.params import DPSOParams
 from service.place_index import PlaceSeeder
 from service.registry import make_estimator
 from service.route_map import RouteMap
@@ -29,7 +30,8 @@ class Localizer:
         self.seed = seed
         self.estimator = make_estimator(route_map, estimator, params,
                                         np.random.default_rng(seed))
-        k = self.estimator.params.place_candidates
+        p = self.estimator.params  # the papers' estimators keep their random placements
+        k = p.place_candidates if isinstance(p, DPSOParams) and p.variant == "swarmloc" else 0
         self.seeder = (PlaceSeeder(route_map.place_index, route_map.positions, k)
                        if route_map.place_index is not None and k > 0 else None)
         self.seq = 0

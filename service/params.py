@@ -86,11 +86,6 @@ class CommonParams(_Params):
         2.0, ge=0, le=1000, description="global start (m): particles are placed around "
         "randomly drawn map images with this spread; localisation is only possible near map "
         "images, uniform placement would waste most particles off the route")
-    place_candidates: int = Field(
-        10, ge=0, le=1000, description="while searching (global start, not yet converged, "
-        "lost or recovering), random placements are drawn around the top-k images of the "
-        "map's place index for the frame instead of random map images (service/"
-        "place_index.py); 0, or a map without an index: random map images")
 
 
 class DPSOParams(CommonParams):
@@ -135,6 +130,12 @@ class DPSOParams(CommonParams):
     min_axis_range_m: float = Field(
         20.0, gt=0, le=1e6, description="smallest axis range used for delta_i (m): a "
         "straight route would otherwise have no lateral exploration")
+    place_candidates: int = Field(
+        10, ge=0, le=1000, description="while searching (global start, not yet converged, "
+        "lost or recovering), random placements are drawn around the top-k images of the "
+        "map's place index for the frame instead of random map images (service/"
+        "place_index.py); 0, or a map without an index: random map images. The papers' "
+        "estimators (variant 'paper', the particle filters) always use random images")
     max_axis_range_m: float = Field(
         200.0, gt=0, le=1e7, description="largest axis range used for delta_i (m): on a "
         "map wider than a district the swarm's velocities, perturbation and recovery spread "
