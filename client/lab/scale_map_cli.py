@@ -20,8 +20,8 @@ def register(world_app: typer.Typer, bench_app: typer.Typer) -> None:
         maps: Annotated[str, typer.Option(help="map sizes to assemble (prefixes of the "
                                                 "route)")] = "400,4000,40000",
         seed: int = 0,
-        legs: Annotated[int, typer.Option(help="query legs at random places")] = 16,
-        leg_frames: Annotated[int, typer.Option(help="frames per query leg")] = 45,
+        legs: Annotated[int, typer.Option(help="query legs at random places")] = 20,
+        leg_frames: Annotated[int, typer.Option(help="frames per query leg")] = 50,
         track_frames: Annotated[int, typer.Option(
             help="frames of the tracking leg in loop 0 (inside the 400-image map)")] = 360,
         workers: Annotated[int, typer.Option(help="rendering processes")] = 1,
