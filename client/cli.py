@@ -16,6 +16,7 @@ import typer
 from client.lab.bench_frame_cli import register as register_frame_bench
 from client.lab.bench_load_cli import register as register_load_bench
 from client.lab.experiment_cli import experiment, sweep
+from client.lab.scale_map_cli import register as register_scale_map
 from service.cli import serve
 
 if TYPE_CHECKING:
@@ -41,6 +42,7 @@ app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
 register_load_bench(bench_app)  # bench load, bench fuzz (client/lab/bench_load_cli.py)
 register_frame_bench(bench_app)  # bench frame (client/lab/bench_frame_cli.py)
+register_scale_map(world_app, bench_app)  # world long-route, bench scale-map
 
 
 def _fail(msg: str) -> NoReturn:

@@ -82,6 +82,13 @@ class Estimator:
         self._spacing = float(np.median(np.linalg.norm(np.diff(pos, axis=0), axis=1))) \
             if len(pos) > 1 else 1.0
         self._init_near: tuple[np.ndarray, float] | None = None
+        # candidate places (k, 2) of this frame from the map's place index (PlaceSeeder);
+        # None: random placements are drawn around random map images
+        self.place_candidates: np.ndarray | None = None
+        # the place seeder's checks while tracking (kept here, with the estimator's state,
+        # so that a session moved between replicas continues identically)
+        self.place_frames = 0  # tracked frames seen by the seeder
+        self.place_disagree = 0  # periodic index checks in a row that disagreed
         self._needs_init = True
         self._bad = 0
         self._good = 0
@@ -113,9 +120,18 @@ class Estimator:
         return self.sample_map_positions(n)
 
     def sample_map_positions(self, n: int) -> np.ndarray:
-        """Positions around randomly drawn map images (localisation needs a map image near)."""
-        ids = self.rng.integers(0, len(self._map_positions), n)
-        return self._map_positions[ids] + self.rng.normal(0, self.params.init_spread_m, (n, 2))
+        """Positions around randomly drawn map images (localisation needs a map image near),
+        or around this frame's candidate places from the place index when it gave some."""
+        pool = self.place_candidates if self.place_candidates is not None and \
+            len(self.place_candidates) else self._map_positions
+        ids = self.rng.integers(0, len(pool), n)
+        return pool[ids] + self.rng.normal(0, self.params.init_spread_m, (n, 2))
+
+    def wants_places(self) -> bool:
+        """Whether the place index should seed this frame's random placements: before the
+        first placement, until converged, while lost or recovering."""
+        return (self._needs_init or not self._converged or self._bad >= self.params.lost_frames
+                or bool(getattr(self, "recovering", False)))
 
     def sample_map_positions_near(self, centre: np.ndarray, inner: float, outer: float, n: int
                                   ) -> np.ndarray:

@@ -9,6 +9,8 @@ import numpy as np
 from service.estimator import StepResult
 from service.features import Features, extract
 from service.models import Estimate, EstimatorName, Hypothesis
+from service.params import DPSOParams
+from service.place_index import PlaceSeeder
 from service.registry import make_estimator
 from service.route_map import RouteMap
 
@@ -28,6 +30,10 @@ class Localizer:
         self.seed = seed
         self.estimator = make_estimator(route_map, estimator, params,
                                         np.random.default_rng(seed))
+        p = self.estimator.params  # the papers' estimators keep their random placements
+        k = p.place_candidates if isinstance(p, DPSOParams) and p.variant == "swarmloc" else 0
+        self.seeder = (PlaceSeeder(route_map.place_index, route_map.positions, k)
+                       if route_map.place_index is not None and k > 0 else None)
         self.seq = 0
         self.last: Estimate | None = None
 
@@ -51,10 +57,19 @@ class Localizer:
         if prior is not None:
             self.estimator.constrain((prior[0], prior[1]), prior[2])
         codes = features.codes
+        self.seed_places(codes)
         res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t)
         self.seq += 1
         self.last = self._estimate(res, t)
         return self.last
+
+    def seed_places(self, codes: np.ndarray) -> None:
+        """Candidate places of this frame for a searching estimator (service/place_index.py);
+        a no-op without a place index."""
+        if self.seeder is not None:
+            last = self.last
+            self.seeder.before_step(self.estimator, codes, None if last is None
+                                    else np.array([last.x, last.y]))
 
     def _estimate(self, res: StepResult, t: float | None) -> Estimate:
         x, y = (float(v) for v in res.position)

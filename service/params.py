@@ -130,6 +130,18 @@ class DPSOParams(CommonParams):
     min_axis_range_m: float = Field(
         20.0, gt=0, le=1e6, description="smallest axis range used for delta_i (m): a "
         "straight route would otherwise have no lateral exploration")
+    place_candidates: int = Field(
+        10, ge=0, le=1000, description="while searching (global start, not yet converged, "
+        "lost or recovering), random placements are drawn around the top-k images of the "
+        "map's place index for the frame instead of random map images (service/"
+        "place_index.py); 0, or a map without an index: random map images. The papers' "
+        "estimators (variant 'paper', the particle filters) always use random images")
+    max_axis_range_m: float = Field(
+        200.0, gt=0, le=1e7, description="largest axis range used for delta_i (m): on a "
+        "map wider than a district the swarm's velocities, perturbation and recovery spread "
+        "(fractions of delta_i) would grow with the map (more comparisons per frame, slower "
+        "to settle); long jumps come from the place index instead. The papers' routes "
+        "(< 200 m per axis) are unaffected")
     variant: DPSOVariant = Field(
         "swarmloc", description="'swarmloc': multi-swarm DPSO with path evidence, scouts and "
         "relative lost detection; 'paper': the journal's DPSO as published")
@@ -201,6 +213,8 @@ class DPSOParams(CommonParams):
     @model_validator(mode="after")
     def _consistent(self) -> Self:
         _check(self.v0_min <= self.v0 <= self.v0_max, "need v0_min <= v0 <= v0_max")
+        _check(self.min_axis_range_m <= self.max_axis_range_m,
+               "need min_axis_range_m <= max_axis_range_m")
         _check(self.adapt_low < self.adapt_high, "need adapt_low < adapt_high")
         return self
 

@@ -4,14 +4,26 @@ File layout (``NAME.swmap``), all little-endian:
 
     MAGIC (8 bytes) | header length (uint64) | header JSON (utf-8) | padding to 64 | arrays
 
-Format version 2 stores descriptors as uint8 codes (SIFT is integer-valued; RootSIFT is
-quantised, see service/features.py) and the layer (traversal) of every image, for maps merged
-from several traversals. The header holds the format version, the metadata (feature type and
-parameters, delta, working image size, geodetic origin, build date, pruning statistics,
-source) and, for every array, its dtype, shape and byte offset. ``checksum`` is the SHA-256
-of the header without that field (canonical JSON) followed by every data byte, so a flipped
-bit anywhere is caught on load. Arrays are 64-byte aligned and opened with ``numpy.memmap``:
-a map opens without copying its descriptors into memory.
+Format version 3 (version 2 plus the place index and per-image digests) stores descriptors
+as uint8 codes (SIFT is integer-valued; RootSIFT is quantised, see service/features.py), the
+layer (traversal) of every image, for maps merged from several traversals, and the global
+place-recognition index (service/place_index.py: VLAD vocabulary, PCA, one descriptor per
+image). The header holds the format version, the metadata (feature type and parameters, delta,
+working image size, geodetic origin, build date, pruning statistics, source, place index) and,
+for every array, its dtype, shape, byte offset and SHA-256. ``checksum`` is the SHA-256 of the
+header without that field (canonical JSON), so it covers every array through their digests.
+``image_digests`` holds a BLAKE2b-64 of each image's codes and of its keypoints.
+
+Loading verifies the header and every array (``verify=True``), or, for a server start-up whose
+time and memory must not grow with the map (``verify="lazy"``), the header and every array
+except the descriptors and keypoints, whose images are checked against their digests when
+first used: a flipped bit anywhere is still caught before it is used, and a 40,000-image map
+opens without reading its gigabytes. Arrays are 64-byte aligned and opened with
+``numpy.memmap``: a map opens without copying its descriptors into memory.
+
+Version 2 maps (no index, one checksum over everything) still load, fully verified; their
+place index is absent, so global initialisation falls back to random map images (rebuild the
+map with 'swarmloc map build' to get the index).
 """
 
 from __future__ import annotations
@@ -26,7 +38,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -40,13 +52,27 @@ from service.features import (
 )
 from service.geo import LocalFrame
 from service.matcher import PreparedSet, match_batch_u8, prepare
+from service.place_index import PlaceIndex, build_place_index
 
 MAGIC = b"SWMAP\x00\r\n"
 # the dtype of every stored array, as save_map writes them (anything else is refused)
-_DTYPES = {"positions": np.dtype("<f8"), "offsets": np.dtype("<i8"), "codes": np.dtype(np.uint8),
-           "keypoints": np.dtype("<f4"), "image_names": np.dtype(np.uint8),
-           "layers": np.dtype("<i8")}
-FORMAT_VERSION = 2
+_DTYPES: dict[str, np.dtype] = {
+    "positions": np.dtype("<f8"), "offsets": np.dtype("<i8"), "codes": np.dtype(np.uint8),
+    "keypoints": np.dtype("<f4"), "image_names": np.dtype(np.uint8), "layers": np.dtype("<i8")}
+# version 3: small arrays first, then the descriptors, keypoints and their per-image digests;
+# the place index arrays are optional (a map too small for a vocabulary has none)
+_DTYPES_V3: dict[str, np.dtype] = {
+    "positions": np.dtype("<f8"), "offsets": np.dtype("<i8"), "image_names": np.dtype(np.uint8),
+    "layers": np.dtype("<i8"), "place_words": np.dtype("<f4"), "place_mean": np.dtype("<f4"),
+    "place_projection": np.dtype("<f4"), "place_descriptors": np.dtype("<f4"),
+    "codes": np.dtype(np.uint8), "keypoints": np.dtype("<f4"),
+    "image_digests": np.dtype(np.uint8)}
+_OPTIONAL = ("place_words", "place_mean", "place_projection", "place_descriptors")
+_LAZY = ("codes", "keypoints")  # checked per image on first use with verify="lazy"
+_DIGEST = 8  # bytes of each BLAKE2b image digest (codes, then keypoints)
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (2, 3)
+Verify = bool | Literal["lazy"]
 SUFFIX = ".swmap"
 _ALIGN = 64
 
@@ -102,6 +128,10 @@ class RouteMap:
     keypoints: np.ndarray  # (total, 2) float32
     path: Path | None = None
     layers: np.ndarray | None = None  # (n,) traversal index of each image; None: one
+    place_index: PlaceIndex | None = None  # global place recognition (None: not built)
+    # (n, 16) BLAKE2b-64 digests of each image's codes and keypoints, checked on first use
+    # of an image when the map was opened with verify="lazy" (None: nothing left to check)
+    lazy_digests: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.positions)
@@ -113,6 +143,19 @@ class RouteMap:
                              [cKDTree(self.positions[ids]) for ids in self._layer_ids])
         self._sets: list[np.ndarray | None] = [None] * n
         self._prepared: list[PreparedSet | None] = [None] * n
+        self._checked = np.zeros(n if self.lazy_digests is not None else 0, bool)
+
+    def _check_image(self, image_id: int) -> None:
+        """With lazy verification: the image's codes and keypoints against their digests,
+        once (a corrupted image raises MapError instead of being matched)."""
+        if self.lazy_digests is None or self._checked[image_id]:
+            return
+        a, b = int(self.offsets[image_id]), int(self.offsets[image_id + 1])
+        if _image_digest(self.codes[a:b], self.keypoints[a:b]) != \
+                bytes(self.lazy_digests[image_id]):
+            raise MapError(f"{self.path}: image {image_id} ('{self.image_names[image_id]}') "
+                           "does not match its digest, the file is corrupted; rebuild the map")
+        self._checked[image_id] = True
 
     @property
     def n_layers(self) -> int:
@@ -153,6 +196,7 @@ class RouteMap:
         """Unit descriptors of one map image (from its codes; kept after the first use)."""
         cached = self._sets[image_id]
         if cached is None:
+            self._check_image(image_id)
             cached = unit_descriptors(self.codes[self.offsets[image_id]:
                                                  self.offsets[image_id + 1]])
             self._sets[image_id] = cached
@@ -181,6 +225,7 @@ class RouteMap:
         the codes stay memory-mapped)."""
         cached = self._prepared[image_id]
         if cached is None:
+            self._check_image(image_id)
             cached = prepare(np.asarray(
                 self.codes[self.offsets[image_id]: self.offsets[image_id + 1]]))
             self._prepared[image_id] = cached
@@ -192,6 +237,11 @@ class RouteMap:
         sets = [self.prepared(int(i)) for i in image_ids]
         return match_batch_u8(frame_codes, sets, self.delta).scores
 
+    def codes_of(self, image_id: int) -> np.ndarray:
+        """One image's descriptor codes (a memory-mapped view; verified with lazy loading)."""
+        self._check_image(image_id)
+        return self.codes[self.offsets[image_id]: self.offsets[image_id + 1]]
+
     def summary(self) -> dict:
         return {
             "name": self.name,
@@ -201,6 +251,7 @@ class RouteMap:
             "bounds": [self.bounds[0].tolist(), self.bounds[1].tolist()],
             "spacing_m": self.spacing,
             **{k: v for k, v in self.meta.items() if k not in ("arrays", "checksum")},
+            "place_index": self.place_index.meta() if self.place_index is not None else None,
         }
 
 
@@ -217,13 +268,15 @@ def build_map(
     extract: Callable[[np.ndarray, SiftParams], Features] | None = None,
     prune_features: bool = False,
     layers: np.ndarray | None = None,
+    place_index: bool = True,
 ) -> RouteMap:
     """Extract, (optionally) prune and assemble a map in memory (``save_map`` writes it).
 
     ``prune_features``: the papers' neighbour pruning (Sec. 6), off by default: it throws
     away the features that survive a change of light (README, "Features across lighting").
     ``layers``: traversal index per image for a map merged from several traversals; pruning
-    compares neighbours within a traversal.
+    compares neighbours within a traversal. ``place_index``: build the global
+    place-recognition index (service/place_index.py; seeded, so a build is reproducible).
     """
     from service.features import extract as sift_extract
 
@@ -272,8 +325,11 @@ def build_map(
         },
         "source": source or {},
     }
-    return RouteMap(name, meta, positions, list(image_names), codes, offsets, kps,
-                    layers=layer_arr)
+    m = RouteMap(name, meta, positions, list(image_names), codes, offsets, kps,
+                 layers=layer_arr)
+    if place_index:
+        m.place_index = build_place_index(m, np.random.default_rng(0))
+    return m
 
 
 class RoundLike(Protocol):
@@ -331,16 +387,27 @@ def build_map_from_rounds(
     )
 
 
-def _arrays(m: RouteMap) -> dict[str, np.ndarray]:
-    names = np.frombuffer(json.dumps(m.image_names).encode(), np.uint8)
-    return {
-        "positions": np.ascontiguousarray(m.positions, "<f8"),
-        "offsets": np.ascontiguousarray(m.offsets, "<i8"),
-        "codes": np.ascontiguousarray(m.codes, np.uint8),
-        "keypoints": np.ascontiguousarray(m.keypoints, "<f4"),
-        "image_names": names,
-        "layers": np.ascontiguousarray(m.layers, "<i8"),
+Chunk = tuple[np.ndarray, np.ndarray, np.ndarray]  # (codes, keypoints, counts) of whole images
+
+
+def _image_digest(codes: np.ndarray, keypoints: np.ndarray) -> bytes:
+    return (hashlib.blake2b(_raw(np.ascontiguousarray(codes, np.uint8)),
+                            digest_size=_DIGEST).digest()
+            + hashlib.blake2b(_raw(np.ascontiguousarray(keypoints, "<f4")),
+                              digest_size=_DIGEST).digest())
+
+
+def _small_arrays(positions: np.ndarray, offsets: np.ndarray, image_names: list[str],
+                  layers: np.ndarray, place_index: PlaceIndex | None) -> dict[str, np.ndarray]:
+    out = {
+        "positions": np.ascontiguousarray(positions, "<f8"),
+        "offsets": np.ascontiguousarray(offsets, "<i8"),
+        "image_names": np.frombuffer(json.dumps(image_names).encode(), np.uint8),
+        "layers": np.ascontiguousarray(layers, "<i8"),
     }
+    if place_index is not None:
+        out.update({k: np.ascontiguousarray(v, "<f4") for k, v in place_index.arrays().items()})
+    return out
 
 
 def _canonical(header: dict) -> bytes:
@@ -359,35 +426,112 @@ def _pad(n: int) -> int:
     return (-n) % _ALIGN
 
 
+def _sha256(arr: np.ndarray) -> str:
+    h = hashlib.sha256()
+    for a in range(0, max(len(arr), 1), 1 << 16):  # bounded memory for a memmap
+        h.update(_raw(arr[a: a + (1 << 16)]))
+    return h.hexdigest()
+
+
 def save_map(m: RouteMap, path: str | Path) -> Path:
     """Write the map atomically: a crash leaves the old file or none, never half of one."""
+    n = m.n_images
+    counts = np.diff(m.offsets)
+
+    def chunks() -> Iterator[Chunk]:
+        for a in range(0, n, 512):  # whole images, bounded memory for a memory-mapped map
+            b = min(n, a + 512)
+            lo, hi = int(m.offsets[a]), int(m.offsets[b])
+            yield m.codes[lo:hi], m.keypoints[lo:hi], counts[a:b]
+
+    assert m.layers is not None
+    out = write_map(path, m.name, m.meta, m.positions, m.image_names, m.layers, counts,
+                    chunks(), m.place_index)
+    m.path = out
+    return out
+
+
+def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
+              image_names: list[str], layers: np.ndarray, counts: np.ndarray,
+              chunks: Iterable[Chunk], place_index: PlaceIndex | None = None) -> Path:
+    """Stream a map into ``path`` atomically (temp + fsync + rename), chunk by chunk of whole
+    images, so a map of any size is written without holding its descriptors in memory.
+
+    ``counts``: features per image (the chunks' counts, in order, must repeat them).
+    """
     path = Path(path)
     if path.suffix != SUFFIX:
         path = path.with_name(path.name + SUFFIX)
     path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = _arrays(m)
-    layout, offset = {}, 0
-    for key, arr in arrays.items():
-        layout[key] = {"dtype": arr.dtype.str, "shape": list(arr.shape), "offset": offset,
-                       "nbytes": int(arr.nbytes)}
-        offset += arr.nbytes + _pad(arr.nbytes)
-    header = {**m.meta, "name": m.name, "format_version": FORMAT_VERSION, "arrays": layout}
-    digest = hashlib.sha256(_canonical(header))
-    for arr in arrays.values():
-        digest.update(_raw(arr))
-    header["checksum"] = digest.hexdigest()
-    head = json.dumps(header).encode()
-    prefix = MAGIC + struct.pack("<Q", len(head)) + head
-    prefix += b"\x00" * _pad(len(prefix))
+    counts = np.asarray(counts, np.int64)
+    n, total = len(counts), int(counts.sum())
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    small = _small_arrays(positions, offsets, list(image_names), layers, place_index)
+    shapes = {**{k: v.shape for k, v in small.items()}, "codes": (total, 128),
+              "keypoints": (total, 2), "image_digests": (n, 2 * _DIGEST)}
+    layout: dict[str, dict[str, Any]] = {}
+    offset = 0
+    for key, dtype in _DTYPES_V3.items():
+        if key not in shapes:
+            continue
+        nbytes = math.prod(shapes[key]) * dtype.itemsize
+        layout[key] = {"dtype": dtype.str, "shape": list(shapes[key]), "offset": offset,
+                       "nbytes": int(nbytes), "sha256": "0" * 64}
+        offset += nbytes + _pad(nbytes)
+    header = {k: v for k, v in meta.items() if k not in ("arrays", "checksum", "name")}
+    header.update({"name": name, "format_version": FORMAT_VERSION, "arrays": layout,
+                   "place_index": place_index.meta() if place_index is not None else None,
+                   "checksum": "0" * 64})
+    head_len = len(json.dumps(header).encode())
+    start = len(MAGIC) + 8 + head_len
+    data_start = start + _pad(start)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         with tmp.open("wb") as fh:
-            fh.write(prefix)
-            for arr in arrays.values():
-                fh.write(arr.tobytes())
-                fh.write(b"\x00" * _pad(arr.nbytes))
+            fh.truncate(data_start + offset)
+            fd = fh.fileno()
+
+            def put(key: str, at: int, arr: np.ndarray) -> None:
+                if arr.nbytes:
+                    os.pwrite(fd, _raw(arr), data_start + layout[key]["offset"] + at)
+
+            for key, arr in small.items():
+                put(key, 0, arr)
+                layout[key]["sha256"] = _sha256(arr)
+            h_codes, h_kps = hashlib.sha256(), hashlib.sha256()
+            digests = np.zeros((n, 2 * _DIGEST), np.uint8)
+            img = row = 0
+            for codes, kps, cnt in chunks:
+                codes = np.ascontiguousarray(codes, np.uint8)
+                kps = np.ascontiguousarray(kps, "<f4")
+                cnt = np.asarray(cnt, np.int64)
+                if not np.array_equal(cnt, counts[img: img + len(cnt)]) or \
+                        len(codes) != int(cnt.sum()) or len(kps) != len(codes):
+                    raise MapError("map chunks do not add up to the images' feature counts")
+                put("codes", row * 128, codes)
+                put("keypoints", row * 8, kps)
+                h_codes.update(_raw(codes))
+                h_kps.update(_raw(kps))
+                local = np.concatenate([[0], np.cumsum(cnt)])
+                for j in range(len(cnt)):
+                    a, b = int(local[j]), int(local[j + 1])
+                    digests[img + j] = np.frombuffer(_image_digest(codes[a:b], kps[a:b]),
+                                                     np.uint8)
+                img += len(cnt)
+                row += len(codes)
+            if img != n:
+                raise MapError(f"map chunks hold {img} images, expected {n}")
+            put("image_digests", 0, digests)
+            layout["codes"]["sha256"] = h_codes.hexdigest()
+            layout["keypoints"]["sha256"] = h_kps.hexdigest()
+            layout["image_digests"]["sha256"] = _sha256(digests)
+            header["checksum"] = hashlib.sha256(_canonical(header)).hexdigest()
+            head = json.dumps(header).encode()
+            assert len(head) == head_len  # digests are fixed-length hex: same header size
+            prefix = MAGIC + struct.pack("<Q", len(head)) + head
+            os.pwrite(fd, prefix + b"\x00" * _pad(len(prefix)), 0)
             fh.flush()
-            os.fsync(fh.fileno())
+            os.fsync(fd)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -396,7 +540,6 @@ def save_map(m: RouteMap, path: str | Path) -> Path:
         os.fsync(dir_fd)
     finally:
         os.close(dir_fd)
-    m.path = path
     return path
 
 
@@ -427,23 +570,15 @@ def _read_header(path: Path) -> tuple[dict, int]:
     return header, start + _pad(start)
 
 
-def load_map(path: str | Path, verify: bool = True) -> RouteMap:
-    """Open a map memory-mapped; check version, layout and (by default) the checksum."""
-    path = Path(path)
-    if not path.is_file():
-        raise MapError(f"{path}: no such map file")
-    header, data_start = _read_header(path)
-    version = header.get("format_version")
-    if version != FORMAT_VERSION:
-        raise MapError(
-            f"{path}: map format version {version} is not supported (this swarmloc reads "
-            f"version {FORMAT_VERSION}); rebuild it with 'swarmloc map build'"
-        )
+def _open_arrays(path: Path, header: dict, data_start: int, dtypes: dict[str, np.dtype],
+                 optional: tuple[str, ...]) -> dict[str, np.ndarray]:
     size = path.stat().st_size
     arrays: dict[str, np.ndarray] = {}
     try:
         layout = header["arrays"]
-        for key, want in _DTYPES.items():
+        for key, want in dtypes.items():
+            if key not in layout and key in optional:
+                continue
             spec = layout[key]
             dtype = np.dtype(spec["dtype"])
             offset, nbytes = int(spec["offset"]), int(spec["nbytes"])
@@ -461,12 +596,55 @@ def load_map(path: str | Path, verify: bool = True) -> RouteMap:
         if isinstance(exc, MapError):
             raise
         raise MapError(f"{path}: header does not describe the arrays ({exc})") from None
-    if verify:
-        digest = hashlib.sha256(_canonical(header))
-        for arr in arrays.values():
-            digest.update(_raw(arr))
-        if digest.hexdigest() != header.get("checksum"):
-            raise MapError(f"{path}: checksum mismatch, the file is corrupted; rebuild the map")
+    return arrays
+
+
+def _verify_v2(path: Path, header: dict, arrays: dict[str, np.ndarray]) -> None:
+    digest = hashlib.sha256(_canonical(header))
+    for arr in arrays.values():
+        digest.update(_raw(arr))
+    if digest.hexdigest() != header.get("checksum"):
+        raise MapError(f"{path}: checksum mismatch, the file is corrupted; rebuild the map")
+
+
+def _verify_v3(path: Path, header: dict, arrays: dict[str, np.ndarray], lazy: bool) -> None:
+    if hashlib.sha256(_canonical(header)).hexdigest() != header.get("checksum"):
+        raise MapError(f"{path}: checksum mismatch (header), the file is corrupted; rebuild "
+                       "the map")
+    for key, arr in arrays.items():
+        if lazy and key in _LAZY:
+            continue
+        if _sha256(arr) != header["arrays"][key].get("sha256"):
+            raise MapError(f"{path}: checksum mismatch (array '{key}'), the file is "
+                           "corrupted; rebuild the map")
+
+
+def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
+    """Open a map memory-mapped; check version, layout and (by default) every checksum.
+
+    ``verify="lazy"``: check the header and every array but the descriptors and keypoints
+    now, each image's descriptors and keypoints against its digest when first used; start-up
+    time and memory then do not grow with the map (service start-up uses it).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MapError(f"{path}: no such map file")
+    header, data_start = _read_header(path)
+    version = header.get("format_version")
+    if version not in READABLE_VERSIONS:
+        raise MapError(
+            f"{path}: map format version {version} is not supported (this swarmloc reads "
+            f"versions {', '.join(map(str, READABLE_VERSIONS))}); rebuild it with "
+            "'swarmloc map build'"
+        )
+    if version == 2:
+        arrays = _open_arrays(path, header, data_start, _DTYPES, ())
+        if verify:
+            _verify_v2(path, header, arrays)
+    else:
+        arrays = _open_arrays(path, header, data_start, _DTYPES_V3, _OPTIONAL)
+        if verify:
+            _verify_v3(path, header, arrays, lazy=verify == "lazy")
     positions = np.asarray(arrays["positions"])
     offsets = np.asarray(arrays["offsets"])
     n = len(positions)
@@ -490,6 +668,12 @@ def load_map(path: str | Path, verify: bool = True) -> RouteMap:
     if codes.ndim != 2 or codes.shape[1] != 128 or kps.shape != (len(codes), 2):
         raise MapError(f"{path}: descriptor codes {codes.shape} / keypoints {kps.shape} do "
                        "not have the shapes (n, 128) / (n, 2)")
+    place_index = None
+    if version == 3:
+        place_index = _check_place_index(path, arrays, n)
+        if arrays["image_digests"].shape != (n, 2 * _DIGEST):
+            raise MapError(f"{path}: image digests {arrays['image_digests'].shape} do not "
+                           f"have the shape ({n}, {2 * _DIGEST})")
     delta, feature = header.get("delta"), header.get("feature")
     if not isinstance(delta, int | float) or not 0 < delta <= 1 or \
             not isinstance(feature, dict):
@@ -505,8 +689,24 @@ def load_map(path: str | Path, verify: bool = True) -> RouteMap:
         raise MapError(f"{path}: feature parameters are invalid ({feature})")
     meta = {k: v for k, v in header.items() if k not in ("name",)}
     name = str(header.get("name", path.stem))
+    lazy = (np.asarray(arrays["image_digests"]) if version == 3 and verify == "lazy"
+            else None)
     return RouteMap(name, meta, positions, names, arrays["codes"], offsets,
-                    arrays["keypoints"], path, layers)
+                    arrays["keypoints"], path, layers, place_index, lazy)
+
+
+def _check_place_index(path: Path, arrays: dict[str, np.ndarray], n: int) -> PlaceIndex | None:
+    present = [k for k in _OPTIONAL if k in arrays]
+    if not present:
+        return None
+    if len(present) != len(_OPTIONAL):
+        raise MapError(f"{path}: the place index is incomplete (has {present})")
+    w, mu, proj, desc = (arrays[k] for k in _OPTIONAL)
+    if w.ndim != 2 or w.shape[1] != 128 or mu.shape != (w.shape[0] * 128,) or \
+            proj.ndim != 2 or proj.shape[0] != len(mu) or desc.shape != (n, proj.shape[1]):
+        raise MapError(f"{path}: the place index arrays do not fit together (words "
+                       f"{w.shape}, projection {proj.shape}, descriptors {desc.shape})")
+    return PlaceIndex.from_arrays(arrays)
 
 
 def list_maps(directory: str | Path) -> list[Path]:

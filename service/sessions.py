@@ -94,7 +94,7 @@ class LocalizationService:
         and the second is refused, naming both."""
         for path in list_maps(directory):
             try:
-                m = load_map(path)
+                m = load_map(path, verify="lazy")  # images checked on first use
                 if m.name in self.maps:
                     first = self.maps[m.name].path
                     raise ValueError(f"map name '{m.name}' is already loaded from "

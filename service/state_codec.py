@@ -44,7 +44,8 @@ _HEADER = struct.Struct("<4sBI")
 # positions) or from the session configuration (the validated parameter object), and the
 # Localizer's constructor makes it again from (map, estimator name, params, seed).
 REBUILT: dict[str, frozenset[str]] = {
-    "localizer": frozenset({"map", "estimator"}),  # the estimator is stored on its own
+    # the estimator is stored on its own; the place seeder derives from the map and params
+    "localizer": frozenset({"map", "estimator", "seeder"}),
     "estimator": frozenset({"index", "params", "_map_positions"}),
 }
 

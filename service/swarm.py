@@ -25,12 +25,15 @@ class DPSO(Estimator):
         super().__init__(index, params, rng)
         pos = np.asarray(index.positions, float)
         # delta_i: range of axis i (m), floored so that a straight route still has a width
-        self.delta = np.maximum(pos.max(axis=0) - pos.min(axis=0), params.min_axis_range_m)
+        span = np.maximum(pos.max(axis=0) - pos.min(axis=0), params.min_axis_range_m)
+        # ... and capped, so that the swarm's steps stay street-sized on a city-sized map
+        # (the place index, not the velocity, makes the long jumps there)
+        self.delta = np.minimum(span, params.max_axis_range_m)
         n = params.n_particles
         # search space: the map's bounding box, widened by 10 % of each range; particles
         # reflect at its walls (standard PSO boundary handling, not spelled out in the paper)
-        self.lower = pos.min(axis=0) - 0.1 * self.delta
-        self.upper = pos.max(axis=0) + 0.1 * self.delta
+        self.lower = pos.min(axis=0) - 0.1 * span
+        self.upper = pos.max(axis=0) + 0.1 * span
         # particle types are fixed subsets, as in the quantum swarms of Blackwell & Branke
         # (the paper's ref. [32]): the last h_r * n are high-energy, the first q_r * n quantum
         # (see _move; recovery grows the quantum subset towards quantum_ratio_max)

@@ -36,7 +36,7 @@ def test_map_roundtrip_is_memory_mapped(small_map, sunny1) -> None:
     np.testing.assert_allclose(small_map.positions, sunny1.xy)
     assert small_map.image_names == list(sunny1.images)
     meta = small_map.meta
-    assert meta["format_version"] == 2 and meta["delta"] == 0.6
+    assert meta["format_version"] == 3 and meta["delta"] == 0.6
     assert meta["image_size"] == [320, 240] and meta["feature"]["type"] == "sift"
     assert meta["feature"]["clahe"] and meta["feature"]["root"]  # the default features
     assert not meta["pruning"]["enabled"]
@@ -121,7 +121,7 @@ def test_corrupted_maps_are_refused(small_map, tmp_path: Path) -> None:
     with pytest.raises(MapError, match="truncated"):
         load_map(trunc)
     # wrong version, with a consistent header otherwise (same length: only the digit changes)
-    needle = b'"format_version": 2'
+    needle = b'"format_version": 3'
     assert raw.count(needle) == 1
     wrong = tmp_path / "wrong.swmap"
     wrong.write_bytes(bytes(raw).replace(needle, b'"format_version": 9'))

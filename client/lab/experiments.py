@@ -58,6 +58,7 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
     comps, spd, head, scores, ms, acc, lost = ([] for _ in range(7))  # floats (and bools)
     for it, q in enumerate(seq):
         t0 = time.perf_counter()
+        loc.seed_places(table.queries[q].codes)  # the place index, while searching
         e = loc.estimator.step(partial(table.scores, int(q)), it * dt)
         ms.append(1e3 * (time.perf_counter() - t0))
         est.append(e.position)

@@ -18,6 +18,8 @@ class Method:
 METHODS: dict[str, Method] = {
     "DPSO-80": Method("dpso"),
     "DPSO-80-paper": Method("dpso", {"variant": "paper"}, papers_map=True),
+    # DPSO without the place index: global placements around random map images (as before)
+    "DPSO-80-random": Method("dpso", {"place_candidates": 0}),
     "PF-l-100": Method("pf-l", {"n_particles": 100}),
     "PF-l-300": Method("pf-l", {"n_particles": 300}),
     "PF-g-300": Method("pf-g", {"n_particles": 300}),
