@@ -79,6 +79,9 @@ class Estimator:
         self.rng = rng
         pos = np.asarray(index.positions, float)
         self._map_positions = pos
+        # map images sorted by x: the local scouts look up a band of x, not the whole map
+        self._x_order = np.argsort(pos[:, 0], kind="stable")
+        self._x_sorted = pos[self._x_order, 0]
         self._spacing = float(np.median(np.linalg.norm(np.diff(pos, axis=0), axis=1))) \
             if len(pos) > 1 else 1.0
         self._init_near: tuple[np.ndarray, float] | None = None
@@ -137,10 +140,13 @@ class Estimator:
                                   ) -> np.ndarray:
         """Positions around map images drawn among those between ``inner`` and ``outer``
         metres of ``centre`` (the nearest image where none is)."""
-        d = np.linalg.norm(self._map_positions - centre, axis=1)
-        near = np.flatnonzero((d >= inner) & (d <= outer))
+        lo = int(np.searchsorted(self._x_sorted, centre[0] - outer, "left"))
+        hi = int(np.searchsorted(self._x_sorted, centre[0] + outer, "right"))
+        band = np.sort(self._x_order[lo:hi])  # ascending ids, as a scan of the map gives
+        d = np.linalg.norm(self._map_positions[band] - centre, axis=1)
+        near = band[(d >= inner) & (d <= outer)]
         if not len(near):
-            near = np.array([int(np.argmin(d))])
+            near = self.index.nearest(np.asarray(centre, float)[None, :])[0][:1]
         ids = near[self.rng.integers(0, len(near), n)]
         return self._map_positions[ids] + self.rng.normal(0, self.params.init_spread_m, (n, 2))
 

@@ -46,7 +46,8 @@ _HEADER = struct.Struct("<4sBI")
 REBUILT: dict[str, frozenset[str]] = {
     # the estimator is stored on its own; the place seeder derives from the map and params
     "localizer": frozenset({"map", "estimator", "seeder"}),
-    "estimator": frozenset({"index", "params", "_map_positions"}),
+    "estimator": frozenset({"index", "params", "_map_positions", "_x_order",
+                            "_x_sorted"}),
 }
 
 # classes an object in a state may be rebuilt as (a blob names its classes: never import
