@@ -6,8 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-import subprocess
-import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -86,34 +85,20 @@ def rss_mib(pid: int) -> float:
 
 @contextlib.contextmanager
 def service_process(maps_dir: Path, **env: str) -> Iterator[tuple[str, str, int]]:
-    """``python -m service`` on loopback; yields (http url, zenoh endpoint, pid)."""
-    port, zport = _free_port(), _free_port()
-    endpoint = f"tcp/127.0.0.1:{zport}"
-    full = {**os.environ, "SWARMLOC_MAPS_DIR": str(maps_dir), "SWARMLOC_HOST": "127.0.0.1",
-            "SWARMLOC_PORT": str(port), "SWARMLOC_ZENOH_LISTEN": f'["{endpoint}"]',
-            "SWARMLOC_SESSION_IDLE_S": "3600", **env}
-    proc = subprocess.Popen([sys.executable, "-m", "service", "serve"], env=full,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            if proc.poll() is not None:
-                raise RuntimeError("the service did not start: " + proc.stderr.read().decode()
-                                   if proc.stderr else "")
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(url + "/readyz", timeout=2).status_code == 200:
-                    break
-            if time.monotonic() > deadline:
-                raise RuntimeError("the service did not become ready within 120 s")
-            time.sleep(0.3)
-        yield url, endpoint, proc.pid
-    finally:
-        proc.terminate()
+    """``swarmloc serve`` on loopback; yields (http url, zenoh endpoint, pid)."""
+    from client.lab.processes import ServiceProcess
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    with tempfile.TemporaryDirectory() as logs:
+        svc = ServiceProcess("bench-load", {
+            "SWARMLOC_MAPS_DIR": str(maps_dir), "SWARMLOC_ZENOH_LISTEN": f'["{endpoint}"]',
+            "SWARMLOC_SESSION_IDLE_S": "3600", **env}, Path(logs))
         try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+            svc.start().wait_ready(120.0)
+            assert svc.proc is not None
+            yield svc.url, endpoint, svc.proc.pid
+        finally:
+            svc.stop()
 
 
 def _robot_loop(client: Client, robot: str, frames: list[bytes], n: int, start: int,

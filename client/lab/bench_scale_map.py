@@ -16,9 +16,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
-import os
-import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -81,36 +78,20 @@ def _features(round_dir: Path, params: object) -> tuple[list, np.ndarray]:
 
 @contextlib.contextmanager
 def _service(maps_dir: Path) -> Iterator[tuple[str, int, float]]:
-    """``python -m service serve`` (HTTP only) on loopback: (url, pid, start-up seconds)."""
-    import httpx
+    """``swarmloc serve`` (HTTP only) on loopback: (url, pid, start-up seconds)."""
+    from client.lab.processes import ServiceProcess
 
-    from service.server import free_port
-
-    port = free_port()
-    env = {**os.environ, "SWARMLOC_MAPS_DIR": str(maps_dir), "SWARMLOC_HOST": "127.0.0.1",
-           "SWARMLOC_PORT": str(port), "SWARMLOC_ZENOH_ENABLED": "false"}
-    t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "service", "serve"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        while True:
-            if proc.poll() is not None:
-                err = proc.stderr.read().decode() if proc.stderr else ""
-                raise RuntimeError(f"the service did not start: {err[-2000:]}")
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(url + "/readyz", timeout=2).status_code == 200:
-                    break
-            if time.perf_counter() - t0 > 180:
-                raise RuntimeError("the service did not become ready within 180 s")
-            time.sleep(0.05)
-        yield url, proc.pid, time.perf_counter() - t0
-    finally:
-        proc.terminate()
+    with tempfile.TemporaryDirectory() as logs:
+        t0 = time.perf_counter()
+        svc = ServiceProcess("scale-map", {"SWARMLOC_MAPS_DIR": str(maps_dir),
+                                           "SWARMLOC_ZENOH_ENABLED": "false"}, Path(logs))
         try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+            svc.start().wait_ready(180.0)
+            startup = time.perf_counter() - t0
+            assert svc.proc is not None
+            yield svc.url, svc.proc.pid, startup
+        finally:
+            svc.stop()
 
 
 def _server(path: Path, track_dir: Path, frames: int) -> tuple[float, float, float]:
