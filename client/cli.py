@@ -593,10 +593,12 @@ def eval_split(
     """One traversal: map from the even frames, localize the odd frames (real-data check).
 
     Prints the share of odd frames whose best-matching map image is an adjacent even frame,
-    and the estimator's error when the odd frames are replayed in order."""
+    the estimator's error when the odd frames are replayed in order, and the share of
+    tracked frames within accuracy_m."""
     import numpy as np
 
     from client.lab.experiments import SimilarityTable, run
+    from client.runs import run_metrics
     from service.features import SiftParams, extract
     from service.route_map import build_map_from_rounds
 
@@ -620,6 +622,10 @@ def eval_split(
     typer.echo(f"{estimator} replay of the odd frames: mean error {e.mean():.2f} m, median "
                f"{np.median(e):.2f} m, last half {e[len(e) // 2:].mean():.2f} m, "
                f"{res.comparisons.mean():.1f} comparisons/frame; final status {res.status[-1]}")
+    cal = run_metrics(res)["calibration"]
+    if cal is not None:
+        typer.echo(f"tracked frames within accuracy_m (calibration): {100 * cal:.0f} %, median "
+                   f"accuracy_m {np.median(res.accuracy_m):.2f} m")
 
 
 @bench_app.command("matcher")

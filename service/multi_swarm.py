@@ -125,6 +125,7 @@ class MultiSwarmDPSO(DPSO):
         pos = image_centre(compared_xy, scores, pos, p.estimate_image_radius_m,
                            p.estimate_image_power)
         ev = self.monitor.judge(compared_xy, scores, pos, p.species_radius_m)
+        cov = cov + np.eye(2) * match_sigma(ev.best_m, p) ** 2
         status, lost = self._update_evidence_status(ev.good)
         # a weak frame's estimate lags where images look alike: it does not teach the velocity
         self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))
@@ -243,6 +244,14 @@ class MultiSwarmDPSO(DPSO):
             x[chosen] = draw(len(chosen))
             v[chosen] = 0.0
             fresh[chosen] = True
+
+
+def match_sigma(best_m: float, p: DPSOParams) -> float:
+    """Std (m) of the image estimate from the strength of its best match: fewer matched
+    features place the robot less sharply between neighbouring images (``match_sigma_m`` at
+    m = 1, times m ** -``match_sigma_power``; m floored at ``distinct_floor_m``)."""
+    return float(p.match_sigma_m * max(best_m, p.distinct_floor_m, 1e-6)
+                 ** -p.match_sigma_power)
 
 
 def image_centre(xy: np.ndarray, m: np.ndarray, around: np.ndarray, radius: float,

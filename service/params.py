@@ -177,8 +177,14 @@ class DPSOParams(CommonParams):
     estimate_floor_m: float = Field(0.5, ge=0, le=1e4, description="std added to the "
                                     "estimate's covariance (m)")
     covariance_scale: float = Field(
-        0.6, gt=0, le=100, description="calibration: 67-70 % (seed 0) and 82 % (the test "
-        "loop) of tracked frames fell within accuracy_m at 0.6; 1.0 gave 79-98 %")
+        0.18, gt=0, le=100, description="scale of the best sub-swarm's covariance in the "
+        "estimate's covariance (calibration, with match_sigma_m)")
+    match_sigma_m: float = Field(
+        0.35, ge=0, le=1e3, description="std (m) added to the estimate for its match "
+        "strength: match_sigma_m * m_best ** -match_sigma_power (0.7 m at m = 0.06, 1.0 m at "
+        "m = 0.015): weak matches place the robot less sharply")
+    match_sigma_power: float = Field(
+        0.25, ge=0, le=4, description="exponent of that std's dependence on m_best")
     estimate_image_radius_m: float = Field(
         4.0, ge=0, le=1e4, description="the estimate is the centre of the map images compared "
         "within this radius (m) of the best group, weighted by m ** estimate_image_power: the "

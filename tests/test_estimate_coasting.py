@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
 from client.dataset import Round
 from client.lab.experiments import SimilarityTable
 from service.localizer import Localizer
-from service.multi_swarm import image_centre
+from service.multi_swarm import image_centre, match_sigma
+from service.params import DPSOParams
 from service.route_map import RouteMap
 
 
@@ -21,6 +24,16 @@ def test_image_centre_weights_images_by_their_match() -> None:
     assert flat[0] == pytest.approx(1.0)
     nothing = image_centre(xy, np.zeros(3), np.array([7.0, 1.0]), 4.0, 8.0)
     assert nothing.tolist() == [7.0, 1.0]
+
+
+def test_match_sigma_grows_as_the_best_match_weakens() -> None:
+    p = DPSOParams()
+    sig = [match_sigma(m, p) for m in (0.5, 0.1, 0.02, 0.005)]
+    assert all(a < b for a, b in itertools.pairwise(sig))
+    assert match_sigma(0.1, p) == pytest.approx(p.match_sigma_m * 0.1 ** -p.match_sigma_power)
+    # no match at all: the floor's sigma, finite
+    assert match_sigma(0.0, p) == match_sigma(p.distinct_floor_m, p) < 10
+    assert match_sigma(0.02, p.with_overrides({"match_sigma_m": 0.0})) == 0.0
 
 
 @pytest.fixture(scope="module")
@@ -128,3 +141,20 @@ def test_map_positions_near_lie_in_the_annulus(small_map: RouteMap) -> None:
     far = est.sample_map_positions_near(np.array([1e4, 1e4]), 0.0, 1.0, 3)
     nearest = xy[np.argmin(np.linalg.norm(xy - np.array([1e4, 1e4]), axis=1))]
     assert np.allclose(far, nearest)
+
+
+def test_accuracy_widens_when_the_same_frame_matches_weaker(
+        small_map: RouteMap, table: SimilarityTable, sunny2: Round) -> None:
+    """The same swarm and frame, once with its similarities and once with a fifth of them
+    (same ranking, as under other light): the same estimate, reported less sharply."""
+    n = len(sunny2)
+    twins = [Localizer(small_map, "dpso", None, seed=3) for _ in range(2)]
+    for it in range(30):  # the same seed and frames: the same state
+        res = [loc.estimator.step(lambda ids, q=it: table.scores(q, ids), float(it))
+               for loc in twins]
+    assert res[0].status.value == "tracking" and np.array_equal(res[0].position, res[1].position)
+    q = 30 % n
+    strong = twins[0].estimator.step(lambda ids: table.scores(q, ids), 30.0)
+    weak = twins[1].estimator.step(lambda ids: 0.2 * table.scores(q, ids), 30.0)
+    assert np.allclose(strong.position, weak.position)
+    assert weak.accuracy_m > strong.accuracy_m * 1.1
