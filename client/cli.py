@@ -628,6 +628,38 @@ def eval_split(
                    f"accuracy_m {np.median(res.accuracy_m):.2f} m")
 
 
+@app.command("eval-pair")
+def eval_pair_cmd(
+    map_dir: Path,
+    query_dir: Path,
+    spacing: Annotated[float, typer.Option(help="metres between consecutive indices")] = 2.5,
+    width: int = 640,
+    height: int = 360,
+    passes: Annotated[int, typer.Option(min=1, help="replays along the route and back")] = 4,
+    estimator: str = "dpso",
+    seeds: Annotated[int, typer.Option(min=1)] = 3,
+) -> None:
+    """Two traversals known only by frame correspondence (poses.csv: filename,index), such as
+    the Gardens Point day/night pair: how often the best match is the frame's own place, and
+    whether the estimator admits (lost / recovering) the frames it gets wrong by > 10 m."""
+    from client.dataset import DatasetError
+    from client.lab.eval_pair import eval_pair
+
+    try:
+        r = eval_pair(map_dir, query_dir, spacing=spacing, width=width, height=height,
+                      passes=passes, estimator=estimator, seeds=seeds)
+    except DatasetError as exc:
+        _fail(str(exc))
+    typer.echo(f"{query_dir.name} against a map of {map_dir.name}: the best match is the "
+               f"frame's own place for {r.best_is_true}/{r.frames} frames (median similarity "
+               f"there {r.true_similarity_median:.4f})")
+    counts = ", ".join(f"{k} {v}" for k, v in sorted(r.status.items()))
+    typer.echo(f"{estimator}, {r.replayed} frames replayed ({seeds} seeds): {counts}")
+    honest = "n/a" if r.honest is None else f"{100 * r.honest:.0f} %"
+    typer.echo(f"frames > 10 m off: {r.wrong}, reported lost or recovering: {honest}; "
+               f"reported tracking while > 10 m off: {r.tracking_wrong}")
+
+
 @bench_app.command("matcher")
 def bench_matcher_cmd(
     photos: Annotated[Path | None, typer.Option(help="also measure on these photos")] = None,

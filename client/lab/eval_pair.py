@@ -1,0 +1,103 @@
+"""Two traversals known only by frame correspondence (Gardens Point day/night): does the
+service admit that it cannot match, instead of tracking a wrong place?
+
+Such pairs carry no metric poses: ``poses.csv`` lists ``filename,index``, frame i of one
+folder showing the place of frame i of the other. The frames are placed ``spacing`` metres
+apart along a straight line (index * spacing), the map is built from one folder and the
+other folder's frames are replayed along the route and back, ``passes`` times.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from client.dataset import IMAGE_SUFFIXES, DatasetError, Round
+from client.lab.experiments import SimilarityTable, run
+from client.runs import BAD_STATUS, WRONG_M, run_metrics
+from service.features import SiftParams, extract
+from service.route_map import build_map_from_rounds
+
+
+def read_indexed_frames(folder: Path, spacing: float) -> Round:
+    """The frames of ``folder/poses.csv`` (``filename,index``) at x = index * spacing."""
+    poses = folder / "poses.csv"
+    if not poses.is_file():
+        raise DatasetError(f"{folder}: no poses.csv (filename,index)")
+    names: list[str] = []
+    index: list[int] = []
+    with poses.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        if reader.fieldnames is None or not {"filename", "index"} <= set(reader.fieldnames):
+            raise DatasetError(f"{poses}: the header must name the columns filename,index")
+        for line, row in enumerate(reader, start=2):
+            name = (row.get("filename") or "").strip()
+            try:
+                i = int(row.get("index") or "")
+            except ValueError:
+                raise DatasetError(f"{poses}, line {line}: index {row.get('index')!r} is not "
+                                   "an integer") from None
+            if not (folder / name).is_file() or Path(name).suffix.lower() not in IMAGE_SUFFIXES:
+                raise DatasetError(f"{poses}, line {line}: '{name}' is not a PNG or JPEG file "
+                                   "in the folder")
+            names.append(name)
+            index.append(i)
+    if len(names) < 2:
+        raise DatasetError(f"{poses}: needs at least 2 frames")
+    if len(set(index)) != len(index):
+        raise DatasetError(f"{poses}: an index appears twice")
+    order = np.argsort(index, kind="stable")
+    xy = np.column_stack([np.asarray(index, float)[order] * spacing, np.zeros(len(names))])
+    return Round(folder.name, folder, tuple(names[k] for k in order), xy, None, xy.copy(), None)
+
+
+@dataclass(frozen=True)
+class PairResult:
+    frames: int  # query frames (distinct)
+    best_is_true: int  # query frames whose best-matching map image is their own place
+    true_similarity_median: float  # m of each frame's own place
+    replayed: int  # frames replayed, over all seeds
+    status: dict[str, int]  # status counts over all replayed frames
+    wrong: int  # replayed frames with error > WRONG_M
+    honest: float | None  # share of those reported lost or recovering
+    tracking_wrong: int  # replayed frames reported tracking with error > WRONG_M
+
+
+def eval_pair(map_dir: Path, query_dir: Path, *, spacing: float = 2.5, width: int = 640,
+              height: int = 360, passes: int = 4, estimator: str = "dpso",
+              seeds: int = 3) -> PairResult:
+    """Map from ``map_dir``, ``query_dir`` replayed there and back ``passes`` times."""
+    params = SiftParams(width=width, height=height)
+    map_round = read_indexed_frames(map_dir, spacing)
+    query = read_indexed_frames(query_dir, spacing)
+    m = build_map_from_rounds([map_round], params=params)
+    table = SimilarityTable(m, [extract(query.load_image(i), params) for i in range(len(query))])
+    n = len(query)
+    ids = np.arange(m.n_images)
+    nearest = m.nearest(query.xy)[0]
+    rows = [table.scores(q, ids) for q in range(n)]
+    best_is_true = sum(int(np.argmax(r)) == int(nearest[q]) for q, r in enumerate(rows))
+    true_m = float(np.median([rows[q][int(nearest[q])] for q in range(n)]))
+    there_and_back = np.concatenate([np.arange(n), np.arange(n - 2, 0, -1)])
+    order = np.tile(there_and_back, passes)
+    replay = query.subset(order.tolist())
+    sub = SimilarityTable(m, [table.queries[int(q)] for q in order])
+    sub.table = table.table[order]
+    status: Counter[str] = Counter()
+    wrong = tracking_wrong = 0
+    admitted = 0
+    for seed in range(seeds):
+        res = run(m, sub, replay, estimator, None, seed=seed)
+        st = np.asarray(res.status)
+        big = res.errors > WRONG_M
+        status.update(st.tolist())
+        wrong += int(big.sum())
+        admitted += int(np.isin(st[big], list(BAD_STATUS)).sum())
+        tracking_wrong += int(((st == "tracking") & big).sum())
+        run_metrics(res)  # the same metrics as every experiment (raises on a broken run)
+    return PairResult(n, best_is_true, true_m, len(order) * seeds, dict(status), wrong,
+                      admitted / wrong if wrong else None, tracking_wrong)
