@@ -16,8 +16,11 @@ changes, each measured in README "Localization across lighting":
   within ``species_radius_m`` of a seed belongs to its species and is attracted to it. Each
   species is a hypothesis, supported by the most evidence one of its particles carries. The
   estimate follows the best-supported species; the others are reported as ``hypotheses``. A
-  species whose support falls below ``dissolve_ratio`` of the best is dissolved and its
-  particles join the best one.
+  species whose mean evidence (the decayed mean of the fitness along its particles' paths,
+  not the sum) falls below ``dissolve_ratio`` of the best one's is dissolved and its
+  particles join the best one: a species is dissolved when it is worse, not when it is
+  young, so a scout that finds the true place survives until its evidence takes the
+  estimate.
 - **Scouts.** A few particles with the least evidence are redrawn at random map images every
   frame (more while recovering). They are the background the lost detection measures
   against, and the way the swarm discovers a place it is not searching.
@@ -75,6 +78,7 @@ class MultiSwarmDPSO(DPSO):
     def __init__(self, index: MapIndex, params: DPSOParams, rng: np.random.Generator) -> None:
         super().__init__(index, params, rng)
         self.evidence = np.zeros(params.n_particles)
+        self.age = np.zeros(params.n_particles)  # frames of evidence each particle carries
         self.frame_count = 0  # frames stepped (local scouts run every local_scout_every-th)
         self.monitor = DistinctnessMonitor(params.distinct_ratio, params.distinct_floor_m,
                                            params.distinct_far_m, params.ema_alpha)
@@ -83,6 +87,7 @@ class MultiSwarmDPSO(DPSO):
     def _initialize(self) -> None:
         super()._initialize()
         self.evidence = np.zeros(self.params.n_particles)
+        self.age = np.zeros(self.params.n_particles)
         self.monitor.reset()
         self._reset_coasting()
 
@@ -104,6 +109,7 @@ class MultiSwarmDPSO(DPSO):
         self.frame_count += 1
         f, _, _ = fitness(self.x)
         self.evidence = p.evidence_decay * self.evidence + f
+        self.age = self.age + 1
         # sub-swarms around the best particles of this frame (their attractors, as p^n in the
         # papers); a sub-swarm's support is the most evidence any of its particles carries
         seeds, label = speciate(self.x, f, p.species_radius_m, p.max_species)
@@ -136,11 +142,23 @@ class MultiSwarmDPSO(DPSO):
         # ahead), so the swarm does not trail the robot where matches are weak
         lead = self.ema_step if p.predict_attractor and self.ema_step is not None else 0.0
         attractor = self.x[seeds][np.where(label >= 0, label, best_s)] + lead
-        dissolve = (label >= 0) & (support[label.clip(0)] < p.dissolve_ratio * support[best_s])
+        # a sub-swarm is dissolved when it is worse, not when it is young: judged by the mean
+        # evidence along its particles' paths (a scout that found the place has one frame of
+        # evidence; its sum would lose to the incumbent's five)
+        mean_ev = self.mean_evidence() if p.dissolve_by_mean else self.evidence
+        judge = np.array([mean_ev[label == s].max() for s in range(len(seeds))])
+        dissolve = (label >= 0) & (judge[label.clip(0)] < p.dissolve_ratio * judge[best_s])
         self._move_species(attractor, self.x[seeds[best_s]] + lead, dissolve, pos + lead)
         speed, heading = self.motion(dt)
         return StepResult(pos, cov, heading, speed, status, lost or self.recovering, ev.best_m,
                           fitness.comparisons, spread, hypotheses)
+
+    def mean_evidence(self) -> np.ndarray:
+        """Each particle's evidence as a decayed mean of the fitness along its path (A with
+        the bias of its age removed: A (1 - lambda) / (1 - lambda ** age))"""
+        lam = self.params.evidence_decay
+        age = np.maximum(self.age, 1)
+        return self.evidence * (1 - lam) / (1 - lam ** age)
 
     def _coasting(self) -> bool:
         """Whether this frame's swarm is carried by the kept velocity: the previous frame was
@@ -234,6 +252,7 @@ class MultiSwarmDPSO(DPSO):
         v = np.where(below | above, -v, v)
         self.x, self.v = x, v
         self.evidence = np.where(fresh, 0.0, self.evidence)
+        self.age = np.where(fresh, 0.0, self.age)
 
     def _redraw_least_evidence(self, x: np.ndarray, v: np.ndarray, fresh: np.ndarray, k: int,
                                draw: Callable[[int], np.ndarray]) -> None:

@@ -160,3 +160,34 @@ def test_estimate_reports_competing_hypotheses(small_map, table, sunny2) -> None
         if hyps:
             assert abs(sum(h.weight for h in hyps) - 1) < 1e-9
             assert hyps[0].weight == max(h.weight for h in hyps)
+
+
+@pytest.mark.parametrize("by_mean", [True, False])
+def test_a_young_better_sub_swarm_survives_but_does_not_take_the_estimate(
+        small_map, table, sunny2, by_mean) -> None:
+    """A scout that lands on a place matching 1.6x better than the tracked one has one frame
+    of evidence against the incumbent's five: judged by its mean evidence it survives (it is
+    better, only younger); judged by the sum (``dissolve_by_mean`` false) it is dissolved
+    into the incumbent. Either way one frame does not move the estimate there."""
+    loc = Localizer(small_map, "dpso", {"dissolve_by_mean": by_mean}, seed=4)
+    est = loc.estimator
+    for it in range(30):
+        res = est.step(lambda ids, q=it: table.scores(q, ids), float(it))
+    assert res.status.value == "tracking"
+    pos = np.asarray(small_map.positions)
+    far = int(np.argmax(np.linalg.norm(pos - res.position, axis=1)))  # a place > 20 m away
+    assert np.linalg.norm(pos[far] - res.position) > 20
+    quantum = round(est.q_r * len(est.x))  # the first particles are redrawn every frame
+    scout = quantum + int(np.argmin(est.evidence[quantum:]))
+    est.x[scout] = pos[far]
+    est.v[scout] = 0.0
+    est.evidence[scout] = est.age[scout] = 0.0
+
+    def boosted(ids: np.ndarray) -> np.ndarray:
+        m = table.scores(30, ids)
+        return np.where(ids == far, 1.6 * table.scores(30, np.arange(len(pos))).max(), m)
+
+    after = est.step(boosted, 30.0)
+    assert np.linalg.norm(after.position - res.position) < 5  # the estimate stayed
+    near_far = np.linalg.norm(est.x - pos[far], axis=1) < 3
+    assert near_far.any() == by_mean
