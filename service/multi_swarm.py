@@ -131,7 +131,7 @@ class MultiSwarmDPSO(DPSO):
         pos = image_centre(compared_xy, scores, pos, p.estimate_image_radius_m,
                            p.estimate_image_power)
         ev = self.monitor.judge(compared_xy, scores, pos, p.species_radius_m)
-        cov = cov + np.eye(2) * match_sigma(ev.best_m, p) ** 2
+        cov = cov + np.eye(2) * (match_sigma(ev.best_m, p) ** 2 + p.lateral_sigma_m ** 2)
         status, lost = self._update_evidence_status(ev.good)
         # a weak frame's estimate lags where images look alike: it does not teach the velocity
         self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))

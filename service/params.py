@@ -182,12 +182,16 @@ class DPSOParams(CommonParams):
     estimate_floor_m: float = Field(0.5, ge=0, le=1e4, description="std added to the "
                                     "estimate's covariance (m)")
     covariance_scale: float = Field(
-        0.18, gt=0, le=100, description="scale of the best sub-swarm's covariance in the "
-        "estimate's covariance (calibration, with match_sigma_m)")
+        0.1, gt=0, le=100, description="scale of the best sub-swarm's covariance in the "
+        "estimate's covariance (calibration, with match_sigma_m and lateral_sigma_m)")
     match_sigma_m: float = Field(
-        0.35, ge=0, le=1e3, description="std (m) added to the estimate for its match "
-        "strength: match_sigma_m * m_best ** -match_sigma_power (0.7 m at m = 0.06, 1.0 m at "
-        "m = 0.015): weak matches place the robot less sharply")
+        0.375, ge=0, le=1e3, description="std (m) added to the estimate for its match "
+        "strength: match_sigma_m * m_best ** -match_sigma_power (0.75 m at m = 0.06, 1.1 m "
+        "at m = 0.015): weak matches place the robot less sharply")
+    lateral_sigma_m: float = Field(
+        0.6, ge=0, le=1e3, description="std (m) added for the robot's offset from the "
+        "recorded path, which images along one path cannot tell (two traversals of a street "
+        "differ by a lane position; the synthetic world's rounds by 0-1.2 m)")
     match_sigma_power: float = Field(
         0.25, ge=0, le=4, description="exponent of that std's dependence on m_best")
     estimate_image_radius_m: float = Field(
