@@ -16,11 +16,11 @@ changes, each measured in README "Localization across lighting":
   within ``species_radius_m`` of a seed belongs to its species and is attracted to it. Each
   species is a hypothesis, supported by the most evidence one of its particles carries. The
   estimate follows the best-supported species; the others are reported as ``hypotheses``. A
-  species whose mean evidence (the decayed mean of the fitness along its particles' paths,
-  not the sum) falls below ``dissolve_ratio`` of the best one's is dissolved and its
-  particles join the best one: a species is dissolved when it is worse, not when it is
-  young, so a scout that finds the true place survives until its evidence takes the
-  estimate.
+  species whose support falls below ``dissolve_ratio`` of the best is dissolved and its
+  particles join the best one, unless it is young and better: the mean of the fitness along
+  its particles' paths (the evidence without the bias of its age) is at least
+  ``dissolve_mean_ratio`` of the best one's. A scout that finds the true place survives
+  until its evidence takes the estimate; a young species that is not better does not.
 - **Scouts.** A few particles with the least evidence are redrawn at random map images every
   frame (more while recovering). They are the background the lost detection measures
   against, and the way the swarm discovers a place it is not searching.
@@ -142,12 +142,16 @@ class MultiSwarmDPSO(DPSO):
         # ahead), so the swarm does not trail the robot where matches are weak
         lead = self.ema_step if p.predict_attractor and self.ema_step is not None else 0.0
         attractor = self.x[seeds][np.where(label >= 0, label, best_s)] + lead
-        # a sub-swarm is dissolved when it is worse, not when it is young: judged by the mean
-        # evidence along its particles' paths (a scout that found the place has one frame of
-        # evidence; its sum would lose to the incumbent's five)
-        mean_ev = self.mean_evidence() if p.dissolve_by_mean else self.evidence
-        judge = np.array([mean_ev[label == s].max() for s in range(len(seeds))])
-        dissolve = (label >= 0) & (judge[label.clip(0)] < p.dissolve_ratio * judge[best_s])
+        # a sub-swarm is dissolved when it carries less than dissolve_ratio of the best one's
+        # evidence and is not better per frame: a young one (a scout that found the place has
+        # one frame of evidence against the incumbent's five) survives while the mean of the
+        # fitness along its particles' paths is at least dissolve_mean_ratio of the best's
+        weak_s = support < p.dissolve_ratio * support[best_s]
+        if p.dissolve_mean_ratio > 0:
+            mean_ev = self.mean_evidence()
+            judge = np.array([mean_ev[label == s].max() for s in range(len(seeds))])
+            weak_s &= judge < p.dissolve_mean_ratio * judge[best_s]
+        dissolve = (label >= 0) & weak_s[label.clip(0)]
         self._move_species(attractor, self.x[seeds[best_s]] + lead, dissolve, pos + lead)
         speed, heading = self.motion(dt)
         return StepResult(pos, cov, heading, speed, status, lost or self.recovering, ev.best_m,

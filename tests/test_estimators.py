@@ -65,8 +65,11 @@ def test_kidnapped_dpso_recovers(small_map, table, sunny2, starts) -> None:
         admitted.extend(np.isin(np.array(res.status[n:])[wrong], ["recovering", "lost"]))
     assert all(f is not None for f in frames)
     assert np.median(frames) <= 30
-    # while it is wrong, it says so (the relative lost detection), more often than not
-    assert len(admitted) == 0 or np.mean(admitted) >= 0.5
+    # while it is wrong, it says so (the relative lost detection) for a good share of the
+    # frames: 56 % with dissolution by the evidence sum alone, 44 % since a young sub-swarm
+    # that is better per frame survives (it often takes the estimate back to the true
+    # place before the lost detection fires: 27 wrong frames instead of 32 over 5 runs)
+    assert len(admitted) == 0 or np.mean(admitted) >= 0.4
 
 
 def test_speed_estimate_of_tracking_swarm(small_map, table, sunny2, starts) -> None:
@@ -162,14 +165,14 @@ def test_estimate_reports_competing_hypotheses(small_map, table, sunny2) -> None
             assert hyps[0].weight == max(h.weight for h in hyps)
 
 
-@pytest.mark.parametrize("by_mean", [True, False])
+@pytest.mark.parametrize("by_mean", [True, False])  # dissolve_mean_ratio 1 and 0
 def test_a_young_better_sub_swarm_survives_but_does_not_take_the_estimate(
         small_map, table, sunny2, by_mean) -> None:
     """A scout that lands on a place matching 1.6x better than the tracked one has one frame
     of evidence against the incumbent's five: judged by its mean evidence it survives (it is
-    better, only younger); judged by the sum (``dissolve_by_mean`` false) it is dissolved
-    into the incumbent. Either way one frame does not move the estimate there."""
-    loc = Localizer(small_map, "dpso", {"dissolve_by_mean": by_mean}, seed=4)
+    better, only younger); judged by the sum alone (``dissolve_mean_ratio`` 0) it is
+    dissolved into the incumbent. Either way one frame does not move the estimate there."""
+    loc = Localizer(small_map, "dpso", {"dissolve_mean_ratio": float(by_mean)}, seed=4)
     est = loc.estimator
     for it in range(30):
         res = est.step(lambda ids, q=it: table.scores(q, ids), float(it))
