@@ -18,7 +18,7 @@ import numpy as np
 
 from client.dataset import IMAGE_SUFFIXES, DatasetError, Round
 from client.lab.experiments import SimilarityTable, run
-from client.runs import BAD_STATUS, WRONG_M, run_metrics
+from client.runs import BAD_STATUS, WRONG_M
 from service.features import SiftParams, extract
 from service.route_map import build_map_from_rounds
 
@@ -98,6 +98,5 @@ def eval_pair(map_dir: Path, query_dir: Path, *, spacing: float = 2.5, width: in
         wrong += int(big.sum())
         admitted += int(np.isin(st[big], list(BAD_STATUS)).sum())
         tracking_wrong += int(((st == "tracking") & big).sum())
-        run_metrics(res)  # the same metrics as every experiment (raises on a broken run)
     return PairResult(n, best_is_true, true_m, len(order) * seeds, dict(status), wrong,
                       admitted / wrong if wrong else None, tracking_wrong)
