@@ -92,6 +92,18 @@ class Dataset:
     rounds: dict[str, Round]
 
 
+def check_image(folder: Path, name: str, where: str, decode: bool = False) -> None:
+    """Raise DatasetError (prefixed by ``where``) unless ``folder/name`` is an existing PNG or
+    JPEG file (and, with ``decode``, decodes)."""
+    img_path = folder / name
+    if not img_path.is_file():
+        raise DatasetError(f"{where}: image '{name}' does not exist")
+    if img_path.suffix.lower() not in IMAGE_SUFFIXES:
+        raise DatasetError(f"{where}: '{name}' is not a PNG or JPEG file")
+    if decode and imread_gray(img_path) is None:
+        raise DatasetError(f"{where}: image '{name}' is unreadable")
+
+
 def read_round(
     path: str | Path, origin: tuple[float, float] | None = None, decode_images: bool = False
 ) -> Round:
@@ -107,15 +119,7 @@ def read_round(
     origin = origin or dataset_origin(path)
     names, xy, t, origin = parse_positions(path / POSES_FILE, origin)
     for line, name in enumerate(names, start=2):
-        img_path = path / name
-        if not img_path.is_file():
-            raise DatasetError(f"{path / POSES_FILE}, line {line}: image '{name}' does not exist")
-        if img_path.suffix.lower() not in IMAGE_SUFFIXES:
-            raise DatasetError(
-                f"{path / POSES_FILE}, line {line}: '{name}' is not a PNG or JPEG file"
-            )
-        if decode_images and imread_gray(img_path) is None:
-            raise DatasetError(f"{path / POSES_FILE}, line {line}: image '{name}' is unreadable")
+        check_image(path, name, f"{path / POSES_FILE}, line {line}", decode_images)
 
     truth_xy = None
     if (path / TRUTH_FILE).is_file():

@@ -59,7 +59,8 @@ def test_indexed_frames_are_placed_by_their_index(day: Path) -> None:
 @pytest.mark.parametrize(("csv", "message"), [
     ("name,idx\n0.png,0\n1.png,1\n", "header must name the columns filename,index"),
     ("filename,index\n0.png,zero\n1.png,1\n", "line 2: index 'zero' is not an integer"),
-    ("filename,index\n0.png,0\nmissing.png,1\n", "line 3: 'missing.png' is not a PNG"),
+    ("filename,index\n0.png,0\nmissing.png,1\n", "line 3: image 'missing.png' does not exist"),
+    ("filename,index\n0.png,0\nposes.csv,1\n", "line 3: 'poses.csv' is not a PNG or JPEG"),
     ("filename,index\n0.png,0\n1.png,0\n", "an index appears twice"),
     ("filename,index\n0.png,0\n", "needs at least 2 frames"),
 ])

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from client.dataset import IMAGE_SUFFIXES, DatasetError, Round
+from client.dataset import DatasetError, Round, check_image
 from client.lab.experiments import SimilarityTable, run
 from client.runs import BAD_STATUS, WRONG_M
 from service.features import SiftParams, extract
@@ -41,9 +41,7 @@ def read_indexed_frames(folder: Path, spacing: float) -> Round:
             except ValueError:
                 raise DatasetError(f"{poses}, line {line}: index {row.get('index')!r} is not "
                                    "an integer") from None
-            if not (folder / name).is_file() or Path(name).suffix.lower() not in IMAGE_SUFFIXES:
-                raise DatasetError(f"{poses}, line {line}: '{name}' is not a PNG or JPEG file "
-                                   "in the folder")
+            check_image(folder, name, f"{poses}, line {line}")
             names.append(name)
             index.append(i)
     if len(names) < 2:
