@@ -147,7 +147,7 @@ class MultiSwarmDPSO(DPSO):
         # one frame of evidence against the incumbent's five) survives while the mean of the
         # fitness along its particles' paths is at least dissolve_mean_ratio of the best's
         weak_s = support < p.dissolve_ratio * support[best_s]
-        if p.dissolve_mean_ratio > 0:
+        if p.dissolve_mean_ratio > 0 and weak_s.any():
             mean_ev = self.mean_evidence()
             judge = np.array([mean_ev[label == s].max() for s in range(len(seeds))])
             weak_s &= judge < p.dissolve_mean_ratio * judge[best_s]
@@ -159,7 +159,7 @@ class MultiSwarmDPSO(DPSO):
 
     def mean_evidence(self) -> np.ndarray:
         """Each particle's evidence as a decayed mean of the fitness along its path (A with
-        the bias of its age removed: A (1 - lambda) / (1 - lambda ** age))"""
+        the bias of its age removed: A (1 - lambda) / (1 - lambda ** age))."""
         lam = self.params.evidence_decay
         age = np.maximum(self.age, 1)
         return self.evidence * (1 - lam) / (1 - lam ** age)

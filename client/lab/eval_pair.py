@@ -76,10 +76,10 @@ def eval_pair(map_dir: Path, query_dir: Path, *, spacing: float = 2.5, width: in
     table = SimilarityTable(m, [extract(query.load_image(i), params) for i in range(len(query))])
     n = len(query)
     ids = np.arange(m.n_images)
-    nearest = m.nearest(query.xy)[0]
-    rows = [table.scores(q, ids) for q in range(n)]
-    best_is_true = sum(int(np.argmax(r)) == int(nearest[q]) for q, r in enumerate(rows))
-    true_m = float(np.median([rows[q][int(nearest[q])] for q in range(n)]))
+    rows = np.array([table.scores(q, ids) for q in range(n)])  # every frame x every image
+    own = m.nearest(query.xy)[0]  # each frame's own place
+    best_is_true = int(np.sum(np.argmax(rows, axis=1) == own))
+    true_m = float(np.median(rows[np.arange(n), own]))
     there_and_back = np.concatenate([np.arange(n), np.arange(n - 2, 0, -1)])
     order = np.tile(there_and_back, passes)
     replay = query.subset(order.tolist())
