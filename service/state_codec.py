@@ -143,8 +143,11 @@ class _Encoder:
             ref = self._ref(v)
             if ref is not None:
                 return ref
-            return msgpack.ExtType(_EXT_OBJECT, self._pack(
-                [_qualname(t), self.attrs(v, frozenset(), where)]))
+            # the attributes are lowered once here (lowering them again would meet the
+            # extension types of their arrays)
+            return msgpack.ExtType(_EXT_OBJECT, msgpack.packb(
+                [_qualname(t), self.attrs(v, frozenset(), where)], use_bin_type=True,
+                strict_types=True))
         raise StateError(f"{where}: cannot store a value of type {t.__module__}.{t.__qualname__}"
                          " in a session state (add it to state_codec.REBUILT if it derives "
                          "from the map, or give it a plain type)")

@@ -11,6 +11,7 @@ import msgpack
 import numpy as np
 import pytest
 
+from service.along_track import AlongTrackSmoother
 from service.features import Features
 from service.localizer import Localizer
 from service.route_map import RouteMap
@@ -123,9 +124,9 @@ def test_state_is_compact(small_map: RouteMap, frames) -> None:
     for i, f in enumerate(frames[:3]):
         loc.step(f, float(i))
     blob = encode_session(SessionState("r1", loc, 0.0, 0.0, None, None))
-    # the particle arrays dominate: positions + velocities + evidence (n x 5 doubles)
+    # the particle arrays dominate: positions + velocities + evidence + age (n x 6 doubles)
     n = int(loc.params["n_particles"])
-    assert len(blob) < n * 5 * 8 + 4096
+    assert len(blob) < n * 6 * 8 + 4096
 
 
 def test_bad_blobs_are_refused(small_map: RouteMap) -> None:
@@ -147,7 +148,8 @@ def test_values_round_trip_exactly() -> None:
     big = (1 << 127) + 12345
     tree = {"a": np.arange(6, dtype=np.float32).reshape(2, 3), "b": (1, 2.5, None),
             "c": big, "d": np.int64(-3), "e": float("nan"), "f": [True, "x", b"\x00"],
-            "g": {1, 2}, "h": np.random.default_rng(9)}
+            "g": {1, 2}, "h": np.random.default_rng(9), "obj": AlongTrackSmoother()}
+    tree["obj"].position = np.array([1.5, -2.0])  # a service object holding arrays
     tree["shared"] = tree["a"]  # one array in two places stays one array
     out = loads(dumps(tree))
     assert out["a"].dtype == np.float32 and out["a"].shape == (2, 3)
@@ -156,6 +158,9 @@ def test_values_round_trip_exactly() -> None:
     assert type(out["d"]) is np.int64 and out["d"] == -3
     assert np.isnan(out["e"]) and out["f"] == [True, "x", b"\x00"] and out["g"] == {1, 2}
     assert out["h"].random() == np.random.default_rng(9).random()
+    assert type(out["obj"]) is AlongTrackSmoother
+    assert np.array_equal(out["obj"].position, [1.5, -2.0])
+    assert np.array_equal(out["obj"].velocity, [0.0, 0.0])
 
 
 def test_an_attribute_the_codec_cannot_carry_is_named(small_map: RouteMap) -> None:
