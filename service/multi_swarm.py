@@ -41,6 +41,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from service.along_track import AlongTrackSmoother, path_tangent
 from service.estimator import Hypothesis, Status, StepResult, weighted_covariance
 from service.fitness import FrameFitness, MapIndex
 from service.lost_detection import DistinctnessMonitor
@@ -82,6 +83,7 @@ class MultiSwarmDPSO(DPSO):
         self.frame_count = 0  # frames stepped (local scouts run every local_scout_every-th)
         self.monitor = DistinctnessMonitor(params.distinct_ratio, params.distinct_floor_m,
                                            params.distinct_far_m, params.ema_alpha)
+        self.smoother = AlongTrackSmoother()  # the reported position (tracked frames)
         self._reset_coasting()
 
     def _initialize(self) -> None:
@@ -89,6 +91,7 @@ class MultiSwarmDPSO(DPSO):
         self.evidence = np.zeros(self.params.n_particles)
         self.age = np.zeros(self.params.n_particles)
         self.monitor.reset()
+        self.smoother.reset()
         self._reset_coasting()
 
     def _reset_coasting(self) -> None:
@@ -154,8 +157,21 @@ class MultiSwarmDPSO(DPSO):
         dissolve = (label >= 0) & weak_s[label.clip(0)]
         self._move_species(attractor, self.x[seeds[best_s]] + lead, dissolve, pos + lead)
         speed, heading = self.motion(dt)
-        return StepResult(pos, cov, heading, speed, status, lost or self.recovering, ev.best_m,
-                          fitness.comparisons, spread, hypotheses)
+        return StepResult(self._reported(pos, status), cov, heading, speed, status,
+                          lost or self.recovering, ev.best_m, fitness.comparisons, spread,
+                          hypotheses)
+
+    def _reported(self, pos: np.ndarray, status: Status) -> np.ndarray:
+        """The position reported for the estimate ``pos``: smoothed along the map's path
+        while tracking (service/along_track.py), ``pos`` itself otherwise."""
+        p = self.params
+        if status is not Status.TRACKING or p.along_track_alpha >= 1:
+            self.smoother.reset()
+            return pos
+        nearest = int(self.index.nearest(pos[None, :])[0][0])
+        tangent = path_tangent(self._map_positions, nearest, self._spacing)
+        return self.smoother.update(pos, tangent, p.along_track_alpha, p.along_track_gate_m,
+                                    self.ema_step)
 
     def mean_evidence(self) -> np.ndarray:
         """Each particle's evidence as a decayed mean of the fitness along its path (A with

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from client.dataset import Round, read_round
+from client.lab.experiments import SimilarityTable
 from client.lab.processes import RedisServer
 from client.lab.world import World
 from service.route_map import RouteMap, build_map, load_map, save_map
@@ -86,3 +87,9 @@ def rdb(redis_srv: RedisServer):
     r.flushdb()
     yield r
     r.close()
+
+
+@pytest.fixture(scope="session")
+def table(small_map: RouteMap, sunny2: Round) -> SimilarityTable:
+    """Similarities of every sunny2 frame to every image of the small map."""
+    return SimilarityTable.from_round(small_map, sunny2)

@@ -36,11 +36,6 @@ def test_match_sigma_grows_as_the_best_match_weakens() -> None:
     assert match_sigma(0.02, p.with_overrides({"match_sigma_m": 0.0})) == 0.0
 
 
-@pytest.fixture(scope="module")
-def table(small_map: RouteMap, sunny2: Round) -> SimilarityTable:
-    return SimilarityTable.from_round(small_map, sunny2)
-
-
 def _run_with_blackout(small_map: RouteMap, table: SimilarityTable, n: int,
                        params: dict[str, float] | None, start: int, blackout: range
                        ) -> tuple[np.ndarray, np.ndarray]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.lab.experiments import SimilarityTable, run
+from client.lab.experiments import run
 from client.runs import frames_to_recover
 from service.fitness import FrameFitness
 from service.localizer import Localizer
@@ -14,11 +14,6 @@ from service.particle_filter import low_variance_resample
 from service.registry import params_for
 
 WARMUP = 20  # frames of global convergence left out of tracking errors
-
-
-@pytest.fixture(scope="module")
-def table(small_map, sunny2) -> SimilarityTable:
-    return SimilarityTable.from_round(small_map, sunny2)
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,71 @@
+"""Along-track smoothing of the reported position (an alpha-beta filter along the map's path).
+
+The image estimate of one frame scatters along the route: neighbouring map images look alike
+in the direction of travel, while across it the scene shifts and the images tell the place
+sharply. A particle filter averages that scatter through its motion model; the swarm's
+estimate is one frame's. This filter predicts the position with its own velocity and takes
+the measurement's correction in full across the path but only ``alpha`` of it along the path
+(the map's direction at the measurement, from the nearest image and its neighbours), so a
+turn does not lag as a two-dimensional smoother does. The velocity takes
+beta = alpha^2 / (2 - alpha) of the correction (the Benedict-Bordner pairing of an alpha-beta
+tracker), so a robot that speeds up is followed within a few frames. A correction longer
+than ``gate_m`` restarts it at the measurement: a jump the swarm makes is reported at once.
+
+It smooths the reported position only; the swarm and its tracked velocity see the raw
+estimate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def path_tangent(positions: np.ndarray, nearest: int, spacing: float) -> np.ndarray | None:
+    """Unit direction of the map's path at image ``nearest``: towards its successor from its
+    predecessor, where they lie within four spacings (a neighbour in the id order farther
+    away belongs to another traversal or a gap); None where neither does."""
+    here = positions[nearest]
+
+    def neighbour(j: int) -> np.ndarray:
+        near = 0 <= j < len(positions) and \
+            float(np.linalg.norm(positions[j] - here)) <= 4.0 * spacing
+        return positions[j] if near else here
+
+    a, b = neighbour(nearest - 1), neighbour(nearest + 1)
+    d = b - a
+    norm = float(np.linalg.norm(d))
+    return d / norm if norm > 0 else None
+
+
+class AlongTrackSmoother:
+    """State of the filter: the smoothed position and its velocity (m per frame)."""
+
+    def __init__(self) -> None:
+        self.position: np.ndarray | None = None
+        self.velocity = np.zeros(2)
+
+    def reset(self) -> None:
+        self.position = None
+        self.velocity = np.zeros(2)
+
+    def update(self, z: np.ndarray, tangent: np.ndarray | None, alpha: float, gate_m: float,
+               velocity: np.ndarray | None = None) -> np.ndarray:
+        """The smoothed position for measurement ``z`` (m); ``tangent``: the path's unit
+        direction there (None: no path, the measurement is taken in full); ``velocity``:
+        the tracked velocity (m per frame) a restart starts from (None: standing)."""
+        z = np.asarray(z, float)
+        if self.position is None or tangent is None:
+            return self._restart(z, velocity)
+        predicted = self.position + self.velocity
+        r = z - predicted
+        if float(np.linalg.norm(r)) > gate_m:
+            return self._restart(z, velocity)
+        along = float(r @ tangent) * tangent
+        self.position = predicted + alpha * along + (r - along)
+        self.velocity = self.velocity + alpha * alpha / (2.0 - alpha) * r
+        return self.position.copy()
+
+    def _restart(self, z: np.ndarray, velocity: np.ndarray | None) -> np.ndarray:
+        self.position = z.copy()
+        self.velocity = np.zeros(2) if velocity is None else np.array(velocity, float)
+        return z.copy()
