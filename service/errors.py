@@ -33,6 +33,11 @@ class Conflict(ServiceError):
     status = 409
 
 
+class UnreadableSession(Conflict):
+    """A stored session state that this version cannot continue (written by another version
+    of swarmloc, or damaged): the robot replaces or deletes it; everyone else is served."""
+
+
 class PreconditionFailed(ServiceError):
     status = 412
 

@@ -17,7 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from service.errors import Conflict, InvalidParameters, NotFound, ServiceError, Unavailable
+from service.errors import (
+    Conflict,
+    InvalidParameters,
+    NotFound,
+    ServiceError,
+    Unavailable,
+    UnreadableSession,
+)
 from service.estimator import EstimatorStateError
 from service.events import EventHub
 from service.imaging import decode_frame
@@ -260,9 +267,15 @@ class LocalizationService:
         return sorted(rid for rid, m in self.store.maps_of().items() if m == name)
 
     def sessions(self) -> list[SessionInfo]:
+        """The live sessions; one whose stored state cannot be read is left out (its own
+        requests say why), so the listing serves everyone else."""
         out = []
         for rid in self.store.ids():
-            s = self.store.get(rid)
+            try:
+                s = self.store.get(rid)
+            except UnreadableSession as exc:
+                log.warning("%s", exc)
+                continue
             if s is not None:
                 out.append(s.info())
         return out

@@ -35,7 +35,7 @@ from typing import Any, cast
 
 import msgpack
 
-from service.errors import Conflict, NotFound, ServiceError, Unavailable
+from service.errors import Conflict, NotFound, ServiceError, Unavailable, UnreadableSession
 from service.models import EstimatorName, SessionInfo
 from service.route_map import RouteMap
 from service.state_codec import SessionState, StateError, decode_session, encode_session
@@ -366,8 +366,9 @@ class RedisStore(SessionStore):
         try:
             st = decode_session(blob, resolve)
         except StateError as exc:
-            raise ServiceError(f"stored state of robot '{robot_id}' is unreadable: {exc}"
-                               ) from None
+            raise UnreadableSession(
+                f"stored state of robot '{robot_id}' cannot be continued ({exc}); start it "
+                f"over with PUT /sessions/{robot_id} or delete it") from None
         return Session(**vars(st), version=version.decode(), map_changed=changed)
 
     def _materialize(self, robot_id: str, res: list[Any], strict: bool) -> Session | None:

@@ -21,11 +21,13 @@ import pytest
 import zenoh
 
 from client.lab.processes import RedisServer, ServiceProcess
+from service.localizer import Localizer
 from service.models import Estimate, SessionConfig
 from service.route_map import RouteMap, save_map
 from service.server import free_port
 from service.sessions import LocalizationService
 from service.settings import Settings
+from service.store import RedisOptions, RedisStore, Session
 
 SEED = 7
 
@@ -259,3 +261,29 @@ def test_kill_9_of_a_replica_mid_stream(replicas, rdb, frames, small_map) -> Non
     for k in range(6, 9):
         assert _est(_post(a.url, "k9", frames[k], k)) == expected[k]
     assert _frames_of(a.url, "k9") == 9
+
+
+def test_a_state_from_another_version_is_refused_with_a_way_out(
+        replicas, rdb, redis_srv, frames, small_map) -> None:
+    """A state written by a swarmloc whose estimator had other attributes (a replica of the
+    previous release, mid-upgrade) is never half-read: its robot gets a 409 that says how
+    to start over, every other robot is served, and the listing leaves it out."""
+    a, b = replicas["a"].url, replicas["b"].url
+    _create(a, "current")
+    _est(_post(a, "current", frames[0], 0))
+    older = Localizer(small_map, "dpso", None, SEED)
+    del older.estimator.smoother  # type: ignore[attr-defined]  # before along-track smoothing
+    store = RedisStore(redis_srv.url, lambda *_: small_map, RedisOptions())
+    store.create(Session("older", older, time.time(), time.time()), True, 100)
+    for url in (a, b):
+        r = _post(url, "older", frames[0], 0)
+        assert r.status_code == 409, r.text
+        err = r.json()["error"]
+        assert "missing ['smoother']" in err and "PUT /sessions/older" in err
+    assert _est(_post(b, "current", frames[1], 1))["status"]  # everyone else is served
+    listed = httpx.get(f"{a}/sessions", timeout=30)
+    assert listed.status_code == 200, listed.text
+    assert [s["robot_id"] for s in listed.json()] == ["current"]
+    _create(a, "older")  # the way out: start it over
+    _est(_post(b, "older", frames[0], 0))
+    assert _frames_of(a, "older") == 1
