@@ -30,7 +30,10 @@ changes, each measured in README "Localization across lighting":
   the estimate still) finds the robot again through them.
 - **The estimate** is the place the images say: the centre of the map images compared near
   the best species, weighted by m ** ``estimate_image_power``; its covariance is that
-  species' spread, scaled to a calibrated 68 % radius.
+  species' spread, scaled to a calibrated 68 % radius. While tracking, the reported position
+  is that estimate smoothed along the map's path (service/along_track.py: the correction
+  across the path in full, ``along_track_alpha`` of it along the path); the swarm itself
+  works on the raw estimate.
 - **Lost detection** is relative (service/lost_detection.py): recovery starts when no match
   stands out for ``lost_frames`` frames, not when matches are merely weak.
 """

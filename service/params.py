@@ -222,6 +222,9 @@ class DPSOParams(CommonParams):
     local_scout_inner_m: float = Field(
         4.0, ge=0, le=1e5, description="inner radius of the local scouts (m): the images "
         "nearer are compared by the swarm and the estimate already")
+    local_scout_every: int = Field(
+        2, ge=1, le=1000, description="local scouts every this many frames (a stall grows "
+        "over tens of frames; every 2nd frame halves their comparisons)")
     along_track_alpha: float = Field(
         0.7, gt=0, le=1, description="share of the along-path correction the reported "
         "position takes each tracked frame (service/along_track.py; across the path it "
@@ -231,9 +234,6 @@ class DPSOParams(CommonParams):
     along_track_gate_m: float = Field(
         10.0, gt=0, le=1e5, description="a correction longer than this (m) restarts the "
         "smoother at the swarm's estimate")
-    local_scout_every: int = Field(
-        2, ge=1, le=1000, description="local scouts every this many frames (a stall grows "
-        "over tens of frames; every 2nd frame halves their comparisons)")
 
     @model_validator(mode="after")
     def _consistent(self) -> Self:
