@@ -655,6 +655,11 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
         raise MapError(f"{path}: inconsistent arrays (positions/offsets/codes/layers)")
     if not np.isfinite(positions).all():
         raise MapError(f"{path}: image positions are not all finite numbers (NaN or inf)")
+    if n and len(np.unique(layers)) != int(layers.max()) + 1:
+        # traversal ids are 0 .. L-1, each with images (a stray huge id would otherwise
+        # make a per-layer index of that many entries)
+        raise MapError(f"{path}: layer ids are not 0..L-1 with images in each (largest "
+                       f"{int(layers.max())}, {len(np.unique(layers))} distinct)")
     try:
         names = json.loads(bytes(arrays["image_names"]).decode())
     except (UnicodeDecodeError, json.JSONDecodeError):

@@ -268,3 +268,18 @@ def test_zenoh_control_answers_or_refuses_with_a_4xx(engine: LocalizationService
         return
     assert isinstance(reply, dict)
     json.dumps(reply, allow_nan=False)  # every answer is strict JSON
+
+
+@pytest.mark.parametrize("layer_id", [2**40, 5])
+def test_a_stray_layer_id_is_refused_not_allocated(tiny_map_file: Path, layer_id: int) -> None:
+    """Found by the fuzzer: a layer id of 2**40 made the per-layer index a list of 2**40
+    entries (the process took 24 GB). Ids must be 0..L-1, each with images."""
+    header, blob = _split(tiny_map_file)
+    spec = header["arrays"]["layers"]
+    off = int(spec["offset"])
+    blob = blob[:off] + struct.pack("<q", layer_id) + blob[off + 8:]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "layers.swmap"
+        path.write_bytes(_resign(header, blob))  # a valid checksum over the bad ids
+        with pytest.raises(MapError, match=r"layer ids are not 0\.\.L-1"):
+            load_map(path)
