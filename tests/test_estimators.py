@@ -187,5 +187,5 @@ def test_a_young_better_sub_swarm_survives_but_does_not_take_the_estimate(
 
     after = est.step(boosted, 30.0)
     assert np.linalg.norm(after.position - res.position) < 5  # the estimate stayed
-    near_far = np.linalg.norm(est.x - pos[far], axis=1) < 3
-    assert near_far.any() == by_mean
+    # the scout itself (a random scout redrawn this frame may land anywhere, also there)
+    assert (np.linalg.norm(est.x[scout] - pos[far]) < 3) == by_mean
