@@ -21,9 +21,10 @@ changes, each measured in README "Localization across lighting":
   its particles' paths (the evidence without the bias of its age) is at least
   ``dissolve_mean_ratio`` of the best one's. A scout that finds the true place survives
   until its evidence takes the estimate; a young species that is not better does not.
-- **Attractors ahead.** Each sub-swarm is attracted to where its seed will be at the next
-  frame (the seed plus the tracked step), and the quantum particles are redrawn there: a
-  motion prior that keeps the swarm from trailing a moving robot (``predict_attractor``).
+- **Attractors ahead** (``predict_attractor``, off by default). Each sub-swarm is attracted
+  to where its seed will be at the next frame (the seed plus the tracked step), and the
+  quantum particles are redrawn there: a motion prior for a robot that moves about an image
+  spacing per frame.
 - **Scouts.** A few particles with the least evidence are redrawn at random map images every
   frame (more while recovering). They are the background the lost detection measures
   against, and the way the swarm discovers a place it is not searching.

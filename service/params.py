@@ -149,10 +149,11 @@ class DPSOParams(CommonParams):
         False, description="carry particles by the tracked velocity while tracking (dropped: "
         "with omega = 0.99 both together overshoot, error x1.2-1.9)")
     predict_attractor: bool = Field(
-        True, description="attract each sub-swarm to where its seed will be at the next "
-        "frame (seed + tracked step), so the swarm does not trail a moving robot (KITTI "
-        "even/odd over 5 seeds 0.51 / 0.36 -> 0.17 / 0.20 m; four worlds x 3 conditions, "
-        "summed, 17.57 -> 17.17 m)")
+        False, description="attract each sub-swarm to where its seed will be at the next "
+        "frame (seed + tracked step), so the swarm does not trail a robot that moves about "
+        "an image spacing per frame (KITTI even/odd over 5 seeds 0.51 / 0.36 -> 0.17 / "
+        "0.20 m, four worlds x 3 conditions summed 17.57 -> 17.17 m); off by default: it "
+        "loses on the second cloudy day (1.21 -> 1.27 m over 12 starts)")
     evidence_decay: float = Field(0.8, ge=0, lt=1, description="lambda of A <- lambda A + f "
                                   "(about 5 frames of memory)")
     species_radius_m: float = Field(5.0, gt=0, le=1e4, description="particles within this "
