@@ -28,10 +28,10 @@ from service.settings import Settings
 from service.zenoh_bridge import _frame_args, control, parse_attachment
 
 # `swarmloc bench fuzz --minutes N` raises the number of examples and draws fresh ones; the
-# suite's own run (scale 1) uses fixed examples, so a CI run is reproducible
+# suite's own run (no SWARMLOC_FUZZ_SCALE) uses fixed examples, so a CI run is reproducible
 SCALE = float(os.environ.get("SWARMLOC_FUZZ_SCALE", "1"))
 FUZZ = settings(max_examples=int(60 * SCALE), deadline=None, database=None,
-                derandomize=SCALE == 1,
+                derandomize="SWARMLOC_FUZZ_SCALE" not in os.environ,
                 suppress_health_check=[HealthCheck.too_slow,
                                        HealthCheck.function_scoped_fixture])
 json_values = st.recursive(

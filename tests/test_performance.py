@@ -11,7 +11,7 @@ import pytest
 
 from client.dataset import Round
 from client.lab.bench_frame import STAGES, bench_frame
-from client.lab.bench_load import bench_load
+from client.lab.bench_load import bench_load, fuzz_test_files
 from client.lab.feature_study import (
     FeatureTable,
     HammingMatcher,
@@ -120,3 +120,11 @@ def test_feature_table_rootsift_is_the_maps_similarity(small_map: RouteMap,
     assert table.computed == len(pick)
     table.scores(0, pick)  # kept: not computed again
     assert table.computed == len(pick)
+
+
+def test_bench_fuzz_finds_the_suites_fuzz_tests() -> None:
+    """`swarmloc bench fuzz` runs this checkout's fuzz tests (it looked in client/tests
+    after the package moved, and refused to run)."""
+    files = fuzz_test_files()
+    assert [f.name for f in files] == ["test_fuzz_parsers.py", "test_schemathesis.py"]
+    assert all(f.is_file() and f.parent == Path(__file__).resolve().parent for f in files)

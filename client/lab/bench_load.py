@@ -318,14 +318,19 @@ def bench_fairness(maps_dir: Path, round_dir: Path, heavy: int, heavy_particles:
     return alone.p99_ms, loaded.p99_ms
 
 
+def fuzz_test_files() -> list[Path]:
+    """The suite's fuzz test files in this source checkout (tests/ at its top level)."""
+    tests = Path(__file__).resolve().parents[2] / "tests"
+    return [tests / "test_fuzz_parsers.py", tests / "test_schemathesis.py"]
+
+
 def bench_fuzz(minutes: float, seed: int | None = None,
                emit: Callable[[str], None] = print) -> int:
     """The suite's fuzz tests (hypothesis parsers + schemathesis), for ``minutes`` in all,
     with many more examples; returns pytest's exit code."""
     import pytest
 
-    tests = Path(__file__).resolve().parent.parent / "tests"
-    files = [tests / "test_fuzz_parsers.py", tests / "test_schemathesis.py"]
+    files = fuzz_test_files()
     missing = [str(f) for f in files if not f.is_file()]
     if missing:
         emit(f"the fuzz tests are not here ({missing}): run from a source checkout")
