@@ -5,8 +5,8 @@ in the direction of travel, while across it the scene shifts and the images tell
 sharply. A particle filter averages that scatter through its motion model; the swarm's
 estimate is one frame's. This filter predicts the position with its own velocity and takes
 the measurement's correction in full across the path but only ``alpha`` of it along the path
-(the map's direction at the measurement, from the nearest image and its neighbours), so a
-turn does not lag as a two-dimensional smoother does. The velocity takes
+(the map's direction at the measurement, from the nearest image and its neighbours), so it
+lags less at a turn than a two-dimensional smoother does. The velocity takes
 beta = alpha^2 / (2 - alpha) of the correction (the Benedict-Bordner pairing of an alpha-beta
 tracker), so a robot that speeds up is followed within a few frames. A correction longer
 than ``gate_m`` restarts it at the measurement: a jump the swarm makes is reported at once.
