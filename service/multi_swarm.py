@@ -164,18 +164,23 @@ class MultiSwarmDPSO(DPSO):
         dissolve = (label >= 0) & weak_s[label.clip(0)]
         self._move_species(attractor, self.x[seeds[best_s]] + lead, dissolve, pos + lead)
         speed, heading = self.motion(dt)
-        return StepResult(self._reported(pos, status), cov, heading, speed, status,
+        return StepResult(self._reported(pos, status, ids, compared_xy), cov, heading, speed,
+                          status,
                           lost or self.recovering, ev.best_m, fitness.comparisons, spread,
                           hypotheses)
 
-    def _reported(self, pos: np.ndarray, status: Status) -> np.ndarray:
+    def _reported(self, pos: np.ndarray, status: Status, ids: np.ndarray,
+                  compared_xy: np.ndarray) -> np.ndarray:
         """The position reported for the estimate ``pos``: smoothed along the map's path
-        while tracking (service/along_track.py), ``pos`` itself otherwise."""
+        while tracking (service/along_track.py), ``pos`` itself otherwise. The path's
+        direction is taken at the compared image nearest ``pos`` (the estimate is their
+        centre, so no map-wide query is needed)."""
         p = self.params
-        if status is not Status.TRACKING or p.along_track_alpha >= 1:
+        if status is not Status.TRACKING or p.along_track_alpha >= 1 or not len(ids):
             self.smoother.reset()
             return pos
-        nearest = int(self.index.nearest(pos[None, :])[0][0])
+        nearest = int(ids[np.argmin(np.einsum("ij,ij->i", compared_xy - pos,
+                                              compared_xy - pos))])
         tangent = path_tangent(self._map_positions, nearest, self._spacing)
         return self.smoother.update(pos, tangent, p.along_track_alpha, p.along_track_gate_m,
                                     self.ema_step)
