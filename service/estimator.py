@@ -8,7 +8,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from service.fitness import FrameFitness, MapIndex, SimilarityFn
+from service.fitness import FrameFitness, LocateFn, MapIndex, SimilarityFn
 from service.models import DEFAULT_PRIOR_RADIUS_M
 from service.params import CommonParams
 
@@ -221,8 +221,11 @@ class Estimator:
             return Status.LOST, True
         return (Status.TRACKING if self._converged else Status.INITIALIZING), False
 
-    def step(self, similarity: SimilarityFn, t: float | None = None) -> StepResult:
-        fitness = FrameFitness(self.index, similarity, self.params.penalty_sigma_m)
+    def step(self, similarity: SimilarityFn, t: float | None = None,
+             locate: LocateFn | None = None) -> StepResult:
+        """One frame: ``similarity`` compares it with map images; ``locate``, where given,
+        places its camera relative to one (two-view geometry, for an estimator that uses it)."""
+        fitness = FrameFitness(self.index, similarity, self.params.penalty_sigma_m, locate)
         try:
             result = self._step(fitness, t)
         except ValueError:  # e.g. a KD-tree query refusing non-finite particles

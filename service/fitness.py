@@ -12,11 +12,16 @@ layer and keeps the best m * zeta; every image compared counts.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from service.metric_pose import Offset
+
 SimilarityFn = Callable[[np.ndarray], np.ndarray]  # map image ids -> m(frame, image)
+# map image id -> the frame's camera relative to that image's (service/metric_pose.py)
+LocateFn = Callable[[int], "Offset | None"]
 
 
 class MapIndex(Protocol):
@@ -32,9 +37,11 @@ class MapIndex(Protocol):
 class FrameFitness:
     """Eq. 3 for one frame, with a per-frame comparison cache and counter."""
 
-    def __init__(self, index: MapIndex, similarity: SimilarityFn, penalty_sigma_m: float) -> None:
+    def __init__(self, index: MapIndex, similarity: SimilarityFn, penalty_sigma_m: float,
+                 locate: LocateFn | None = None) -> None:
         self._index = index
         self._similarity = similarity
+        self.locate = locate  # None: the frame can only be placed at map images
         self._inv_two_sigma2 = 1.0 / (2.0 * penalty_sigma_m**2)
         self._ids = np.zeros(0, np.int64)
         self._scores = np.zeros(0)

@@ -8,6 +8,8 @@ import numpy as np
 
 from service.estimator import StepResult
 from service.features import Features, extract
+from service.fitness import LocateFn
+from service.map_geometry import GeometryParams
 from service.models import Estimate, EstimatorName, Hypothesis
 from service.params import DPSOParams
 from service.place_index import PlaceSeeder
@@ -58,10 +60,20 @@ class Localizer:
             self.estimator.constrain((prior[0], prior[1]), prior[2])
         codes = features.codes
         self.seed_places(codes)
-        res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t)
+        res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t,
+                                  self.locator(features))
         self.seq += 1
         self.last = self._estimate(res, t)
         return self.last
+
+    def locator(self, features: Features) -> LocateFn | None:
+        """The frame located at a map image by two-view geometry (service/map_geometry.py),
+        None for a map without the camera's intrinsics."""
+        geometry = self.map.geometry
+        if geometry is None:
+            return None
+        params = GeometryParams()
+        return lambda image_id: geometry.locate(features, image_id, params)
 
     def seed_places(self, codes: np.ndarray) -> None:
         """Candidate places of this frame for a searching estimator (service/place_index.py);

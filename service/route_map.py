@@ -51,7 +51,9 @@ from service.features import (
     unit_descriptors,
 )
 from service.geo import LocalFrame
+from service.map_geometry import MapGeometry
 from service.matcher import PreparedSet, match_batch_u8, prepare
+from service.metric_pose import Camera
 from service.place_index import PlaceIndex, build_place_index
 
 MAGIC = b"SWMAP\x00\r\n"
@@ -180,6 +182,22 @@ class RouteMap:
         o = self.meta.get("origin")
         return LocalFrame(o["lat"], o["lon"]) if o else None
 
+    @cached_property
+    def camera(self) -> Camera | None:
+        """The camera's intrinsics (metadata ``camera``), None when the map was built without
+        them: its frames are then placed at map images, never located between them."""
+        c = self.meta.get("camera")
+        return Camera.from_dict(c) if c else None
+
+    @cached_property
+    def geometry(self) -> MapGeometry | None:
+        """Two-view geometry against this map's images (service/map_geometry.py), None
+        without a camera."""
+        cam = self.camera
+        if cam is None:
+            return None
+        return MapGeometry(self, cam, self.sift_params.width, self.sift_params.height)
+
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(min, max) corners of the map positions."""
@@ -269,6 +287,7 @@ def build_map(
     prune_features: bool = False,
     layers: np.ndarray | None = None,
     place_index: bool = True,
+    camera: Camera | None = None,
 ) -> RouteMap:
     """Extract, (optionally) prune and assemble a map in memory (``save_map`` writes it).
 
@@ -277,6 +296,8 @@ def build_map(
     ``layers``: traversal index per image for a map merged from several traversals; pruning
     compares neighbours within a traversal. ``place_index``: build the global
     place-recognition index (service/place_index.py; seeded, so a build is reproducible).
+    ``camera``: the intrinsics, kept in the metadata, with which frames are located between
+    map images (service/map_geometry.py); None: they are placed at map images only.
     """
     from service.features import extract as sift_extract
 
@@ -324,6 +345,7 @@ def build_map(
             "removed_fraction": round(stats.removed_fraction, 4),
         },
         "source": source or {},
+        "camera": camera.as_dict() if camera is not None else None,
     }
     m = RouteMap(name, meta, positions, list(image_names), codes, offsets, kps,
                  layers=layer_arr)
@@ -344,6 +366,8 @@ class RoundLike(Protocol):
     def xy(self) -> np.ndarray: ...
     @property
     def origin(self) -> tuple[float, float] | None: ...
+    @property
+    def camera(self) -> dict[str, float] | None: ...
     def __len__(self) -> int: ...
     def load_image(self, i: int) -> np.ndarray: ...
 
@@ -358,12 +382,15 @@ def build_map_from_rounds(
     source: dict[str, Any] | None = None,
     images: Iterable[np.ndarray] | None = None,
     wrap: Callable[[Iterator[np.ndarray]], Iterable[np.ndarray]] | None = None,
+    camera: Camera | None = None,
 ) -> RouteMap:
     """The map of one round, or of several traversals of one route (one layer each).
 
     ``name`` defaults to the rounds' names joined by '+'. Image names are the round's, or
     ``ROUND/IMAGE`` for several rounds. ``images`` replaces the rounds' own images (e.g. paced
-    for a background build); ``wrap`` wraps the image iterator (e.g. a progress bar).
+    for a background build); ``wrap`` wraps the image iterator (e.g. a progress bar);
+    ``camera``: the intrinsics kept in the map (see ``build_map``); by default the rounds'
+    own (all must have the same).
     """
     if not rounds:
         raise MapError("a map needs at least one round")
@@ -371,6 +398,14 @@ def build_map_from_rounds(
     if any(r.origin != origin for r in rounds[1:]):
         raise MapError("the rounds have different geodetic origins: give them one "
                        "dataset.json origin")
+    if camera is None and rounds[0].camera is not None:
+        if any(r.camera != rounds[0].camera for r in rounds[1:]):
+            raise MapError("the rounds were recorded with different cameras (dataset.json "
+                           "'camera' or calib.txt); build one map per camera")
+        try:
+            camera = Camera.from_dict(rounds[0].camera)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MapError(f"the round's camera intrinsics are invalid ({exc})") from None
     it: Iterable[np.ndarray] = (images if images is not None else
                                 (r.load_image(i) for r in rounds for i in range(len(r))))
     if wrap is not None:
@@ -384,6 +419,7 @@ def build_map_from_rounds(
         source=source if source is not None else {"rounds": [r.name for r in rounds]},
         prune_features=prune_features,
         layers=np.concatenate([np.full(len(r), k) for k, r in enumerate(rounds)]),
+        camera=camera,
     )
 
 
@@ -692,6 +728,13 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
             8 <= sp.width <= 8192 and 8 <= sp.height <= 8192 and 1 <= sp.clahe_tile <= 64
             and sp.n_features >= 0):
         raise MapError(f"{path}: feature parameters are invalid ({feature})")
+    cam = header.get("camera")
+    if cam is not None:
+        try:
+            Camera.from_dict(cam)
+        except (TypeError, ValueError, KeyError) as exc:
+            raise MapError(f"{path}: camera intrinsics are invalid ({exc}); rebuild the map "
+                           "with a valid --hfov, or without one") from None
     meta = {k: v for k, v in header.items() if k not in ("name",)}
     name = str(header.get("name", path.stem))
     lazy = (np.asarray(arrays["image_digests"]) if version == 3 and verify == "lazy"
