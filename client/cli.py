@@ -205,13 +205,27 @@ def map_build(
     height: int = 240,
     features: FeaturesOpt = "clahe-rootsift",
     prune: PruneOpt = False,
+    hfov: Annotated[float | None, typer.Option(
+        help="the camera's horizontal field of view (degrees; square pixels, centred), where "
+             "the rounds' dataset.json 'camera' or calib.txt do not give it; with a camera "
+             "the service locates frames between map images")] = None,
 ) -> None:
     """Build a map from one or more rounds: features, optional pruning, atomic write."""
+    from dataclasses import replace
+
     from tqdm import tqdm
 
+    from service.round_format import camera_from_hfov
     from service.route_map import MapError, build_map_from_rounds, save_map
 
     rounds = [_read_round(r) for r in round_dirs]
+    if hfov is not None:
+        h, w = rounds[0].load_image(0).shape[:2]
+        try:
+            cam = camera_from_hfov(hfov, w, h)
+        except ValueError as exc:
+            _fail(f"--hfov: {exc}")
+        rounds = [replace(r, camera=cam) for r in rounds]
     try:
         m = build_map_from_rounds(
             rounds, name=out.name.removesuffix(".swmap"),
@@ -225,7 +239,10 @@ def map_build(
     pr = m.meta["pruning"]
     typer.echo(f"wrote {path}: {m.n_images} images in {m.n_layers} layer(s), "
                f"{pr['features_after']} features ({pr['features_after'] / m.n_images:.0f} per "
-               f"image; pruning removed {100 * pr['removed_fraction']:.1f} %)")
+               f"image; pruning removed {100 * pr['removed_fraction']:.1f} %); "
+               + ("with the camera: frames are located between images" if m.camera else
+                  "no camera (dataset.json 'camera', calib.txt or --hfov): frames are placed "
+                  "at map images"))
 
 
 @map_app.command("info")

@@ -20,11 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from service.round_format import (
+    CALIB_FILE,
     DATASET_FILE,
     IMAGE_SUFFIXES,
     POSES_FILE,
     TRUTH_FILE,
     DatasetError,
+    dataset_camera,
     dataset_origin,
     parse_positions,
     read_meta,
@@ -54,6 +56,8 @@ class Round:
     t: np.ndarray | None  # (N,) seconds
     truth_xy: np.ndarray | None  # (N, 2) metres, from truth.csv
     origin: tuple[float, float] | None  # (lat0, lon0) when the round was geographic
+    # intrinsics as fractions of the image size {fx, fy, cx, cy}: dataset.json or calib.txt
+    camera: dict[str, float] | None = None
 
     def __len__(self) -> int:
         return len(self.images)
@@ -69,7 +73,8 @@ class Round:
         return Round(self.name, self.path, tuple(self.images[k] for k in i),
                      (self.reference_xy if use_truth else self.xy)[i],
                      self.t[i] if self.t is not None else None,
-                     self.truth_xy[i] if self.truth_xy is not None else None, self.origin)
+                     self.truth_xy[i] if self.truth_xy is not None else None, self.origin,
+                     self.camera)
 
     def image_path(self, i: int) -> Path:
         return self.path / self.images[i]
@@ -128,6 +133,7 @@ def read_round(
             raise DatasetError(
                 f"{path / TRUTH_FILE}: must list the same images in the same order as {POSES_FILE}"
             )
+    camera = dataset_camera(path, _image_size(path / names[0]))
     return Round(
         name=path.name,
         path=path,
@@ -136,7 +142,20 @@ def read_round(
         t=t,
         truth_xy=truth_xy,
         origin=origin,
+        camera=camera,
     )
+
+
+def _image_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) of an image, for a calib.txt in pixels; None without OpenCV or where
+    it does not decode."""
+    if not (path.parent / CALIB_FILE).is_file():
+        return None
+    try:
+        img = imread_gray(path)
+    except ImportError:
+        return None
+    return None if img is None else (img.shape[1], img.shape[0])
 
 
 def read_dataset(path: str | Path) -> Dataset:

@@ -7,7 +7,7 @@ import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
-from client.dataset import DATASET_FILE, POSES_FILE, TRUTH_FILE, read_round
+from client.dataset import CALIB_FILE, DATASET_FILE, POSES_FILE, TRUTH_FILE, read_round
 from client.transports import HttpClient, SwarmlocError
 from service.models import JobInfo
 
@@ -15,15 +15,16 @@ _STORED = (".png", ".jpg", ".jpeg")  # already compressed
 
 
 def zip_round(round_dir: str | Path, out: str | Path) -> Path:
-    """Write ``out`` (a zip): ``ROUND/poses.csv`` (+ truth.csv), the images it names, and the
-    dataset's ``dataset.json`` (its geodetic origin) at the top. The round is validated first."""
+    """Write ``out`` (a zip): ``ROUND/poses.csv`` (+ truth.csv, calib.txt), the images it
+    names, and the dataset's ``dataset.json`` (its geodetic origin and camera) at the top.
+    The round is validated first."""
     rnd = read_round(round_dir)
     out = Path(out)
     with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as zf:
         meta = rnd.path.parent / DATASET_FILE
         if meta.is_file():
             zf.write(meta, DATASET_FILE)
-        for extra in (POSES_FILE, TRUTH_FILE):
+        for extra in (POSES_FILE, TRUTH_FILE, CALIB_FILE):
             if (rnd.path / extra).is_file():
                 zf.write(rnd.path / extra, f"{rnd.name}/{extra}")
         for name in rnd.images:

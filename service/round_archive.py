@@ -17,6 +17,7 @@ limit; nothing outside ``dest`` is ever read.
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import stat
 import tarfile
@@ -31,10 +32,12 @@ import numpy as np
 from service.errors import BadRequest, InvalidParameters, PayloadTooLarge
 from service.imaging import decode_frame
 from service.round_format import (
+    CALIB_FILE,
     DATASET_FILE,
     IMAGE_SUFFIXES,
     POSES_FILE,
     DatasetError,
+    dataset_camera,
     parse_positions,
     read_meta,
 )
@@ -62,6 +65,7 @@ class UploadedRound:
     t: np.ndarray | None
     origin: tuple[float, float] | None
     max_pixels: int
+    camera: dict[str, float] | None = None  # intrinsics as fractions of the image size
 
     def __len__(self) -> int:
         return len(self.images)
@@ -232,6 +236,16 @@ def extract_round(archive: Path, dest: Path, limits: ArchiveLimits) -> UploadedR
         except Exception as exc:  # ServiceError from decode_frame, or OSError
             msg = getattr(exc, "message", str(exc))
             raise InvalidParameters(f"{where} is unreadable: {msg}") from None
+    # the camera (every image is checked by now): dataset.json one level up, or a KITTI
+    # calib.txt in the round
+    try:
+        size = None
+        if (root / CALIB_FILE).is_file() and names:
+            h, w = rnd.load_image(0).shape[:2]
+            size = (w, h)
+        rnd = dataclasses.replace(rnd, camera=dataset_camera(root, size, root != dest))
+    except DatasetError as exc:
+        raise InvalidParameters(f"invalid round: {_relative(exc, dest)}") from None
     return rnd
 
 

@@ -127,6 +127,64 @@ def dataset_origin(round_dir: Path) -> tuple[float, float] | None:
         raise DatasetError(f"{meta_path}: 'origin' must be {{\"lat\": .., \"lon\": ..}}") from None
 
 
+CALIB_FILE = "calib.txt"  # KITTI's projection matrices (P0: ...) in a round directory
+
+
+def camera_from_hfov(hfov_deg: float, width: float, height: float) -> dict[str, float]:
+    """Intrinsics as fractions of the image size for square pixels and a centred principal
+    point, from the horizontal field of view (degrees) and the image size."""
+    if not (0 < hfov_deg < 180 and width > 0 and height > 0):
+        raise ValueError(f"need 0 < hfov_deg < 180 and a positive size, got {hfov_deg}, "
+                         f"{width}x{height}")
+    fx = 0.5 / math.tan(math.radians(hfov_deg) / 2)
+    return {"fx": fx, "fy": fx * width / height, "cx": 0.5, "cy": 0.5}
+
+
+def dataset_camera(round_dir: Path, image_size: tuple[int, int] | None = None,
+                   dataset_json: bool = True) -> dict[str, float] | None:
+    """The camera's intrinsics as fractions of the image size ({fx, fy, cx, cy}), from the
+    dataset.json ``camera`` one level up ({"hfov_deg", "width", "height"}: square pixels,
+    centred; or {"fx", "fy", "cx", "cy"} already as fractions), else from a KITTI
+    ``calib.txt`` in the round (its first line, P0, in pixels of ``image_size`` = (width,
+    height)); None when neither is there. ``dataset_json=False``: the round has no dataset
+    above it (an uploaded round at the top of its archive)."""
+    meta_path = round_dir.parent / DATASET_FILE
+    cam = (read_meta(meta_path).get("camera") if dataset_json and meta_path.is_file()
+           else None)
+    if cam is not None:
+        try:
+            if "hfov_deg" in cam:
+                out = camera_from_hfov(float(cam["hfov_deg"]), float(cam["width"]),
+                                       float(cam["height"]))
+            else:
+                out = {k: float(cam[k]) for k in ("fx", "fy", "cx", "cy")}
+        except (KeyError, TypeError, ValueError):
+            raise DatasetError(f"{meta_path}: 'camera' must be {{\"hfov_deg\", \"width\", "
+                               "\"height\"} or {\"fx\", \"fy\", \"cx\", \"cy\"} as "
+                               "fractions of the image size, all positive") from None
+        if not all(math.isfinite(v) and v > 0 for v in out.values()):
+            raise DatasetError(f"{meta_path}: camera intrinsics must be positive numbers")
+        return out
+    calib = round_dir / CALIB_FILE
+    if not calib.is_file() or image_size is None:
+        return None
+    lines = [ln for ln in calib.read_text(encoding="utf-8", errors="replace").splitlines()
+             if ln.strip()]
+    # the first line is P0 (the left camera), with or without its 'P0:' label
+    first = lines[0].split() if lines else []
+    try:
+        p = [float(v) for v in (first[1:] if first and first[0].endswith(":") else first)]
+        if len(p) == 12:
+            w, h = image_size
+            out = {"fx": p[0] / w, "fy": p[5] / h, "cx": p[2] / w, "cy": p[6] / h}
+            if all(math.isfinite(v) and v > 0 for v in out.values()):
+                return out
+    except ValueError:
+        pass
+    raise DatasetError(f"{calib}: the first line is not a projection matrix P0 (12 "
+                       "numbers, optionally after 'P0:', with positive focal lengths)")
+
+
 def read_meta(meta_path: Path) -> dict:
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))

@@ -32,9 +32,12 @@ def map_for(dataset: Path, rounds: str, papers: bool) -> RouteMap:
 
     names = [r for r in rounds.split("+") if r]
     path = dataset / ".maps" / f"{'+'.join(names)}{'-papers' if papers else ''}.swmap"
+    rnds = [read_round(dataset / r) for r in names]
     if path.is_file():
-        return load_map(path)
-    m = build_map_from_rounds([read_round(dataset / r) for r in names],
+        kept = load_map(path)
+        if kept.meta.get("camera") == rnds[0].camera:  # else built before the camera was known
+            return kept
+    m = build_map_from_rounds(rnds,
                               params=SiftParams.papers() if papers else SiftParams(),
                               prune_features=papers)
     return load_map(save_map(m, path))  # loaded: with its checksum, memory-mapped

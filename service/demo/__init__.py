@@ -18,15 +18,17 @@ if TYPE_CHECKING:
 DEMO_ROUND_DIR = Path(__file__).resolve().parent / "round"
 DEMO_SOURCE = {"world_seed": 0, "length_m": 80.0, "spacing_m": 1.2, "round": "sunny1",
                "condition": "sunny"}
+DEMO_HFOV_DEG = 65.0  # the synthetic world's camera (client/lab/world), 320 x 240 pixels
 
 
 def demo_round(path: Path = DEMO_ROUND_DIR) -> UploadedRound:
     """The shipped round (read like a round uploaded for a build)."""
     from service.round_archive import UploadedRound
-    from service.round_format import POSES_FILE, parse_positions
+    from service.round_format import POSES_FILE, camera_from_hfov, parse_positions
 
     names, xy, t, origin = parse_positions(path / POSES_FILE, None)
-    return UploadedRound("sunny1", path, tuple(names), xy, t, origin, max_pixels=320 * 240)
+    return UploadedRound("sunny1", path, tuple(names), xy, t, origin, max_pixels=320 * 240,
+                         camera=camera_from_hfov(DEMO_HFOV_DEG, 320, 240))
 
 
 def ensure_demo_map(maps_dir: Path, name: str = "demo") -> Path:
