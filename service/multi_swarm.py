@@ -44,6 +44,7 @@ changes, each measured in README "Localization across lighting":
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -91,6 +92,7 @@ class MultiSwarmDPSO(DPSO):
         self.monitor = DistinctnessMonitor(params.distinct_ratio, params.distinct_floor_m,
                                            params.distinct_far_m, params.ema_alpha)
         self.smoother = AlongTrackSmoother()  # the reported position (tracked frames)
+        self.unverified = 0  # tracked frames in a row the geometry could not locate
         self._reset_coasting()
 
     def _initialize(self) -> None:
@@ -99,6 +101,7 @@ class MultiSwarmDPSO(DPSO):
         self.age = np.zeros(self.params.n_particles)
         self.monitor.reset()
         self.smoother.reset()
+        self.unverified = 0
         self._reset_coasting()
 
     def _reset_coasting(self) -> None:
@@ -142,7 +145,10 @@ class MultiSwarmDPSO(DPSO):
                            p.estimate_image_power)
         ev = self.monitor.judge(compared_xy, scores, pos, p.species_radius_m)
         cov = cov + np.eye(2) * (match_sigma(ev.best_m, p) ** 2 + p.lateral_sigma_m ** 2)
-        status, lost = self._update_evidence_status(ev.good)
+        # the geometry's verdict on the last frames: the place the swarm holds is refuted
+        # when the frame could not be located at it for verify_frames tracked frames in a row
+        refuted = 0 < p.verify_frames <= self.unverified
+        status, lost = self._update_evidence_status(ev.good and not refuted)
         # a weak frame's estimate lags where images look alike: it does not teach the velocity
         self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))
         if self.recovery_phase(lost):
@@ -164,10 +170,43 @@ class MultiSwarmDPSO(DPSO):
         dissolve = (label >= 0) & weak_s[label.clip(0)]
         self._move_species(attractor, self.x[seeds[best_s]] + lead, dissolve, pos + lead)
         speed, heading = self.motion(dt)
+        located = self._located(fitness, status, pos, ids, scores, compared_xy)
+        if located is not None:
+            pos, inliers = located
+            cov = np.eye(2) * located_sigma(inliers, p) ** 2
         return StepResult(self._reported(pos, status, ids, compared_xy), cov, heading, speed,
                           status,
                           lost or self.recovering, ev.best_m, fitness.comparisons, spread,
                           hypotheses)
+
+    def _located(self, fitness: FrameFitness, status: Status, pos: np.ndarray,
+                 ids: np.ndarray, scores: np.ndarray, compared_xy: np.ndarray
+                 ) -> tuple[np.ndarray, int] | None:
+        """While tracking, the camera's position from two-view geometry against the
+        best-matching compared image within ``estimate_image_radius_m`` of ``pos``: that
+        image's position plus the located offset, right and ahead along the path there
+        (service/metric_pose.py), and the RANSAC inliers it rests on; None where the frame
+        cannot be located."""
+        p = self.params
+        if not p.metric_pose or fitness.locate is None or status is not Status.TRACKING:
+            self.unverified = 0  # counted while tracking only
+            return None
+        near = np.einsum("ij,ij->i", compared_xy - pos, compared_xy - pos) \
+            <= p.estimate_image_radius_m ** 2
+        if not near.any():
+            self.unverified += 1
+            return None
+        anchor = int(ids[near][np.argmax(scores[near])])
+        tangent = path_tangent(self._map_positions, anchor, self._spacing)
+        off = fitness.locate(anchor) if tangent is not None else None
+        if off is None or tangent is None or math.hypot(off.right_m, off.ahead_m) \
+                > p.metric_gate_m:
+            self.unverified += 1
+            return None
+        self.unverified = 0
+        right = np.array([tangent[1], -tangent[0]])
+        return (self._map_positions[anchor] + off.right_m * right + off.ahead_m * tangent,
+                off.inliers)
 
     def _reported(self, pos: np.ndarray, status: Status, ids: np.ndarray,
                   compared_xy: np.ndarray) -> np.ndarray:
@@ -303,6 +342,13 @@ def match_sigma(best_m: float, p: DPSOParams) -> float:
     m = 1, times m ** -``match_sigma_power``; m floored at ``distinct_floor_m``)."""
     return float(p.match_sigma_m * max(best_m, p.distinct_floor_m, 1e-6)
                  ** -p.match_sigma_power)
+
+
+def located_sigma(inliers: int, p: DPSOParams) -> float:
+    """Std (m) of a located position in each axis: ``metric_sigma_m`` at 30 RANSAC inliers,
+    times (30 / inliers) ** ``metric_sigma_power``: fewer inliers (other light) locate the
+    camera less sharply."""
+    return float(p.metric_sigma_m * (30.0 / max(inliers, 1)) ** p.metric_sigma_power)
 
 
 def image_centre(xy: np.ndarray, m: np.ndarray, around: np.ndarray, radius: float,

@@ -237,6 +237,27 @@ class DPSOParams(CommonParams):
     along_track_gate_m: float = Field(
         10.0, gt=0, le=1e5, description="a correction longer than this (m) restarts the "
         "smoother at the swarm's estimate")
+    metric_pose: bool = Field(
+        True, description="while tracking, locate the camera between map images by two-view "
+        "geometry against the best-matching map image near the estimate (service/"
+        "metric_pose.py; needs a map built with the camera's intrinsics): the robot's offset "
+        "beside and along the recorded path, which images alone cannot tell")
+    metric_gate_m: float = Field(
+        3.0, gt=0, le=1e3, description="a located position farther than this (m) from its map "
+        "image is not taken")
+    metric_sigma_m: float = Field(
+        0.45, gt=0, le=1e3, description="std (m) of a located position in each axis at 30 "
+        "RANSAC inliers: the estimate's covariance in the frames located")
+    verify_frames: int = Field(
+        0, ge=0, le=10_000, description="while tracking, a frame the geometry could not "
+        "locate at the best image near the estimate for this many tracked frames in a row "
+        "is not good for the lost detection (at the true place 80-100 % of tracked frames "
+        "are located, more than 5 m off 0-4 %). 0, the default, switches it off: with 6, "
+        "frames more than 10 m off were reported lost or recovering 25-71 % instead of "
+        "0-56 % of the time, but the mean error over six worlds x 3 conditions summed "
+        "17.93 m against 17.56 m (recoveries where the place was right)")
+    metric_sigma_power: float = Field(
+        0.25, ge=0, le=4, description="... times (30 / inliers) ** metric_sigma_power")
 
     @model_validator(mode="after")
     def _consistent(self) -> Self:

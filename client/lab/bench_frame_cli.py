@@ -33,6 +33,29 @@ def register(bench_app: typer.Typer) -> None:
             raise typer.BadParameter(f"unknown transport(s) {unknown}: use http and/or zenoh")
         report(bench_frame(maps_dir, round_dir, frames, warmup, seed, transports))
 
+    @bench_app.command("geometry")
+    def geometry_cmd(
+        dataset: Annotated[Path, typer.Argument(help="dataset with the rounds (and the "
+                                                     "camera: dataset.json or calib.txt)")],
+        map_round: Annotated[str, typer.Option("--map", help="round used as the map")]
+        = "sunny1",
+        query: Annotated[str, typer.Option(help="round whose frames are localized")]
+        = "cloudy1",
+        frames: Annotated[int, typer.Option(help="frames timed, after the warm-up")] = 200,
+        warmup: Annotated[int, typer.Option(help="frames of global convergence not "
+                                                 "counted")] = 20,
+        seed: int = 0,
+    ) -> None:
+        """Per-frame cost of locating frames between map images (two-view geometry): the
+        localizer step with and without it, interleaved on the same frames, and its parts."""
+        from client.lab.bench_geometry import bench_geometry, report
+
+        try:
+            b = bench_geometry(dataset, map_round, query, frames, warmup, seed)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc)) from None
+        report(b)
+
     @bench_app.command("feature-types")
     def feature_types_cmd(
         dataset: Annotated[Path, typer.Argument(help="dataset with the rounds")],

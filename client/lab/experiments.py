@@ -59,7 +59,8 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
     for it, q in enumerate(seq):
         t0 = time.perf_counter()
         loc.seed_places(table.queries[q].codes)  # the place index, while searching
-        e = loc.estimator.step(partial(table.scores, int(q)), it * dt)
+        e = loc.estimator.step(partial(table.scores, int(q)), it * dt,
+                               loc.locator(table.queries[q]))
         ms.append(1e3 * (time.perf_counter() - t0))
         est.append(e.position)
         comps.append(e.comparisons)

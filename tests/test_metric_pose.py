@@ -1,0 +1,237 @@
+"""A frame located between map images by two-view geometry (service/metric_pose.py,
+service/map_geometry.py), the camera a map keeps, and DPSO's use of both."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from client.dataset import Round, read_round
+from client.lab.experiments import SimilarityTable, run
+from client.lab.world import World
+from service.features import Features, extract
+from service.localizer import Localizer
+from service.map_geometry import GeometryParams
+from service.metric_pose import Camera
+from service.round_format import DatasetError, camera_from_hfov, dataset_camera
+from service.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
+
+
+@pytest.fixture(scope="module")
+def camera_map(tmp_path_factory: pytest.TempPathFactory, small_world: World,
+               sunny1: Round) -> RouteMap:
+    cam = small_world.camera
+    rnd = replace(sunny1, camera=camera_from_hfov(cam.hfov_deg, cam.width, cam.height))
+    path = save_map(build_map_from_rounds([rnd], name="cam"),
+                    tmp_path_factory.mktemp("cam_maps") / "cam")
+    return load_map(path)
+
+
+@pytest.fixture(scope="module")
+def sunny2_features(camera_map: RouteMap, sunny2: Round) -> list[Features]:
+    return [extract(sunny2.load_image(i), camera_map.sift_params) for i in range(len(sunny2))]
+
+
+def _frame_axes(positions: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
+    d = positions[min(i + 1, len(positions) - 1)] - positions[max(i - 1, 0)]
+    ahead = d / np.linalg.norm(d)
+    return ahead, np.array([ahead[1], -ahead[0]])
+
+
+def test_a_frame_is_located_ahead_of_or_behind_its_map_image(
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+    """Located at the map image two images (1.2 m) ahead of or behind the one nearest the
+    robot, the frame's position comes out far nearer the truth than that image's; located
+    at the nearest image, it is no worse than the image's position."""
+    geo = camera_map.geometry
+    assert geo is not None
+    truth, pos = sunny2.reference_xy, camera_map.positions
+    frames = range(6, len(sunny2) - 6, 2)
+    for shift in (-2, 0, 2):
+        at_image, located = [], []
+        for k in frames:
+            i = int(camera_map.nearest(truth[k][None, :])[0][0]) + shift
+            off = geo.locate(sunny2_features[k], i, GeometryParams())
+            if off is None:
+                continue
+            ahead, right = _frame_axes(pos, i)
+            p = pos[i] + off.right_m * right + off.ahead_m * ahead
+            at_image.append(np.linalg.norm(truth[k] - pos[i]))
+            located.append(np.linalg.norm(truth[k] - p))
+        assert len(located) >= 0.8 * len(frames)
+        if shift:
+            assert np.mean(located) < 0.6 * np.mean(at_image)
+        else:
+            assert np.mean(located) < np.mean(at_image) + 0.1
+
+
+def test_geometry_is_deterministic_and_kept_per_map_image(
+        camera_map: RouteMap, sunny2_features: list[Features]) -> None:
+    geo = camera_map.geometry
+    assert geo is not None
+    p = GeometryParams()
+    first = geo.locate(sunny2_features[40], 40, p)
+    assert first is not None and first == geo.locate(sunny2_features[40], 40, p)
+    assert geo.structure(40, p) is geo.structure(40, p)  # computed once, kept
+    j = geo.partner(40, p.baseline_m)
+    assert j is not None and 0.5 * p.baseline_m <= \
+        np.linalg.norm(camera_map.positions[j] - camera_map.positions[40]) <= 2 * p.baseline_m
+
+
+def test_a_frame_without_features_or_elsewhere_is_not_located(
+        camera_map: RouteMap, sunny2_features: list[Features]) -> None:
+    geo = camera_map.geometry
+    assert geo is not None
+    blank = Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8))
+    assert geo.locate(blank, 40, GeometryParams()) is None
+    # a frame from the other side of the loop shares no geometry with image 40
+    assert geo.locate(sunny2_features[len(sunny2_features) // 2 + 40], 40,
+                      GeometryParams()) is None
+
+
+def test_a_map_without_camera_places_frames_at_images(small_map: RouteMap) -> None:
+    assert small_map.camera is None and small_map.geometry is None
+    assert Localizer(small_map).locator(Features(np.zeros((0, 2), np.float32),
+                                                  np.zeros((0, 128), np.uint8))) is None
+
+
+def test_dpso_with_geometry_is_more_accurate(camera_map: RouteMap, small_map: RouteMap,
+                                             sunny2: Round) -> None:
+    """Same frames, seeds and similarities; the map with the camera gives DPSO the located
+    position while tracking, the one without places the robot at map images."""
+    with_cam = SimilarityTable.from_round(camera_map, sunny2)
+    without = SimilarityTable.from_round(small_map, sunny2)
+    err_cam, err_img = [], []
+    for seed in range(3):
+        start = seed * len(sunny2) // 3
+        a = run(camera_map, with_cam, sunny2, "dpso", seed=seed, start=start)
+        b = run(small_map, without, sunny2, "dpso", seed=seed, start=start)
+        err_cam.append(a.errors[20:].mean())
+        err_img.append(b.errors[20:].mean())
+        assert (np.array(a.status[20:]) == "tracking").mean() > 0.9
+    assert np.mean(err_cam) < 0.85 * np.mean(err_img)
+
+
+def test_localizer_replays_bit_identically_with_geometry(
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+    a, b = Localizer(camera_map, seed=5), Localizer(camera_map, seed=5)
+    for k in range(60):
+        ea, eb = a.step(sunny2_features[k], float(k)), b.step(sunny2_features[k], float(k))
+        assert (ea.x, ea.y, ea.accuracy_m) == (eb.x, eb.y, eb.accuracy_m)
+
+
+def test_the_camera_is_kept_and_checked_on_load(camera_map: RouteMap, sunny1: Round,
+                                                tmp_path: Path) -> None:
+    assert camera_map.camera == Camera.from_dict(camera_map.meta["camera"])
+    bad = build_map_from_rounds([replace(sunny1, images=sunny1.images[:4],
+                                         xy=sunny1.xy[:4])], name="bad",
+                                camera=Camera(-1.0, 1.0))
+    path = save_map(bad, tmp_path / "bad")
+    with pytest.raises(MapError, match="camera intrinsics are invalid"):
+        load_map(path)
+
+
+def test_rounds_with_different_cameras_are_not_merged(sunny1: Round, sunny2: Round) -> None:
+    a = replace(sunny1, camera=camera_from_hfov(65, 320, 240))
+    b = replace(sunny2, camera=camera_from_hfov(90, 320, 240))
+    with pytest.raises(MapError, match="different cameras"):
+        build_map_from_rounds([a, b])
+
+
+def test_the_camera_comes_from_dataset_json_or_kitti_calib(tmp_path: Path,
+                                                           sunny1: Round) -> None:
+    rnd = tmp_path / "ds" / "r"
+    rnd.mkdir(parents=True)
+    assert dataset_camera(rnd) is None
+    (tmp_path / "ds" / "dataset.json").write_text(json.dumps(
+        {"camera": {"hfov_deg": 90.0, "width": 400, "height": 200}}))
+    cam = dataset_camera(rnd)
+    assert cam is not None and cam["fx"] == pytest.approx(0.5) and cam["fy"] == pytest.approx(1)
+    (tmp_path / "ds" / "dataset.json").write_text(json.dumps({"camera": {"hfov_deg": 0}}))
+    with pytest.raises(DatasetError, match="'camera' must be"):
+        dataset_camera(rnd)
+    (tmp_path / "ds" / "dataset.json").unlink()
+    (rnd / "calib.txt").write_text("P0: 700 0 600 0 0 700 180 0 0 0 1 0\nP1: 1 2 3\n")
+    assert dataset_camera(rnd, (1200, 360)) == pytest.approx(
+        {"fx": 700 / 1200, "fy": 700 / 360, "cx": 0.5, "cy": 0.5})
+    (rnd / "calib.txt").write_text("P0: 700 0 600\n")
+    with pytest.raises(DatasetError, match="projection matrix"):
+        dataset_camera(rnd, (1200, 360))
+    # a round read from disk carries it
+    assert read_round(sunny1.path).camera is None
+
+
+def _round_zip(sunny1: Round, extra: dict[str, bytes], folder: str = "r/") -> bytes:
+    import io
+    import zipfile
+
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        rows = "".join(f"{sunny1.images[i]},{sunny1.xy[i][0]},{sunny1.xy[i][1]}\n"
+                       for i in range(3))
+        zf.writestr(f"{folder}poses.csv", "image,x,y\n" + rows)
+        for i in range(3):
+            zf.write(sunny1.image_path(i), f"{folder}{sunny1.images[i]}")
+        for name, data in extra.items():
+            zf.writestr(name, data)
+    return buf.getvalue()
+
+
+def test_an_uploaded_round_brings_its_camera_or_a_clear_error(tmp_path: Path,
+                                                             sunny1: Round) -> None:
+    from service.errors import InvalidParameters
+    from service.round_archive import ArchiveLimits, UploadedRound, extract_round
+
+    def extract_zip(name: str, data: bytes) -> UploadedRound:
+        (tmp_path / f"{name}.zip").write_bytes(data)
+        return extract_round(tmp_path / f"{name}.zip", tmp_path / name, ArchiveLimits())
+
+    good = json.dumps({"camera": {"hfov_deg": 65.0, "width": 320, "height": 240}}).encode()
+    rnd = extract_zip("good", _round_zip(sunny1, {"dataset.json": good}))
+    assert rnd.camera == camera_from_hfov(65.0, 320, 240)
+    assert build_map_from_rounds([rnd], name="up").camera is not None
+    calib = b"P0: 251.2 0 160 0 0 251.2 120 0 0 0 1 0\n"
+    rnd = extract_zip("kitti", _round_zip(sunny1, {"r/calib.txt": calib}))
+    assert rnd.camera == pytest.approx({"fx": 251.2 / 320, "fy": 251.2 / 240, "cx": 0.5,
+                                        "cy": 0.5})
+    assert extract_zip("none", _round_zip(sunny1, {})).camera is None
+    with pytest.raises(InvalidParameters, match="'camera' must be"):
+        extract_zip("bad", _round_zip(sunny1, {"dataset.json": b'{"camera": {"hfov_deg": 500}}'}))
+
+
+def _statuses(m: RouteMap, table: SimilarityTable, feats: list[Features], params: dict,
+              locate_frame: int | None) -> list[str]:
+    """DPSO over frames 0..79; the geometry locates frame ``locate_frame`` (a frame from
+    elsewhere: the geometry refutes every place the images say) or each frame itself."""
+    from functools import partial
+
+    loc = Localizer(m, "dpso", params, seed=1)
+    geo = m.geometry
+    assert geo is not None
+    out = []
+    for k in range(80):
+        f = feats[k if locate_frame is None else locate_frame]
+        res = loc.estimator.step(partial(table.scores, k), float(k),
+                                 lambda i, f=f: geo.locate(f, i, GeometryParams()))
+        out.append(res.status.value)
+    return out
+
+
+def test_a_place_the_geometry_refutes_is_not_tracked(
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+    table = SimilarityTable(camera_map, sunny2_features)
+    far = len(sunny2_features) // 2 + 40  # the other side of the loop
+    verify = {"verify_frames": 6}
+    honest = _statuses(camera_map, table, sunny2_features, verify, None)
+    refuted = _statuses(camera_map, table, sunny2_features, verify, far)
+    ignored = _statuses(camera_map, table, sunny2_features, {}, far)  # off by default
+    assert honest[20:].count("tracking") == 60  # the true frames verify: tracked throughout
+    assert ignored[20:].count("tracking") == 60  # without the rule the images alone decide
+    # with it: never tracked for more than verify_frames + lost_frames frames in a row
+    runs = "".join("t" if s == "tracking" else "." for s in refuted).split(".")
+    assert max(len(r) for r in runs) <= 6 + 3
+    assert refuted[20:].count("recovering") >= 10
