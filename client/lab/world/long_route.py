@@ -270,6 +270,7 @@ def assemble_maps(out_dir: str | Path, sizes: list[int]) -> list[Path]:
 
     from service.features import DEFAULT_DELTA, SiftParams
     from service.place_index import build_place_index
+    from service.round_format import camera_from_hfov
     from service.route_map import SUFFIX, write_map
 
     out_dir = Path(out_dir)
@@ -296,7 +297,8 @@ def assemble_maps(out_dir: str | Path, sizes: list[int]) -> list[Path]:
                 "pruning": {"enabled": False, "features_before": total,
                             "features_after": total, "removed_fraction": 0.0},
                 "source": {"long_route": {k: v for k, v in meta_in.items() if k != "legs"},
-                           "images": n}}
+                           "images": n},
+                "camera": camera_from_hfov(cam["hfov_deg"], cam["width"], cam["height"])}
         names = [f"loop{j // meta_in['per_loop']:05d}/{j % meta_in['per_loop']:05d}"
                  for j in range(n)]
         chunks = ((c, k, cnt) for c, k, cnt, _ in spill_images(spill, n))
