@@ -13,6 +13,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Protocol
 
+import cv2
 import numpy as np
 
 from service.features import Features
@@ -88,8 +89,11 @@ class MapGeometry:
                                              - self.images.positions[image_id]))
             pairs = match_pairs(self.images.codes_of(image_id), self.images.prepared(j),
                                 p.delta)
-            st = triangulate(self.keypoints_of(image_id), self.keypoints_of(j), pairs,
-                             baseline, self.k, p.min_inliers)
+            try:
+                st = triangulate(self.keypoints_of(image_id), self.keypoints_of(j), pairs,
+                                 baseline, self.k, p.min_inliers)
+            except cv2.error:  # a degenerate configuration: no structure, not a failed frame
+                st = None
         with self._lock:
             self._cache[key] = st
             while len(self._cache) > self.max_cached:
@@ -103,5 +107,8 @@ class MapGeometry:
         if st is None:
             return None
         pairs = match_pairs(frame.codes, self.images.prepared(image_id), p.delta)
-        return locate(np.asarray(frame.keypoints, np.float64), pairs, st, self.k,
-                      p.min_inliers)
+        try:
+            return locate(np.asarray(frame.keypoints, np.float64), pairs, st, self.k,
+                          p.min_inliers)
+        except cv2.error:  # a degenerate configuration: the frame is not located
+            return None

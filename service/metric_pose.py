@@ -111,10 +111,12 @@ def triangulate(kp_i: np.ndarray, kp_j: np.ndarray, pairs: tuple[np.ndarray, np.
 
 
 def locate(kp_q: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], structure: Structure,
-           k: np.ndarray, min_inliers: int, reprojection_px: float = 2.0) -> Offset | None:
+           k: np.ndarray, min_inliers: int, reprojection_px: float = 2.0,
+           max_offset_m: float = 50.0) -> Offset | None:
     """The frame's camera centre in the structure's camera frame from the frame's matches
     ``pairs`` (frame feature, map image feature) by PnP with RANSAC; None with fewer than
-    ``min_inliers`` inliers."""
+    ``min_inliers`` inliers, or a centre farther than ``max_offset_m`` (a degenerate
+    configuration: image points that do not span the view)."""
     iq, ii = pairs
     pos = np.searchsorted(structure.feature_ids, ii)
     pos = np.minimum(pos, len(structure.feature_ids) - 1)
@@ -130,6 +132,6 @@ def locate(kp_q: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], structure: St
         return None
     rot, _ = cv2.Rodrigues(rvec)
     centre = (-rot.T @ tvec).ravel()
-    if not np.isfinite(centre).all():
+    if not np.isfinite(centre).all() or float(np.linalg.norm(centre)) > max_offset_m:
         return None
     return Offset(float(centre[0]), float(centre[2]), len(inl))

@@ -88,6 +88,11 @@ def test_a_frame_without_features_or_elsewhere_is_not_located(
     assert geo is not None
     blank = Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8))
     assert geo.locate(blank, 40, GeometryParams()) is None
+    # a frame that matches image 40 feature for feature but whose keypoints are all one
+    # point (a degenerate configuration): not located, and no exception
+    codes = np.asarray(camera_map.codes_of(40))
+    same_spot = Features(np.zeros((len(codes), 2), np.float32), codes)
+    assert geo.locate(same_spot, 40, GeometryParams()) is None
     # a frame from the other side of the loop shares no geometry with image 40
     assert geo.locate(sunny2_features[len(sunny2_features) // 2 + 40], 40,
                       GeometryParams()) is None
