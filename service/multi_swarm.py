@@ -38,6 +38,14 @@ changes, each measured in README "Localization across lighting":
   is that estimate smoothed along the map's path (service/along_track.py: the correction
   across the path in full, ``along_track_alpha`` of it along the path); the swarm itself
   works on the raw estimate.
+- **The located camera** (``metric_pose``; maps with the camera's intrinsics): while
+  tracking, the frame is located against the best-matching compared image near the estimate
+  by two-view geometry (service/map_geometry.py); where that succeeds, the estimate is the
+  located position, beside and along the path, with a radius from the RANSAC inliers
+  (``located_sigma``). ``verify_frames`` (off by default) also lets frames that cannot be
+  located for that many tracked frames in a row count as not good for the lost detection;
+  ``verify_switch_frames`` (off by default) then moves the estimate to another sub-swarm
+  where the frame is located.
 - **Lost detection** is relative (service/lost_detection.py): recovery starts when no match
   stands out for ``lost_frames`` frames, not when matches are merely weak.
 """
@@ -128,6 +136,12 @@ class MultiSwarmDPSO(DPSO):
         seeds, label = speciate(self.x, f, p.species_radius_m, p.max_species)
         support = np.array([self.evidence[label == s].max() for s in range(len(seeds))])
         best_s = int(np.argmax(support))
+        if 0 < p.verify_switch_frames <= self.unverified and len(seeds) > 1:
+            alt = self._verified_alternative(fitness, seeds, support, best_s)
+            if alt is not None:  # the geometry locates the frame there, not at the held place
+                self.evidence[label == alt] += support[best_s]
+                support[alt] += support[best_s]
+                best_s = alt
         # the estimate: the particles of the best group near its best particle (the front of
         # a moving swarm: a centre over the whole group trails the robot)
         seed_x = self.x[seeds[best_s]]
@@ -207,6 +221,25 @@ class MultiSwarmDPSO(DPSO):
         right = np.array([tangent[1], -tangent[0]])
         return (self._map_positions[anchor] + off.right_m * right + off.ahead_m * tangent,
                 off.inliers)
+
+    def _verified_alternative(self, fitness: FrameFitness, seeds: np.ndarray,
+                              support: np.ndarray, best_s: int) -> int | None:
+        """The best-supported other sub-swarm (of the next two) at whose best-matching
+        compared image the frame is located, or None."""
+        p = self.params
+        if fitness.locate is None:
+            return None
+        ids, scores = fitness.compared
+        xy = np.asarray(self.index.positions)[ids]
+        for s in [s for s in np.argsort(-support) if s != best_s][:2]:
+            d2 = np.einsum("ij,ij->i", xy - self.x[seeds[s]], xy - self.x[seeds[s]])
+            near = d2 <= p.estimate_image_radius_m ** 2
+            if not near.any():
+                continue
+            off = fitness.locate(int(ids[near][np.argmax(scores[near])]))
+            if off is not None and math.hypot(off.right_m, off.ahead_m) <= p.metric_gate_m:
+                return int(s)
+        return None
 
     def _reported(self, pos: np.ndarray, status: Status, ids: np.ndarray,
                   compared_xy: np.ndarray) -> np.ndarray:

@@ -245,3 +245,36 @@ def test_a_place_the_geometry_refutes_is_not_tracked(
     runs = "".join("t" if s == "tracking" else "." for s in refuted).split(".")
     assert max(len(r) for r in runs) <= 6 + 3
     assert refuted[20:].count("recovering") >= 10
+
+
+def test_the_geometry_moves_the_estimate_to_the_sub_swarm_it_locates_the_frame_at(
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+    """Half the particles at the robot's true place, half 30 m away carrying far more
+    evidence, and the held place unverified for verify_switch_frames frames: the estimate
+    follows the evidence without the rule and the located sub-swarm with it."""
+    from functools import partial
+
+    k = 60
+    truth = sunny2.reference_xy[k]
+    wrong = sunny2.reference_xy[k + 50]
+    table = SimilarityTable(camera_map, sunny2_features)
+    geo = camera_map.geometry
+    assert geo is not None
+    out = {}
+    for switch in (0, 3):
+        loc = Localizer(camera_map, "dpso", {"verify_switch_frames": switch}, seed=2)
+        est = loc.estimator
+        est.step(partial(table.scores, k - 1), 0.0)  # initialised
+        n = est.params.n_particles
+        rng = np.random.default_rng(0)
+        est.x = np.vstack([truth + rng.normal(0, 0.5, (n // 2, 2)),
+                           wrong + rng.normal(0, 0.5, (n - n // 2, 2))])
+        est.v = np.zeros((n, 2))
+        est.evidence = np.r_[np.zeros(n // 2), np.full(n - n // 2, 5.0)]
+        est.age = np.full(n, 5.0)
+        est.unverified = 3
+        res = est.step(partial(table.scores, k), 1.0,
+                       lambda i: geo.locate(sunny2_features[k], i, GeometryParams()))
+        out[switch] = float(np.linalg.norm(res.position - truth))
+    assert out[0] > 20.0  # the evidence holds the wrong place
+    assert out[3] < 3.0  # the geometry takes the estimate to the robot
