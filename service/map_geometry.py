@@ -24,10 +24,10 @@ from service.metric_pose import Camera, Offset, Structure, locate, match_pairs, 
 class _Images(Protocol):  # what this module needs of a RouteMap (service/route_map.py)
     positions: np.ndarray
     layers: np.ndarray | None
-    offsets: np.ndarray
-    keypoints: np.ndarray
 
     def codes_of(self, image_id: int) -> np.ndarray: ...
+
+    def keypoints_of(self, image_id: int) -> np.ndarray: ...
 
     def prepared(self, image_id: int) -> PreparedSet: ...
 
@@ -47,15 +47,10 @@ class MapGeometry:
     def __init__(self, images: _Images, camera: Camera, width: int, height: int,
                  max_cached: int = 4096) -> None:
         self.images = images
-        self.camera = camera
         self.k = camera.matrix(width, height)
         self.max_cached = max_cached
         self._cache: OrderedDict[tuple[int, GeometryParams], Structure | None] = OrderedDict()
         self._lock = threading.Lock()
-
-    def keypoints_of(self, image_id: int) -> np.ndarray:
-        a, b = int(self.images.offsets[image_id]), int(self.images.offsets[image_id + 1])
-        return np.asarray(self.images.keypoints[a:b], np.float64)
 
     def partner(self, image_id: int, baseline_m: float) -> int | None:
         """The image of ``image_id``'s traversal nearest to ``baseline_m`` away along the id
@@ -90,8 +85,9 @@ class MapGeometry:
             pairs = match_pairs(self.images.codes_of(image_id), self.images.prepared(j),
                                 p.delta)
             try:
-                st = triangulate(self.keypoints_of(image_id), self.keypoints_of(j), pairs,
-                                 baseline, self.k, p.min_inliers)
+                st = triangulate(self.images.keypoints_of(image_id),
+                                 self.images.keypoints_of(j), pairs, baseline, self.k,
+                                 p.min_inliers)
             except cv2.error:  # a degenerate configuration: no structure, not a failed frame
                 st = None
         with self._lock:
@@ -108,7 +104,6 @@ class MapGeometry:
             return None
         pairs = match_pairs(frame.codes, self.images.prepared(image_id), p.delta)
         try:
-            return locate(np.asarray(frame.keypoints, np.float64), pairs, st, self.k,
-                          p.min_inliers)
+            return locate(frame.keypoints, pairs, st, self.k, p.min_inliers)
         except cv2.error:  # a degenerate configuration: the frame is not located
             return None

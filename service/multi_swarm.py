@@ -205,14 +205,10 @@ class MultiSwarmDPSO(DPSO):
         if not p.metric_pose or fitness.locate is None or status is not Status.TRACKING:
             self.unverified = 0  # counted while tracking only
             return None
-        near = np.einsum("ij,ij->i", compared_xy - pos, compared_xy - pos) \
-            <= p.estimate_image_radius_m ** 2
-        if not near.any():
-            self.unverified += 1
-            return None
-        anchor = int(ids[near][np.argmax(scores[near])])
-        tangent = path_tangent(self._map_positions, anchor, self._spacing)
-        off = fitness.locate(anchor) if tangent is not None else None
+        anchor = best_image_near(ids, scores, compared_xy, pos, p.estimate_image_radius_m)
+        tangent = (path_tangent(self._map_positions, anchor, self._spacing)
+                   if anchor is not None else None)
+        off = fitness.locate(anchor) if anchor is not None and tangent is not None else None
         if off is None or tangent is None or math.hypot(off.right_m, off.ahead_m) \
                 > p.metric_gate_m:
             self.unverified += 1
@@ -232,11 +228,9 @@ class MultiSwarmDPSO(DPSO):
         ids, scores = fitness.compared
         xy = np.asarray(self.index.positions)[ids]
         for s in [s for s in np.argsort(-support) if s != best_s][:2]:
-            d2 = np.einsum("ij,ij->i", xy - self.x[seeds[s]], xy - self.x[seeds[s]])
-            near = d2 <= p.estimate_image_radius_m ** 2
-            if not near.any():
-                continue
-            off = fitness.locate(int(ids[near][np.argmax(scores[near])]))
+            anchor = best_image_near(ids, scores, xy, self.x[seeds[s]],
+                                     p.estimate_image_radius_m)
+            off = fitness.locate(anchor) if anchor is not None else None
             if off is not None and math.hypot(off.right_m, off.ahead_m) <= p.metric_gate_m:
                 return int(s)
         return None
@@ -382,6 +376,15 @@ def located_sigma(inliers: int, p: DPSOParams) -> float:
     times (30 / inliers) ** ``metric_sigma_power``: fewer inliers (other light) locate the
     camera less sharply."""
     return float(p.metric_sigma_m * (30.0 / max(inliers, 1)) ** p.metric_sigma_power)
+
+
+def best_image_near(ids: np.ndarray, m: np.ndarray, xy: np.ndarray, around: np.ndarray,
+                    radius: float) -> int | None:
+    """The compared map image with the best similarity within ``radius`` of ``around``;
+    None where no compared image lies there."""
+    d = xy - around
+    near = np.einsum("ij,ij->i", d, d) <= radius ** 2
+    return int(ids[near][np.argmax(m[near])]) if near.any() else None
 
 
 def image_centre(xy: np.ndarray, m: np.ndarray, around: np.ndarray, radius: float,

@@ -260,6 +260,11 @@ class RouteMap:
         self._check_image(image_id)
         return self.codes[self.offsets[image_id]: self.offsets[image_id + 1]]
 
+    def keypoints_of(self, image_id: int) -> np.ndarray:
+        """One image's keypoints (working-size pixels; verified with lazy loading)."""
+        self._check_image(image_id)
+        return self.keypoints[self.offsets[image_id]: self.offsets[image_id + 1]]
+
     def summary(self) -> dict:
         return {
             "name": self.name,

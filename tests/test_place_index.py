@@ -156,6 +156,10 @@ def test_lazy_verification_catches_a_corrupted_image_on_use(small_map, tmp_path:
     assert lazy.similarity(codes, [3, 19, 21]).shape == (3,)  # intact images match
     with pytest.raises(MapError, match=f"image {image} .* does not match its digest"):
         lazy.similarity(codes, [image])
+    # the geometry reads keypoints through the same check
+    assert lazy.keypoints_of(3).shape == (int(np.diff(small_map.offsets)[3]), 2)
+    with pytest.raises(MapError, match=f"image {image} .* does not match its digest"):
+        lazy.keypoints_of(image)
 
 
 def test_long_route_shape() -> None:
