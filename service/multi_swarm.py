@@ -41,9 +41,11 @@ changes, each measured in README "Localization across lighting":
 - **The located camera** (``metric_pose``; maps with the camera's intrinsics): while
   tracking, the frame is located against the best-matching compared image near the estimate
   by two-view geometry (service/map_geometry.py); where that succeeds, the estimate is the
-  located position, beside and along the path, with a radius from the RANSAC inliers
-  (``located_sigma``). ``verify_frames`` (off by default) also lets frames that cannot be
-  located for that many tracked frames in a row count as not good for the lost detection;
+  located position, beside and along the path, up to ``metric_reach_m`` from the image (a
+  place held a few metres off is corrected), with a radius from the map's position error
+  and the located positions' measured jitter (service/located_noise.py). ``verify_frames``
+  (off by default) also lets frames that cannot be located within ``metric_gate_m`` for
+  that many tracked frames in a row count as not good for the lost detection;
   ``verify_switch_frames`` (off by default) then moves the estimate to another sub-swarm
   where the frame is located.
 - **Lost detection** is relative (service/lost_detection.py): recovery starts when no match
@@ -60,6 +62,7 @@ import numpy as np
 from service.along_track import AlongTrackSmoother, path_tangent
 from service.estimator import Hypothesis, Status, StepResult, weighted_covariance
 from service.fitness import FrameFitness, MapIndex
+from service.located_noise import LocatedNoise
 from service.lost_detection import DistinctnessMonitor
 from service.params import DPSOParams
 from service.swarm import DPSO
@@ -101,6 +104,7 @@ class MultiSwarmDPSO(DPSO):
                                            params.distinct_far_m, params.ema_alpha)
         self.smoother = AlongTrackSmoother()  # the reported position (tracked frames)
         self.unverified = 0  # tracked frames in a row the geometry could not locate
+        self.noise = LocatedNoise()  # the located positions' noise: their radius
         self._reset_coasting()
 
     def _initialize(self) -> None:
@@ -110,6 +114,7 @@ class MultiSwarmDPSO(DPSO):
         self.monitor.reset()
         self.smoother.reset()
         self.unverified = 0
+        self.noise.reset()
         self._reset_coasting()
 
     def _reset_coasting(self) -> None:
@@ -186,8 +191,11 @@ class MultiSwarmDPSO(DPSO):
         speed, heading = self.motion(dt)
         located = self._located(fitness, status, pos, ids, scores, compared_xy)
         if located is not None:
-            pos, inliers = located
-            cov = np.eye(2) * located_sigma(inliers, p) ** 2
+            pos = located
+            self.noise.add(self.frame_count, pos)
+            sigma = self.noise.sigma(p.metric_map_sigma_m, p.metric_jitter_gain,
+                                     p.metric_jitter_prior_m)
+            cov = np.eye(2) * sigma ** 2
         return StepResult(self._reported(pos, status, ids, compared_xy), cov, heading, speed,
                           status,
                           lost or self.recovering, ev.best_m, fitness.comparisons, spread,
@@ -195,12 +203,12 @@ class MultiSwarmDPSO(DPSO):
 
     def _located(self, fitness: FrameFitness, status: Status, pos: np.ndarray,
                  ids: np.ndarray, scores: np.ndarray, compared_xy: np.ndarray
-                 ) -> tuple[np.ndarray, int] | None:
+                 ) -> np.ndarray | None:
         """While tracking, the camera's position from two-view geometry against the
         best-matching compared image within ``estimate_image_radius_m`` of ``pos``: that
         image's position plus the located offset, right and ahead along the path there
-        (service/metric_pose.py), and the RANSAC inliers it rests on; None where the frame
-        cannot be located."""
+        (service/metric_pose.py); None where the frame cannot be located within
+        ``metric_reach_m``."""
         p = self.params
         if not p.metric_pose or fitness.locate is None or status is not Status.TRACKING:
             self.unverified = 0  # counted while tracking only
@@ -209,14 +217,14 @@ class MultiSwarmDPSO(DPSO):
         tangent = (path_tangent(self._map_positions, anchor, self._spacing)
                    if anchor is not None else None)
         off = fitness.locate(anchor) if anchor is not None and tangent is not None else None
-        if off is None or tangent is None or math.hypot(off.right_m, off.ahead_m) \
-                > p.metric_gate_m:
-            self.unverified += 1
+        reach = math.hypot(off.right_m, off.ahead_m) if off is not None else math.inf
+        # the held place is confirmed where the camera stands near its image; the position
+        # is taken farther out (the place was off, the located camera is not)
+        self.unverified = 0 if reach <= p.metric_gate_m else self.unverified + 1
+        if off is None or tangent is None or reach > p.metric_reach_m:
             return None
-        self.unverified = 0
         right = np.array([tangent[1], -tangent[0]])
-        return (self._map_positions[anchor] + off.right_m * right + off.ahead_m * tangent,
-                off.inliers)
+        return self._map_positions[anchor] + off.right_m * right + off.ahead_m * tangent
 
     def _verified_alternative(self, fitness: FrameFitness, seeds: np.ndarray,
                               support: np.ndarray, best_s: int) -> int | None:
@@ -369,13 +377,6 @@ def match_sigma(best_m: float, p: DPSOParams) -> float:
     m = 1, times m ** -``match_sigma_power``; m floored at ``distinct_floor_m``)."""
     return float(p.match_sigma_m * max(best_m, p.distinct_floor_m, 1e-6)
                  ** -p.match_sigma_power)
-
-
-def located_sigma(inliers: int, p: DPSOParams) -> float:
-    """Std (m) of a located position in each axis: ``metric_sigma_m`` at 30 RANSAC inliers,
-    times (30 / inliers) ** ``metric_sigma_power``: fewer inliers (other light) locate the
-    camera less sharply."""
-    return float(p.metric_sigma_m * (30.0 / max(inliers, 1)) ** p.metric_sigma_power)
 
 
 def best_image_near(ids: np.ndarray, m: np.ndarray, xy: np.ndarray, around: np.ndarray,

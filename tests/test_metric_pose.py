@@ -278,3 +278,32 @@ def test_the_geometry_moves_the_estimate_to_the_sub_swarm_it_locates_the_frame_a
         out[switch] = float(np.linalg.norm(res.position - truth))
     assert out[0] > 20.0  # the evidence holds the wrong place
     assert out[3] < 3.0  # the geometry takes the estimate to the robot
+
+
+def test_a_located_camera_corrects_a_place_held_metres_off(
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+    """Tracked on the true frames, then for six frames the swarm is made to hold the place
+    about 6 m ahead of the robot: the frame is located at the map image there, the camera
+    6 m behind it. Within metric_reach_m the reported position is the located camera's;
+    with a reach of 3 m it stays near the held place."""
+    from functools import partial
+
+    xy = sunny2.reference_xy
+    lead = int(np.argmin(np.abs(np.linalg.norm(xy[60:90] - xy[60], axis=1) - 6.0)))
+    table = SimilarityTable(camera_map, sunny2_features)
+    geo = camera_map.geometry
+    assert geo is not None
+    out = {}
+    for reach in (3.0, 15.0):
+        est = Localizer(camera_map, "dpso", {"metric_reach_m": reach}, seed=2).estimator
+        n = est.params.n_particles
+        rng = np.random.default_rng(0)
+        for k in range(30, 61):
+            if k > 54:  # the held place, 6 m ahead
+                est.x = xy[k + lead] + rng.normal(0, 0.3, (n, 2))
+            res = est.step(partial(table.scores, k), float(k),
+                           lambda i, k=k: geo.locate(sunny2_features[k], i, GeometryParams()))
+        assert res.status.value == "tracking"
+        out[reach] = float(np.linalg.norm(res.position - xy[60]))
+    assert out[3.0] > 4.0  # the images alone keep the held place
+    assert out[15.0] < 0.5 * out[3.0] and out[15.0] < 2.5

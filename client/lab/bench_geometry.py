@@ -4,7 +4,7 @@ Two DPSO localizers with one seed on one map (built with the camera) take the sa
 interleaved: one with ``metric_pose`` (the default), one without. Printed: the step's p50 and
 p99 of each and their ratio, the time inside the geometry (the frame's matches and PnP, and
 the structure of map images seen for the first time, kept per map afterwards), the share of
-tracked frames located (within DPSO's gate), and each localizer's mean error against the
+tracked frames located (within DPSO's reach), and each localizer's mean error against the
 round's truth.
 """
 
@@ -84,8 +84,8 @@ def bench_geometry(dataset: Path, map_round: str, query_round: str, frames: int 
         t0 = time.perf_counter()
         out = timed_locate(self, frame, image_id, p)
         locate_ms.append(1e3 * (time.perf_counter() - t0))
-        gate = DPSOParams().metric_gate_m  # what DPSO takes (the default sessions here)
-        located.append(out is not None and math.hypot(out.right_m, out.ahead_m) <= gate)
+        reach = DPSOParams().metric_reach_m  # what DPSO takes (the default sessions here)
+        located.append(out is not None and math.hypot(out.right_m, out.ahead_m) <= reach)
         return out
 
     tracked = hits = 0
