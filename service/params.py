@@ -251,6 +251,13 @@ class DPSOParams(CommonParams):
         "x 3 conditions (3 starts, with kidnap) summed 41.9 m with 3 m, 39.3 m with 15 m, no "
         "cell worse; a located camera 6-8 m from its image is 1.6 m off (median), the image "
         "6.6 m")
+    metric_tries: int = Field(
+        4, ge=1, le=64, description="images a frame is located against at most: the "
+        "best-matching one near the estimate, then the next best compared within "
+        "metric_search_m (only while none located it)")
+    metric_search_m: float = Field(
+        8.0, gt=0, le=1e3, description="radius (m) around the estimate of the further "
+        "images tried")
     metric_map_sigma_m: float = Field(
         0.29, ge=0, le=1e3, description="std (m) of the map's recorded positions in each "
         "axis, which no frame can see: the floor of a located frame's radius "

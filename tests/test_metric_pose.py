@@ -307,3 +307,40 @@ def test_a_located_camera_corrects_a_place_held_metres_off(
         out[reach] = float(np.linalg.norm(res.position - xy[60]))
     assert out[3.0] > 4.0  # the images alone keep the held place
     assert out[15.0] < 0.5 * out[3.0] and out[15.0] < 2.5
+
+
+def test_a_frame_unlocatable_at_the_best_image_is_located_at_the_next(
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+    """The geometry refuses every map image within 2 m of the robot (as another light can
+    leave the best images unlocatable): with one try per frame no frame is located and the
+    place is never confirmed; with metric_tries 4 the next best images compared within
+    metric_search_m locate many frames, the position is no worse, and the place is still
+    not confirmed (only the first image confirms it)."""
+    from functools import partial
+
+    xy = sunny2.reference_xy
+    table = SimilarityTable(camera_map, sunny2_features)
+    geo = camera_map.geometry
+    assert geo is not None
+    out = {}
+    for tries in (1, 4):
+        est = Localizer(camera_map, "dpso", {"metric_tries": tries}, seed=3).estimator
+        errors: list[float] = []
+        unverified: list[int] = []
+        located: set[int] = set()
+        for k in range(20, 70):
+            def locate(i: int, k: int = k, located: set[int] = located) -> object:
+                if np.linalg.norm(camera_map.positions[i] - xy[k]) < 2.0:
+                    return None
+                off = geo.locate(sunny2_features[k], i, GeometryParams())
+                if off is not None and np.hypot(off.right_m, off.ahead_m) <= 15.0:
+                    located.add(k)
+                return off
+            res = est.step(partial(table.scores, k), float(k), locate)  # type: ignore[arg-type]
+            errors.append(float(np.linalg.norm(res.position - xy[k])))
+            unverified.append(est.unverified)
+        assert res.status.value == "tracking"
+        out[tries] = (float(np.mean(errors[20:])), max(unverified), len(located))
+    assert out[1][1] >= 30 and out[4][1] >= 30  # the held place is never confirmed
+    assert out[1][2] == 0 and out[4][2] >= 10  # located at further images: 10+ frames
+    assert out[4][0] < out[1][0]
