@@ -66,7 +66,6 @@ class Offset:
 
     right_m: float
     ahead_m: float
-    inliers: int
 
 
 def match_pairs(a: np.ndarray, b: np.ndarray | PreparedSet, delta: float
@@ -134,4 +133,4 @@ def locate(kp_q: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], structure: St
     centre = (-rot.T @ tvec).ravel()
     if not np.isfinite(centre).all() or float(np.linalg.norm(centre)) > max_offset_m:
         return None
-    return Offset(float(centre[0]), float(centre[2]), len(inl))
+    return Offset(float(centre[0]), float(centre[2]))

@@ -249,8 +249,8 @@ class DPSOParams(CommonParams):
         15.0, gt=0, le=1e3, description="a located position farther than this (m) from its "
         "map image is not taken. The geometry corrects the place the swarm holds: six worlds "
         "x 3 conditions (3 starts, with kidnap) summed 41.9 m with 3 m, 39.3 m with 15 m, no "
-        "cell worse; a located camera 6-8 m from its image is 1.6 m off (median), the image "
-        "6.6 m")
+        "cell worse (sums added by hand from the printed per-run sums); a located camera 6-8 m "
+        "from its image is 1.6 m off (median), the image 7.0 m")
     metric_tries: int = Field(
         4, ge=1, le=64, description="images a frame is located against at most: the "
         "best-matching one near the estimate, then the next best compared within "

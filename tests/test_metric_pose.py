@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,12 @@ def camera_map(tmp_path_factory: pytest.TempPathFactory, small_world: World,
 @pytest.fixture(scope="module")
 def sunny2_features(camera_map: RouteMap, sunny2: Round) -> list[Features]:
     return [extract(sunny2.load_image(i), camera_map.sift_params) for i in range(len(sunny2))]
+
+
+@pytest.fixture(scope="module")
+def sunny2_table(camera_map: RouteMap, sunny2_features: list[Features]) -> SimilarityTable:
+    """The frames' similarities to the camera map, computed once for the module's tests."""
+    return SimilarityTable(camera_map, sunny2_features)
 
 
 def _frame_axes(positions: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -106,11 +113,12 @@ def test_a_map_without_camera_places_frames_at_images(small_map: RouteMap) -> No
 
 def test_dpso_with_geometry_is_more_accurate(camera_map: RouteMap, small_map: RouteMap,
                                              sunny2: Round,
-                                             sunny2_features: list[Features]) -> None:
+                                             sunny2_features: list[Features],
+                                             sunny2_table: SimilarityTable) -> None:
     """Same frames, seeds and similarities; the map with the camera gives DPSO the located
     position while tracking, the one without places the robot at map images."""
     assert small_map.sift_params == camera_map.sift_params  # one extraction serves both
-    with_cam = SimilarityTable(camera_map, sunny2_features)
+    with_cam = sunny2_table
     without = SimilarityTable(small_map, sunny2_features)
     # the two maps hold the same images' codes: one table of similarities serves both
     assert np.array_equal(small_map.codes, camera_map.codes)
@@ -217,8 +225,6 @@ def _statuses(m: RouteMap, table: SimilarityTable, feats: list[Features], params
               locate_frame: int | None) -> list[str]:
     """DPSO over frames 0..79; the geometry locates frame ``locate_frame`` (a frame from
     elsewhere: the geometry refutes every place the images say) or each frame itself."""
-    from functools import partial
-
     loc = Localizer(m, "dpso", params, seed=1)
     geo = m.geometry
     assert geo is not None
@@ -232,8 +238,9 @@ def _statuses(m: RouteMap, table: SimilarityTable, feats: list[Features], params
 
 
 def test_a_place_the_geometry_refutes_is_not_tracked(
-        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
-    table = SimilarityTable(camera_map, sunny2_features)
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features],
+        sunny2_table: SimilarityTable) -> None:
+    table = sunny2_table
     far = len(sunny2_features) // 2 + 40  # the other side of the loop
     verify = {"verify_frames": 6}
     honest = _statuses(camera_map, table, sunny2_features, verify, None)
@@ -248,16 +255,15 @@ def test_a_place_the_geometry_refutes_is_not_tracked(
 
 
 def test_the_geometry_moves_the_estimate_to_the_sub_swarm_it_locates_the_frame_at(
-        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features],
+        sunny2_table: SimilarityTable) -> None:
     """Half the particles at the robot's true place, half 30 m away carrying far more
     evidence, and the held place unverified for verify_switch_frames frames: the estimate
     follows the evidence without the rule and the located sub-swarm with it."""
-    from functools import partial
-
     k = 60
     truth = sunny2.reference_xy[k]
     wrong = sunny2.reference_xy[k + 50]
-    table = SimilarityTable(camera_map, sunny2_features)
+    table = sunny2_table
     geo = camera_map.geometry
     assert geo is not None
     out = {}
@@ -281,16 +287,15 @@ def test_the_geometry_moves_the_estimate_to_the_sub_swarm_it_locates_the_frame_a
 
 
 def test_a_located_camera_corrects_a_place_held_metres_off(
-        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features],
+        sunny2_table: SimilarityTable) -> None:
     """Tracked on the true frames, then for six frames the swarm is made to hold the place
     about 6 m ahead of the robot: the frame is located at the map image there, the camera
     6 m behind it. Within metric_reach_m the reported position is the located camera's;
     with a reach of 3 m it stays near the held place."""
-    from functools import partial
-
     xy = sunny2.reference_xy
     lead = int(np.argmin(np.abs(np.linalg.norm(xy[60:90] - xy[60], axis=1) - 6.0)))
-    table = SimilarityTable(camera_map, sunny2_features)
+    table = sunny2_table
     geo = camera_map.geometry
     assert geo is not None
     out = {}
@@ -310,16 +315,15 @@ def test_a_located_camera_corrects_a_place_held_metres_off(
 
 
 def test_a_frame_unlocatable_at_the_best_image_is_located_at_the_next(
-        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features],
+        sunny2_table: SimilarityTable) -> None:
     """The geometry refuses every map image within 2 m of the robot (as another light can
     leave the best images unlocatable): with one try per frame no frame is located and the
     place is never confirmed; with metric_tries 4 the next best images compared within
     metric_search_m locate many frames, the position is no worse, and the place is still
     not confirmed (only the first image confirms it)."""
-    from functools import partial
-
     xy = sunny2.reference_xy
-    table = SimilarityTable(camera_map, sunny2_features)
+    table = sunny2_table
     geo = camera_map.geometry
     assert geo is not None
     out = {}
