@@ -43,7 +43,12 @@ changes, each measured in README "Localization across lighting":
   by two-view geometry (service/map_geometry.py); where that succeeds, the estimate is the
   located position, beside and along the path, up to ``metric_reach_m`` from the image (a
   place held a few metres off is corrected), with a radius from the map's position error
-  and the located positions' measured jitter (service/located_noise.py). ``verify_frames``
+  and the located positions' measured jitter (service/located_noise.py). A frame located
+  more than ``metric_steer_m`` from the swarm's estimate steers the swarm: the best
+  sub-swarm is attracted to the located position, and its quantum particles and local
+  scouts are drawn around it. A frame the geometry does not locate moves the reported
+  position less along the path (``along_track_alpha_unlocated``, ``along_track_alpha_weak``
+  for a weak one). ``verify_frames``
   (off by default) also lets frames that cannot be located within ``metric_gate_m`` for
   that many tracked frames in a row count as not good for the lost detection;
   ``verify_switch_frames`` (off by default) then moves the estimate to another sub-swarm
@@ -172,6 +177,7 @@ class MultiSwarmDPSO(DPSO):
         self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))
         if self.recovery_phase(lost):
             status = Status.RECOVERING
+        located = self._located(fitness, status, pos, ids, scores, compared_xy)
 
         # attractors: the seeds where the robot will be at the next frame (the tracked step
         # ahead), so the swarm does not trail the robot where matches are weak
@@ -187,19 +193,39 @@ class MultiSwarmDPSO(DPSO):
             judge = np.array([mean_ev[label == s].max() for s in range(len(seeds))])
             weak_s &= judge < p.dissolve_mean_ratio * judge[best_s]
         dissolve = (label >= 0) & weak_s[label.clip(0)]
-        self._move_species(attractor, self.x[seeds[best_s]] + lead, dissolve, pos + lead)
+        p_n, around = self.x[seeds[best_s]] + lead, pos + lead
+        if located is not None and p.metric_steer_m > 0 and \
+                float(np.linalg.norm(located - pos)) > p.metric_steer_m:
+            # the located camera steers the swarm: the best sub-swarm is attracted to it and
+            # its quantum particles and local scouts are drawn around it
+            p_n = around = located + lead
+            attractor = np.where((label == best_s)[:, None], p_n, attractor)
+        self._move_species(attractor, p_n, dissolve, around)
         speed, heading = self.motion(dt)
-        located = self._located(fitness, status, pos, ids, scores, compared_xy)
         if located is not None:
             pos = located
             self.noise.add(self.frame_count, pos)
             sigma = self.noise.sigma(p.metric_map_sigma_m, p.metric_jitter_gain,
                                      p.metric_jitter_prior_m)
             cov = np.eye(2) * sigma ** 2
-        return StepResult(self._reported(pos, status, ids, compared_xy), cov, heading, speed,
-                          status,
+        geometry = p.metric_pose and fitness.locate is not None
+        reported = self._reported(pos, status, ids, compared_xy,
+                                  self._along_alpha(geometry, located is not None))
+        return StepResult(reported, cov, heading, speed, status,
                           lost or self.recovering, ev.best_m, fitness.comparisons, spread,
                           hypotheses)
+
+    def _along_alpha(self, geometry: bool, located: bool) -> float:
+        """The share of the along-path correction the reported position takes this frame:
+        ``along_track_alpha``; where the map's geometry runs but did not locate the frame,
+        ``along_track_alpha_unlocated`` (the image estimate scatters along the path more than
+        a located camera), and ``along_track_alpha_weak`` when the frame is also weak (its
+        best match below ``coast_ratio`` of the tracking level: the images say little, the
+        smoother's prediction carries the position)."""
+        p = self.params
+        if not geometry or located:
+            return p.along_track_alpha
+        return p.along_track_alpha_weak if self.weak_frames > 0 else p.along_track_alpha_unlocated
 
     def _located(self, fitness: FrameFitness, status: Status, pos: np.ndarray,
                  ids: np.ndarray, scores: np.ndarray, compared_xy: np.ndarray
@@ -254,9 +280,10 @@ class MultiSwarmDPSO(DPSO):
         return None
 
     def _reported(self, pos: np.ndarray, status: Status, ids: np.ndarray,
-                  compared_xy: np.ndarray) -> np.ndarray:
+                  compared_xy: np.ndarray, alpha: float) -> np.ndarray:
         """The position reported for the estimate ``pos``: smoothed along the map's path
-        while tracking (service/along_track.py), ``pos`` itself otherwise. The path's
+        while tracking (service/along_track.py; ``alpha`` of the along-path correction),
+        ``pos`` itself otherwise. The path's
         direction is taken at the compared image nearest ``pos`` (the estimate is their
         centre, so no map-wide query is needed)."""
         p = self.params
@@ -266,8 +293,7 @@ class MultiSwarmDPSO(DPSO):
         nearest = int(ids[np.argmin(np.einsum("ij,ij->i", compared_xy - pos,
                                               compared_xy - pos))])
         tangent = path_tangent(self._map_positions, nearest, self._spacing)
-        return self.smoother.update(pos, tangent, p.along_track_alpha, p.along_track_gate_m,
-                                    self.ema_step)
+        return self.smoother.update(pos, tangent, alpha, p.along_track_gate_m, self.ema_step)
 
     def mean_evidence(self) -> np.ndarray:
         """Each particle's evidence as a decayed mean of the fitness along its path (A with

@@ -16,7 +16,7 @@ from client.lab.experiments import SimilarityTable, run
 from client.lab.world import World
 from service.features import Features, extract
 from service.localizer import Localizer
-from service.map_geometry import GeometryParams
+from service.map_geometry import GeometryParams, MapGeometry
 from service.metric_pose import Camera
 from service.round_format import DatasetError, camera_from_hfov, dataset_camera
 from service.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
@@ -286,6 +286,16 @@ def test_the_geometry_moves_the_estimate_to_the_sub_swarm_it_locates_the_frame_a
     assert out[3] < 3.0  # the geometry takes the estimate to the robot
 
 
+def _frames_6m_ahead(xy: np.ndarray) -> int:
+    """How many frames after frame 60 the robot is about 6 m further on."""
+    return int(np.argmin(np.abs(np.linalg.norm(xy[60:90] - xy[60], axis=1) - 6.0)))
+
+
+def _geometry(m: RouteMap) -> MapGeometry:
+    assert m.geometry is not None
+    return m.geometry
+
+
 def test_a_located_camera_corrects_a_place_held_metres_off(
         camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features],
         sunny2_table: SimilarityTable) -> None:
@@ -294,10 +304,8 @@ def test_a_located_camera_corrects_a_place_held_metres_off(
     6 m behind it. Within metric_reach_m the reported position is the located camera's;
     with a reach of 3 m it stays near the held place."""
     xy = sunny2.reference_xy
-    lead = int(np.argmin(np.abs(np.linalg.norm(xy[60:90] - xy[60], axis=1) - 6.0)))
-    table = sunny2_table
-    geo = camera_map.geometry
-    assert geo is not None
+    lead = _frames_6m_ahead(xy)
+    geo, table = _geometry(camera_map), sunny2_table
     out = {}
     for reach in (3.0, 15.0):
         est = Localizer(camera_map, "dpso", {"metric_reach_m": reach}, seed=2).estimator
@@ -320,15 +328,19 @@ def test_a_frame_unlocatable_at_the_best_image_is_located_at_the_next(
     """The geometry refuses every map image within 2 m of the robot (as another light can
     leave the best images unlocatable): with one try per frame no frame is located and the
     place is never confirmed; with metric_tries 4 the next best images compared within
-    metric_search_m locate many frames, the position is no worse, and the place is still
-    not confirmed (only the first image confirms it)."""
+    metric_search_m locate many frames, the position is better, and the place is still
+    not confirmed (only the first image confirms it). The smoothing of frames not located
+    is pinned to the located frames' (along_track_alpha_unlocated), so that the comparison
+    measures the tries alone."""
     xy = sunny2.reference_xy
     table = sunny2_table
     geo = camera_map.geometry
     assert geo is not None
     out = {}
     for tries in (1, 4):
-        est = Localizer(camera_map, "dpso", {"metric_tries": tries}, seed=3).estimator
+        est = Localizer(camera_map, "dpso", {"metric_tries": tries,
+                                             "along_track_alpha_unlocated": 0.7,
+                                             "along_track_alpha_weak": 0.7}, seed=3).estimator
         errors: list[float] = []
         unverified: list[int] = []
         located: set[int] = set()
@@ -348,3 +360,64 @@ def test_a_frame_unlocatable_at_the_best_image_is_located_at_the_next(
     assert out[1][1] >= 30 and out[4][1] >= 30  # the held place is never confirmed
     assert out[1][2] == 0 and out[4][2] >= 10  # located at further images: 10+ frames
     assert out[4][0] < out[1][0]
+
+
+def test_a_located_camera_steers_the_swarm(
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features],
+        sunny2_table: SimilarityTable) -> None:
+    """Tracked on the true frames; then the swarm is put on the place 6 m ahead and for ten
+    frames the images say nothing (every map image matches alike) while the geometry still
+    locates each frame at the robot. With metric_steer_m the located camera draws the swarm
+    to the robot: its best hypothesis ends near it. Without, the swarm keeps the place
+    ahead (the reported position is the located camera's either way)."""
+    xy = sunny2.reference_xy
+    lead = _frames_6m_ahead(xy)
+    geo, table = _geometry(camera_map), sunny2_table
+    out = {}
+    for steer in (0.0, 1.0):
+        # lost_frames: frames that say nothing would otherwise end the tracking after three
+        est = Localizer(camera_map, "dpso", {"metric_steer_m": steer, "lost_frames": 100},
+                        seed=2).estimator
+        n = est.params.n_particles
+        for k in range(30, 65):
+            def locate(i: int, k: int = k) -> object:
+                return geo.locate(sunny2_features[k], i, GeometryParams())
+            if k < 55:
+                res = est.step(partial(table.scores, k), float(k), locate)  # type: ignore[arg-type]
+                continue
+            if k == 55:  # the place 6 m ahead
+                est.x = xy[k + lead] + np.random.default_rng(0).normal(0, 0.3, (n, 2))
+            res = est.step(lambda ids: np.full(len(ids), 0.01), float(k),
+                           locate)  # type: ignore[arg-type]
+        assert res.status.value == "tracking"
+        best = res.hypotheses[0]
+        out[steer] = float(np.linalg.norm(np.array([best.x, best.y]) - xy[64]))
+    assert out[0.0] > 4.0  # the swarm kept the place ahead
+    assert out[1.0] < 2.0
+
+
+def test_frames_the_geometry_cannot_locate_move_the_position_less_along_the_path(
+        camera_map: RouteMap, sunny2: Round, sunny2_table: SimilarityTable) -> None:
+    """The geometry runs on every frame but locates none: the reported track takes
+    along_track_alpha_unlocated of each along-path correction, so with 0.35 it jitters less
+    frame to frame than with 0.7. Without the geometry (no locate at all) the parameter has
+    no effect."""
+    table = sunny2_table
+
+    def track(params: dict, geometry: bool) -> np.ndarray:
+        est = Localizer(camera_map, "dpso", params, seed=4).estimator
+        out = []
+        for k in range(10, 70):
+            res = est.step(partial(table.scores, k), float(k),
+                           (lambda i: None) if geometry else None)
+            assert k < 20 or res.status.value == "tracking"
+            out.append(res.position)
+        return np.asarray(out[10:])
+
+    def jitter(p: np.ndarray) -> float:  # second differences: the frame-to-frame scatter
+        return float(np.median(np.linalg.norm(np.diff(p, 2, axis=0), axis=1)))
+
+    low = {"along_track_alpha_unlocated": 0.35, "along_track_alpha_weak": 0.35}
+    high = {"along_track_alpha_unlocated": 0.7, "along_track_alpha_weak": 0.7}
+    assert jitter(track(low, True)) < 0.8 * jitter(track(high, True))
+    np.testing.assert_array_equal(track(low, False), track(high, False))
