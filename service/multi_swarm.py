@@ -208,12 +208,17 @@ class MultiSwarmDPSO(DPSO):
             sigma = self.noise.sigma(p.metric_map_sigma_m, p.metric_jitter_gain,
                                      p.metric_jitter_prior_m)
             cov = np.eye(2) * sigma ** 2
-        geometry = p.metric_pose and fitness.locate is not None
         reported = self._reported(pos, status, ids, compared_xy,
-                                  self._along_alpha(geometry, located is not None))
+                                  self._along_alpha(self._geometry_runs(fitness),
+                                                    located is not None))
         return StepResult(reported, cov, heading, speed, status,
                           lost or self.recovering, ev.best_m, fitness.comparisons, spread,
                           hypotheses)
+
+    def _geometry_runs(self, fitness: FrameFitness) -> bool:
+        """Whether frames are located by two-view geometry: ``metric_pose`` is on and the
+        map keeps the camera (the fitness can locate)."""
+        return self.params.metric_pose and fitness.locate is not None
 
     def _along_alpha(self, geometry: bool, located: bool) -> float:
         """The share of the along-path correction the reported position takes this frame:
@@ -237,9 +242,11 @@ class MultiSwarmDPSO(DPSO):
         ``metric_reach_m``, against the next best compared images within
         ``metric_search_m``, ``metric_tries`` images in all; None where none locates it."""
         p = self.params
-        if not p.metric_pose or fitness.locate is None or status is not Status.TRACKING:
+        if not self._geometry_runs(fitness) or status is not Status.TRACKING:
             self.unverified = 0  # counted while tracking only
             return None
+        locate = fitness.locate
+        assert locate is not None  # _geometry_runs
         anchor = best_image_near(ids, scores, compared_xy, pos, p.estimate_image_radius_m)
         if anchor is None:
             self.unverified += 1
@@ -253,7 +260,7 @@ class MultiSwarmDPSO(DPSO):
         tries = [anchor, *[int(i) for i in others if i != anchor]][:p.metric_tries]
         for k, image in enumerate(tries):
             tangent = path_tangent(self._map_positions, image, self._spacing)
-            off = fitness.locate(image) if tangent is not None else None
+            off = locate(image) if tangent is not None else None
             reach = math.hypot(off.right_m, off.ahead_m) if off is not None else math.inf
             if k == 0:  # the held place is confirmed where the camera stands near its image
                 self.unverified = 0 if reach <= p.metric_gate_m else self.unverified + 1

@@ -43,6 +43,11 @@ def sunny2_table(camera_map: RouteMap, sunny2_features: list[Features]) -> Simil
     return SimilarityTable(camera_map, sunny2_features)
 
 
+def _geometry(m: RouteMap) -> MapGeometry:
+    assert m.geometry is not None
+    return m.geometry
+
+
 def _frame_axes(positions: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
     d = positions[min(i + 1, len(positions) - 1)] - positions[max(i - 1, 0)]
     ahead = d / np.linalg.norm(d)
@@ -54,8 +59,7 @@ def test_a_frame_is_located_ahead_of_or_behind_its_map_image(
     """Located at the map image two images (1.2 m) ahead of or behind the one nearest the
     robot, the frame's position comes out far nearer the truth than that image's; located
     at the nearest image, it is no worse than the image's position."""
-    geo = camera_map.geometry
-    assert geo is not None
+    geo = _geometry(camera_map)
     truth, pos = sunny2.reference_xy, camera_map.positions
     frames = range(6, len(sunny2) - 6, 2)
     for shift in (-2, 0, 2):
@@ -78,8 +82,7 @@ def test_a_frame_is_located_ahead_of_or_behind_its_map_image(
 
 def test_geometry_is_deterministic_and_kept_per_map_image(
         camera_map: RouteMap, sunny2_features: list[Features]) -> None:
-    geo = camera_map.geometry
-    assert geo is not None
+    geo = _geometry(camera_map)
     p = GeometryParams()
     first = geo.locate(sunny2_features[40], 40, p)
     assert first is not None and first == geo.locate(sunny2_features[40], 40, p)
@@ -91,8 +94,7 @@ def test_geometry_is_deterministic_and_kept_per_map_image(
 
 def test_a_frame_without_features_or_elsewhere_is_not_located(
         camera_map: RouteMap, sunny2_features: list[Features]) -> None:
-    geo = camera_map.geometry
-    assert geo is not None
+    geo = _geometry(camera_map)
     blank = Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8))
     assert geo.locate(blank, 40, GeometryParams()) is None
     # a frame that matches image 40 feature for feature but whose keypoints are all one
@@ -226,8 +228,7 @@ def _statuses(m: RouteMap, table: SimilarityTable, feats: list[Features], params
     """DPSO over frames 0..79; the geometry locates frame ``locate_frame`` (a frame from
     elsewhere: the geometry refutes every place the images say) or each frame itself."""
     loc = Localizer(m, "dpso", params, seed=1)
-    geo = m.geometry
-    assert geo is not None
+    geo = _geometry(m)
     out = []
     for k in range(80):
         f = feats[k if locate_frame is None else locate_frame]
@@ -264,8 +265,7 @@ def test_the_geometry_moves_the_estimate_to_the_sub_swarm_it_locates_the_frame_a
     truth = sunny2.reference_xy[k]
     wrong = sunny2.reference_xy[k + 50]
     table = sunny2_table
-    geo = camera_map.geometry
-    assert geo is not None
+    geo = _geometry(camera_map)
     out = {}
     for switch in (0, 3):
         loc = Localizer(camera_map, "dpso", {"verify_switch_frames": switch}, seed=2)
@@ -289,11 +289,6 @@ def test_the_geometry_moves_the_estimate_to_the_sub_swarm_it_locates_the_frame_a
 def _frames_6m_ahead(xy: np.ndarray) -> int:
     """How many frames after frame 60 the robot is about 6 m further on."""
     return int(np.argmin(np.abs(np.linalg.norm(xy[60:90] - xy[60], axis=1) - 6.0)))
-
-
-def _geometry(m: RouteMap) -> MapGeometry:
-    assert m.geometry is not None
-    return m.geometry
 
 
 def test_a_located_camera_corrects_a_place_held_metres_off(
@@ -334,8 +329,7 @@ def test_a_frame_unlocatable_at_the_best_image_is_located_at_the_next(
     measures the tries alone."""
     xy = sunny2.reference_xy
     table = sunny2_table
-    geo = camera_map.geometry
-    assert geo is not None
+    geo = _geometry(camera_map)
     out = {}
     for tries in (1, 4):
         est = Localizer(camera_map, "dpso", {"metric_tries": tries,
