@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from client.dataset import DATASET_FILE, write_dataset_meta, write_round
-from service.geo import LocalFrame
+from service.api.geo import LocalFrame
 
 NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
@@ -125,9 +125,9 @@ def _write_bytes(path: Path, data: bytes) -> None:
 
 def _encoded(msg: Any, msgtype: str) -> tuple[bytes, str]:
     """(file bytes, suffix) of an image message."""
-    from service.errors import ServiceError
-    from service.imaging import encode_png, sniff_format
-    from service.ros2 import raw_image
+    from service.api.errors import ServiceError
+    from service.vision.imaging import encode_png, sniff_format
+    from service.zenoh.ros2 import raw_image
 
     if msgtype == "sensor_msgs/msg/CompressedImage":
         data = msg.data.tobytes()
@@ -147,7 +147,7 @@ def convert_bag(bag: str | Path, image_topic: str, out: str | Path,
     """Write the round ``out`` (which must not exist) from a rosbag2 recording."""
     from rosbags.rosbag2 import Reader
 
-    from service.ros2 import COMPRESSED_IMAGE, IMAGE, make_typestore
+    from service.zenoh.ros2 import COMPRESSED_IMAGE, IMAGE, make_typestore
 
     bag, out = Path(bag), Path(out)
     if (gps_topic is None) == (pose_topic is None):

@@ -24,8 +24,8 @@ if TYPE_CHECKING:
 
     from client.dataset import Round
     from client.transports import Client, HttpClient
-    from service.features import SiftParams
-    from service.models import MapSummary
+    from service.api.models import MapSummary
+    from service.vision.features import SiftParams
 
 # plain click help (rich_markup_mode=None): rich's import alone costs more than the 0.3 s
 # that `swarmloc --help` may take
@@ -69,7 +69,7 @@ PruneOpt = Annotated[bool, typer.Option(
 
 def feature_params(name: str, width: int = 320, height: int = 240) -> SiftParams:
     """SiftParams of a feature type name (the CLI's --features)."""
-    from service.features import SiftParams
+    from service.vision.features import SiftParams
 
     if name not in FEATURE_TYPES:
         _fail(f"unknown feature type {name!r}; choose one of {list(FEATURE_TYPES)}")
@@ -132,8 +132,8 @@ def world_eval(
     map image lies within RADIUS of the truth (symmetric ratio matching)."""
     import numpy as np
 
-    from service.features import extract
-    from service.route_map import build_map_from_rounds
+    from service.maps.route_map import build_map_from_rounds
+    from service.vision.features import extract
 
     mr, qr = _read_round(map_round), _read_round(query_round)
     m = build_map_from_rounds([mr], params=feature_params(features), prune_features=prune)
@@ -215,8 +215,8 @@ def map_build(
 
     from tqdm import tqdm
 
-    from service.round_format import camera_from_hfov
-    from service.route_map import MapError, build_map_from_rounds, save_map
+    from service.api.round_format import camera_from_hfov
+    from service.maps.route_map import MapError, build_map_from_rounds, save_map
 
     rounds = [_read_round(r) for r in round_dirs]
     if hfov is not None:
@@ -248,7 +248,7 @@ def map_build(
 @map_app.command("info")
 def map_info(path: Path) -> None:
     """Verify a map and print its metadata."""
-    from service.route_map import MapError, load_map
+    from service.maps.route_map import MapError, load_map
 
     try:
         m = load_map(path)
@@ -286,7 +286,7 @@ def map_push(
 ) -> None:
     """Upload a .swmap to a running service (new or replacing; no restart, no session lost)."""
     from client.transports import SwarmlocError
-    from service.route_map import MapError, load_map
+    from service.maps.route_map import MapError, load_map
 
     try:
         local = load_map(path)
@@ -313,7 +313,7 @@ def map_pull(
 ) -> None:
     """Download a map's current .swmap from a running service."""
     from client.transports import SwarmlocError
-    from service.route_map import MapError, load_map
+    from service.maps.route_map import MapError, load_map
 
     client = _remote(from_, token)
     try:
@@ -366,7 +366,7 @@ def map_build_remote(
 
     from client.map_remote import follow_job, zip_round
     from client.transports import SwarmlocError
-    from service.models import JobInfo
+    from service.api.models import JobInfo
 
     _read_round(round_dir)  # validation messages with file and line, before any upload
     client = _remote(to, token)
@@ -616,8 +616,8 @@ def eval_split(
 
     from client.lab.experiments import SimilarityTable, run
     from client.runs import run_metrics
-    from service.features import SiftParams, extract
-    from service.route_map import build_map_from_rounds
+    from service.maps.route_map import build_map_from_rounds
+    from service.vision.features import SiftParams, extract
 
     rnd = _read_round(round_dir)
     params = SiftParams(width=width, height=height)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.round_format import (
+from service.api.round_format import (
     CALIB_FILE,
     DATASET_FILE,
     IMAGE_SUFFIXES,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from client.dataset import CALIB_FILE, DATASET_FILE, POSES_FILE, TRUTH_FILE, read_round
 from client.transports import HttpClient, SwarmlocError
-from service.models import JobInfo
+from service.api.models import JobInfo
 
 _STORED = (".png", ".jpg", ".jpeg")  # already compressed
 

@@ -12,7 +12,7 @@ import numpy as np
 from client.dataset import Round
 from client.runs import Run, frame_sequence
 from client.transports import Client
-from service.models import Estimate
+from service.api.models import Estimate
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from service.models import Estimate
+    from service.api.models import Estimate
 
 #: statuses in which an estimator admits it does not know where it is
 BAD_STATUS = ("recovering", "lost")

@@ -20,7 +20,7 @@ from typing import Any, Protocol
 import httpx
 import numpy as np
 
-from service.models import (
+from service.api.models import (
     Estimate,
     JobInfo,
     MapDeleted,
@@ -44,7 +44,7 @@ class SwarmlocError(Exception):
 def _frame_bytes(image: np.ndarray | bytes) -> bytes:
     if isinstance(image, bytes | bytearray | memoryview):
         return bytes(image)
-    from service.imaging import encode_png
+    from service.vision.imaging import encode_png
 
     return encode_png(np.asarray(image))
 
@@ -278,7 +278,7 @@ class ZenohClient:
         ``connect`` and ``mode`` are applied on top of."""
         import zenoh
 
-        from service.zenoh_config import zenoh_config
+        from service.zenoh.config import zenoh_config
 
         cfg = zenoh_config(config_file=config_file, mode=mode, connect=connect,
                            multicast_scouting=None if config_file else not connect)
@@ -370,7 +370,7 @@ class LocalClient:
     """No network: the service engine in this process (same decoding and localizer code)."""
 
     def __init__(self, maps_dir: str | Path | None = None, service: Any = None) -> None:
-        from service.sessions import LocalizationService
+        from service.engine.localization_service import LocalizationService
         from service.settings import Settings
 
         if service is None:
@@ -379,7 +379,7 @@ class LocalClient:
         self.service = service
 
     def _wrap(self, fn: Any, *args: Any) -> Any:
-        from service.errors import ServiceError
+        from service.api.errors import ServiceError
 
         try:
             return fn(*args)

@@ -13,10 +13,10 @@ from collections.abc import Iterator
 import uvicorn
 from fastapi import FastAPI
 
-from service.http_api import create_app
-from service.sessions import LocalizationService
+from service.engine.localization_service import LocalizationService
+from service.http.app import create_app
 from service.settings import Settings
-from service.zenoh_bridge import ZenohBridge, check_security
+from service.zenoh.bridge import ZenohBridge, check_security
 
 log = logging.getLogger("swarmloc")
 
@@ -67,7 +67,7 @@ def limit_native_threads(settings: Settings) -> None:
 
 def run(settings: Settings) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    from service.matcher import warm_up
+    from service.vision.matcher import warm_up
 
     limit_native_threads(settings)
     warm_up()  # compile (or load) the matcher's kernels before the first frame

@@ -9,7 +9,7 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from service.models import EstimatorName
+from service.api.models import EstimatorName
 
 
 class Settings(BaseSettings):
@@ -23,7 +23,7 @@ class Settings(BaseSettings):
     default_estimator: EstimatorName = "dpso"
     max_sessions: int = Field(256, description="most concurrent robot sessions")
     session_idle_s: float = Field(600.0, description="idle sessions expire after this")
-    # where sessions live (service/store.py): in this process, or Redis shared by replicas
+    # where sessions live (service/engine/store.py): in this process, or Redis shared by replicas
     session_store: str = Field("memory", description="'memory' (in-process) or "
                                "redis://host:port/db (shared by several replicas)")
     session_snapshot: Path | None = Field(None, description="in-process store: write the "
@@ -61,7 +61,7 @@ class Settings(BaseSettings):
                                 "(px): smaller frames cannot carry features")
     shutdown_deadline_s: float = Field(10.0, gt=0, description="at shutdown, frames in "
                                        "flight get this long to finish; new frames get 503")
-    # ---- Zenoh (service/zenoh_config.py builds the config; a file is the way to configure
+    # ---- Zenoh (service/zenoh/config.py builds the config; a file is the way to configure
     # TLS/mTLS, user/password and access control)
     zenoh_enabled: bool = True
     zenoh_config_file: Path | None = Field(
@@ -80,7 +80,7 @@ class Settings(BaseSettings):
     zenoh_create_sessions: bool | None = Field(
         None, description="a Zenoh frame for an unknown robot creates its session (default: "
         "yes without SWARMLOC_AUTH_TOKEN, no with it)")
-    # ROS 2 over Zenoh (service/ros2.py): topic templates, {robot} = the robot's namespace
+    # ROS 2 over Zenoh (service/zenoh/ros2.py): topic templates, {robot} = the robot's namespace
     ros2_enabled: bool = Field(False, description="serve ROS 2 CDR messages on Zenoh too")
     ros2_key_format: Literal["ros2dds", "rmw_zenoh"] = Field(
         "ros2dds", description="zenoh-bridge-ros2dds keys, or rmw_zenoh's "

@@ -13,9 +13,9 @@ from client.dataset import Round, read_round
 from client.lab.experiments import SimilarityTable
 from client.lab.processes import RedisServer
 from client.lab.world import World
-from service.route_map import RouteMap, build_map, load_map, save_map
+from service.engine.localization_service import LocalizationService
+from service.maps.route_map import RouteMap, build_map, load_map, save_map
 from service.server import free_port, running_server
-from service.sessions import LocalizationService
 from service.settings import Settings
 
 SMALL_LENGTH_M = 90.0

@@ -1,4 +1,4 @@
-"""The reported position smoothed along the map's path (service/along_track.py)."""
+"""The reported position smoothed along the map's path (service/estimators/along_track.py)."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 
 from client.dataset import Round
 from client.lab.experiments import SimilarityTable
-from service.along_track import AlongTrackSmoother, path_tangent
-from service.localizer import Localizer
-from service.route_map import RouteMap
+from service.engine.localizer import Localizer
+from service.estimators.along_track import AlongTrackSmoother, path_tangent
+from service.maps.route_map import RouteMap
 
 
 def test_path_tangent_follows_the_image_order_and_ignores_far_neighbours() -> None:

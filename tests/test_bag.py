@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from client.cli import app
 from client.dataset import Round, read_round, write_dataset_meta
-from service.geo import LocalFrame
+from service.api.geo import LocalFrame
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 T = TS.types

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from service.demo import demo_round, ensure_demo_map
-from service.localizer import Localizer
-from service.route_map import load_map
+from service.engine.localizer import Localizer
+from service.maps.route_map import load_map
 
 
 def test_demo_map_is_built_once_from_the_shipped_round(tmp_path: Path) -> None:

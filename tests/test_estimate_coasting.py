@@ -9,10 +9,10 @@ import pytest
 
 from client.dataset import Round
 from client.lab.experiments import SimilarityTable
-from service.localizer import Localizer
-from service.multi_swarm import image_centre, match_sigma
-from service.params import DPSOParams
-from service.route_map import RouteMap
+from service.api.params import DPSOParams
+from service.engine.localizer import Localizer
+from service.estimators.multi_swarm_dpso import image_centre, match_sigma
+from service.maps.route_map import RouteMap
 
 
 def test_image_centre_weights_images_by_their_match() -> None:

@@ -7,11 +7,11 @@ import pytest
 
 from client.lab.experiments import run
 from client.runs import frames_to_recover
-from service.fitness import FrameFitness
-from service.localizer import Localizer
-from service.params import ParamError
-from service.particle_filter import low_variance_resample
-from service.registry import params_for
+from service.api.params import ParamError
+from service.engine.localizer import Localizer
+from service.estimators.fitness import FrameFitness
+from service.estimators.particle_filter import low_variance_resample
+from service.estimators.registry import params_for
 
 WARMUP = 20  # frames of global convergence left out of tracking errors
 
@@ -137,8 +137,8 @@ def test_parameter_overrides_are_validated() -> None:
 
 
 def test_variants_are_selectable(small_map) -> None:
-    from service.multi_swarm import MultiSwarmDPSO
-    from service.swarm import DPSO
+    from service.estimators.multi_swarm_dpso import MultiSwarmDPSO
+    from service.estimators.paper_dpso import DPSO
 
     assert type(Localizer(small_map, "dpso").estimator) is MultiSwarmDPSO
     assert type(Localizer(small_map, "dpso", {"variant": "paper"}).estimator) is DPSO

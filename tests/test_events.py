@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from client.transports import HttpClient, ZenohClient
-from service.events import EventHub, estimate_message
-from service.metrics import Metrics
-from service.models import Estimate, Hypothesis
+from service.api.models import Estimate, Hypothesis
+from service.engine.events import EventHub, estimate_message
+from service.engine.localization_service import LocalizationService
+from service.engine.metrics import Metrics
 from service.server import free_port, running_server
-from service.sessions import LocalizationService
 from service.settings import Settings
 
 TOKEN = "events-test-token"
@@ -100,7 +100,7 @@ def test_particles_are_read_only_when_watched_and_at_most_once_per_interval() ->
 
 @pytest.fixture(scope="module")
 def guarded_server(tmp_path_factory: pytest.TempPathFactory, small_map) -> Iterator[dict]:
-    from service.route_map import save_map
+    from service.maps.route_map import save_map
 
     maps = tmp_path_factory.mktemp("events_maps")
     save_map(small_map, maps / "small")
@@ -168,7 +168,7 @@ def test_shutdown_ends_open_streams_cleanly(tmp_path, small_map) -> None:
     """Open streams end with a complete response when the server stops (not cut off)."""
     import threading
 
-    from service.route_map import save_map
+    from service.maps.route_map import save_map
 
     save_map(small_map, tmp_path / "small")
     settings = Settings(maps_dir=tmp_path, host="127.0.0.1", port=free_port(),

@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.features import (
+from service.vision.features import (
     SiftParams,
     extract,
     match_batch,

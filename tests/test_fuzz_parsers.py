@@ -18,14 +18,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from client.dataset import read_round
-from service.errors import ServiceError
-from service.imaging import decode_frame, encode_jpeg, encode_png
-from service.map_zenoh import _options
-from service.round_format import DatasetError
-from service.route_map import MAGIC, MapError, _canonical, _pad, load_map, save_map
-from service.sessions import LocalizationService
+from service.api.errors import ServiceError
+from service.api.round_format import DatasetError
+from service.engine.localization_service import LocalizationService
+from service.maps.route_map import MAGIC, MapError, _canonical, _pad, load_map, save_map
 from service.settings import Settings
-from service.zenoh_bridge import _frame_args, control, parse_attachment
+from service.vision.imaging import decode_frame, encode_jpeg, encode_png
+from service.zenoh.bridge import _frame_args, control, parse_attachment
+from service.zenoh.maps import _options
 
 # `swarmloc bench fuzz --minutes N` raises the number of examples and draws fresh ones; the
 # suite's own run (no SWARMLOC_FUZZ_SCALE) uses fixed examples, so a CI run is reproducible
@@ -116,7 +116,7 @@ def test_read_round_accepts_or_names_the_problem(header: list[str], rows: list[l
 # ---- map file reader ------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tiny_map_file(tmp_path_factory: pytest.TempPathFactory, small_map) -> Path:
-    from service.route_map import RouteMap
+    from service.maps.route_map import RouteMap
 
     n = 6
     end = int(small_map.offsets[n])

@@ -15,16 +15,16 @@ import pytest
 import zenoh
 
 from client.transports import SwarmlocError, ZenohClient
-from service.estimator import EstimatorStateError
-from service.http_api import create_app
-from service.imaging import encode_png
-from service.localizer import Localizer
-from service.route_map import RouteMap, save_map
+from service.engine.localization_service import LocalizationService
+from service.engine.localizer import Localizer
+from service.estimators.base import EstimatorStateError
+from service.http.app import create_app
+from service.maps.route_map import RouteMap, save_map
 from service.server import build_app, free_port, running_server
-from service.sessions import LocalizationService
 from service.settings import Settings
-from service.zenoh_bridge import ZenohSecurityError
-from service.zenoh_config import zenoh_config
+from service.vision.imaging import encode_png
+from service.zenoh.bridge import ZenohSecurityError
+from service.zenoh.config import zenoh_config
 
 PNG = {"content-type": "image/png"}
 
@@ -178,8 +178,8 @@ def test_particle_counts_are_bounded_and_never_truncated(srv, n, message) -> Non
 
 
 def test_params_models_have_a_hard_particle_limit() -> None:
-    from service.params import ParamError
-    from service.registry import params_for
+    from service.api.params import ParamError
+    from service.estimators.registry import params_for
 
     for estimator in ("dpso", "pf-g"):
         with pytest.raises(ParamError, match="less than or equal to 100000"):

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service.http_api import create_app
-from service.imaging import encode_jpeg
-from service.route_map import save_map
-from service.sessions import LocalizationService
+from service.engine.localization_service import LocalizationService
+from service.http.app import create_app
+from service.maps.route_map import save_map
 from service.settings import Settings
+from service.vision.imaging import encode_jpeg
 
 
 @pytest.fixture(scope="module")
@@ -204,7 +204,7 @@ def test_openapi_spec_is_valid(client: TestClient) -> None:
 
 
 def test_implicit_session_creation_never_replaces_one(maps_dir: Path) -> None:
-    from service.models import SessionConfig
+    from service.api.models import SessionConfig
 
     svc = LocalizationService(Settings(maps_dir=maps_dir, zenoh_enabled=False))
     _, created = svc.put_session("r", SessionConfig(seed=5))

@@ -1,4 +1,5 @@
-"""The located positions' jitter (service/located_noise.py), on positions with known noise."""
+"""The located positions' jitter (service/estimators/located_noise.py), on positions with known
+noise."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from service.located_noise import LocatedNoise
+from service.estimators.located_noise import LocatedNoise
 
 
 def _track(n: int, sigma: float, rng: np.random.Generator) -> np.ndarray:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.lost_detection import DistinctnessMonitor
-from service.multi_swarm import speciate
+from service.estimators.lost_detection import DistinctnessMonitor
+from service.estimators.multi_swarm_dpso import speciate
 
 
 def _monitor() -> DistinctnessMonitor:

@@ -21,9 +21,9 @@ from client.cli import app as cli_app
 from client.dataset import write_round
 from client.map_remote import zip_round
 from client.transports import HttpClient, SwarmlocError, ZenohClient
-from service.route_map import build_map, save_map
+from service.engine.localization_service import LocalizationService
+from service.maps.route_map import build_map, save_map
 from service.server import free_port, running_server
-from service.sessions import LocalizationService
 from service.settings import Settings
 
 
@@ -409,7 +409,7 @@ def test_stale_temporaries_go_and_other_maps_files_stay(tmp_path: Path, small_ma
     import dataclasses
     import os
 
-    from service.errors import Conflict
+    from service.api.errors import Conflict
 
     maps = tmp_path / "maps"
     maps.mkdir()

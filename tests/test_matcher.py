@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.features import ROOT_SCALE, extract, match_batch, unit_descriptors
-from service.matcher import (
+from service.vision.features import ROOT_SCALE, extract, match_batch, unit_descriptors
+from service.vision.matcher import (
     _jit,
     match_batch_u8,
     match_batch_u8_reference,
@@ -146,7 +146,7 @@ def test_module_works_where_numba_can_write_no_cache() -> None:
         "impl = getattr(c, 'CacheImpl', None) or getattr(c, '_CacheImpl')\n"
         "impl._locator_classes = []\n"  # no location accepts a cache
         "import numpy as np\n"
-        "from service.matcher import match_batch_u8, match_batch_u8_reference\n"
+        "from service.vision.matcher import match_batch_u8, match_batch_u8_reference\n"
         "x = np.random.default_rng(0).integers(1, 255, (40, 128)).astype(np.uint8)\n"
         "r = match_batch_u8(x, [x[5:], x[:30]])\n"
         "assert (r.counts == match_batch_u8_reference(x, [x[5:], x[:30]]).counts).all()\n"

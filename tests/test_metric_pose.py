@@ -1,5 +1,5 @@
-"""A frame located between map images by two-view geometry (service/metric_pose.py,
-service/map_geometry.py), the camera a map keeps, and DPSO's use of both."""
+"""A frame located between map images by two-view geometry (service/vision/metric_pose.py,
+service/vision/map_geometry.py), the camera a map keeps, and DPSO's use of both."""
 
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ import pytest
 from client.dataset import Round, read_round
 from client.lab.experiments import SimilarityTable, run
 from client.lab.world import World
-from service.features import Features, extract
-from service.localizer import Localizer
-from service.map_geometry import GeometryParams, MapGeometry
-from service.metric_pose import Camera
-from service.round_format import DatasetError, camera_from_hfov, dataset_camera
-from service.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
+from service.api.round_format import DatasetError, camera_from_hfov, dataset_camera
+from service.engine.localizer import Localizer
+from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
+from service.vision.features import Features, extract
+from service.vision.map_geometry import GeometryParams, MapGeometry
+from service.vision.metric_pose import Camera
 
 
 @pytest.fixture(scope="module")
@@ -203,8 +203,8 @@ def _round_zip(sunny1: Round, extra: dict[str, bytes], folder: str = "r/") -> by
 
 def test_an_uploaded_round_brings_its_camera_or_a_clear_error(tmp_path: Path,
                                                              sunny1: Round) -> None:
-    from service.errors import InvalidParameters
-    from service.round_archive import ArchiveLimits, UploadedRound, extract_round
+    from service.api.errors import InvalidParameters
+    from service.maps.round_archive import ArchiveLimits, UploadedRound, extract_round
 
     def extract_zip(name: str, data: bytes) -> UploadedRound:
         (tmp_path / f"{name}.zip").write_bytes(data)

@@ -54,7 +54,7 @@ def test_the_wheel_ships_the_viewer_files(tmp_path: Path) -> None:
     names = set(zipfile.ZipFile(next(tmp_path.glob("swarmloc-*.whl"))).namelist())
     static = ROOT / "service" / "viewer" / "static"
     files = [p.relative_to(ROOT).as_posix() for p in static.rglob("*") if p.is_file()]
-    assert "service/viewer/static/index.html" in files and len(files) >= 7
+    assert "service/http/viewer/static/index.html" in files and len(files) >= 7
     assert set(files) <= names, sorted(set(files) - names)
     demo = [p.relative_to(ROOT).as_posix() for p in (ROOT / "service" / "demo" / "round").iterdir()]
     assert "service/demo/round/poses.csv" in demo and len(demo) > 50

@@ -18,7 +18,7 @@ from client.lab.feature_study import (
     extractor,
     hamming_reference,
 )
-from service.route_map import RouteMap, save_map
+from service.maps.route_map import RouteMap, save_map
 
 
 @pytest.fixture(scope="module")
@@ -62,15 +62,15 @@ def test_bench_frame_breakdown(maps_dir: Path, rounds_dir: Path) -> None:
 
 def test_bench_frame_leaves_the_service_code_as_it_was(maps_dir: Path, rounds_dir: Path
                                                        ) -> None:
-    import service.route_map
-    import service.sessions
-    from service.localizer import Localizer
+    import service.engine.localization_service
+    import service.maps.route_map
+    from service.engine.localizer import Localizer
 
-    before = (service.sessions.decode_frame, service.route_map.prepare, Localizer.extract,
-              Localizer.step)
+    before = (service.engine.localization_service.decode_frame, service.maps.route_map.prepare,
+              Localizer.extract, Localizer.step)
     bench_frame(maps_dir, rounds_dir / "sunny2", frames=1, warmup=0, transports=())
-    assert (service.sessions.decode_frame, service.route_map.prepare, Localizer.extract,
-            Localizer.step) == before
+    assert (service.engine.localization_service.decode_frame, service.maps.route_map.prepare,
+            Localizer.extract, Localizer.step) == before
 
 
 def test_bench_load_local_and_http(maps_dir: Path, rounds_dir: Path) -> None:

@@ -1,5 +1,5 @@
-"""The place-recognition index (service/place_index.py), map format 3 (index stored, per-image
-digests, lazy verification, version 2 still readable) and the long-route generator."""
+"""The place-recognition index (service/vision/place_index.py), map format 3 (index stored,
+per-image digests, lazy verification, version 2 still readable) and the long-route generator."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.features import extract
-from service.localizer import Localizer
-from service.route_map import MAGIC, MapError, _canonical, _pad, load_map, save_map
+from service.engine.localizer import Localizer
+from service.maps.route_map import MAGIC, MapError, _canonical, _pad, load_map, save_map
+from service.vision.features import extract
 
 
 def _hit(m, ids: np.ndarray, xy: np.ndarray, radius: float = 5.0) -> bool:
@@ -184,7 +184,7 @@ def test_long_route_shape() -> None:
 def test_tiny_long_route_renders_into_maps(tmp_path: Path) -> None:
     from client.dataset import read_round
     from client.lab.world.long_route import Leg, LongRoute, assemble_maps, render_long_route
-    from service.features import SiftParams
+    from service.vision.features import SiftParams
 
     route = LongRoute(60, loop_length_m=24.0)
     assert route.n_loops == 2 and route.per_loop < 60

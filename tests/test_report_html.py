@@ -9,7 +9,7 @@ import pytest
 from client.replay import ReplayConfig, replay
 from client.report import build_report, write_report
 from client.transports import LocalClient
-from service.route_map import save_map
+from service.maps.route_map import save_map
 from tests.browser import ARTIFACTS, browser_page
 
 LENGTH = 30

@@ -15,7 +15,11 @@ import zenoh
 from rosbags.typesys import Stores, get_typestore
 
 from client.transports import ZenohClient
-from service.ros2 import (
+from service.engine.localization_service import LocalizationService
+from service.maps.route_map import save_map
+from service.server import free_port, running_server
+from service.settings import Settings
+from service.zenoh.ros2 import (
     COMPRESSED_IMAGE,
     IMAGE,
     POSE,
@@ -29,10 +33,6 @@ from service.ros2 import (
     rmw_attachment,
     yaw_variance,
 )
-from service.route_map import save_map
-from service.server import free_port, running_server
-from service.sessions import LocalizationService
-from service.settings import Settings
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 T = TS.types
@@ -396,8 +396,8 @@ def test_rosbags_is_imported_only_when_ros2_is_used() -> None:
     import subprocess
     import sys
 
-    code = ("import sys, service.server, service.zenoh_bridge, client.cli, client.transports; "
-            "print('rosbags' in sys.modules, 'service.ros2' in sys.modules)")
+    code = ("import sys, service.server, service.zenoh.bridge, client.cli, client.transports; "
+            "print('rosbags' in sys.modules, 'service.zenoh.ros2' in sys.modules)")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert res.stdout.split() == ["False", "False"]

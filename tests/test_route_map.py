@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.features import Features, extract, match_batch
-from service.route_map import MapError, list_maps, load_map, prune, save_map
+from service.maps.route_map import MapError, list_maps, load_map, prune, save_map
+from service.vision.features import Features, extract, match_batch
 
 
 def test_pruning_keeps_features_seen_in_a_neighbour(sunny1) -> None:
@@ -44,7 +44,7 @@ def test_map_roundtrip_is_memory_mapped(small_map, sunny1) -> None:
 
 
 def test_loaded_map_matches_like_the_map_in_memory(small_map, sunny1, sunny2) -> None:
-    from service.route_map import build_map
+    from service.maps.route_map import build_map
 
     idx = list(range(0, 12))
     mem = build_map("m", [sunny1.load_image(i) for i in idx], sunny1.xy[idx],
@@ -59,8 +59,8 @@ def test_loaded_map_matches_like_the_map_in_memory(small_map, sunny1, sunny2) ->
 
 
 def test_multi_condition_map_compares_each_layer(tmp_path: Path, sunny1, cloudy1) -> None:
-    from service.fitness import FrameFitness
-    from service.route_map import build_map
+    from service.estimators.fitness import FrameFitness
+    from service.maps.route_map import build_map
 
     idx = list(range(20, 30))
     imgs = [sunny1.load_image(i) for i in idx] + [cloudy1.load_image(i) for i in idx]
@@ -144,8 +144,8 @@ def test_atomic_write_replaces_whole_file(small_map, tmp_path: Path) -> None:
 
 def test_map_from_geographic_round(tmp_path: Path, sunny1) -> None:
     from client.dataset import read_round
-    from service.geo import LocalFrame
-    from service.route_map import build_map
+    from service.api.geo import LocalFrame
+    from service.maps.route_map import build_map
 
     d = tmp_path / "geo"
     d.mkdir()
@@ -167,7 +167,7 @@ def test_map_from_geographic_round(tmp_path: Path, sunny1) -> None:
 
 
 def test_map_of_featureless_images_roundtrips(tmp_path: Path) -> None:
-    from service.route_map import build_map
+    from service.maps.route_map import build_map
 
     blank = [np.full((240, 320), 128, np.uint8)] * 3
     m = build_map("blank", blank, np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]),

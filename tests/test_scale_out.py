@@ -21,13 +21,13 @@ import pytest
 import zenoh
 
 from client.lab.processes import RedisServer, ServiceProcess
-from service.localizer import Localizer
-from service.models import Estimate, SessionConfig
-from service.route_map import RouteMap, save_map
+from service.api.models import Estimate, SessionConfig
+from service.engine.localization_service import LocalizationService
+from service.engine.localizer import Localizer
+from service.engine.store import RedisOptions, RedisStore, Session
+from service.maps.route_map import RouteMap, save_map
 from service.server import free_port
-from service.sessions import LocalizationService
 from service.settings import Settings
-from service.store import RedisOptions, RedisStore, Session
 
 SEED = 7
 

@@ -16,9 +16,9 @@ from hypothesis import HealthCheck
 from hypothesis import strategies as st
 from schemathesis import checks
 
-from service.route_map import save_map
+from service.engine.localization_service import LocalizationService
+from service.maps.route_map import save_map
 from service.server import free_port, running_server
-from service.sessions import LocalizationService
 from service.settings import Settings
 
 SCALE = float(os.environ.get("SWARMLOC_FUZZ_SCALE", "1"))  # bench fuzz raises it

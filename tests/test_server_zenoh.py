@@ -14,7 +14,7 @@ import zenoh
 
 from client.transports import HttpClient, LocalClient, SwarmlocError, ZenohClient
 from service.server import free_port
-from service.zenoh_config import zenoh_config
+from service.zenoh.config import zenoh_config
 
 
 def _peer(endpoint: str) -> zenoh.Session:

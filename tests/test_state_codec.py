@@ -11,11 +11,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from service.along_track import AlongTrackSmoother
-from service.features import Features
-from service.localizer import Localizer
-from service.route_map import RouteMap
-from service.state_codec import (
+from service.engine.localizer import Localizer
+from service.engine.state_codec import (
     FORMAT_VERSION,
     REBUILT,
     SessionState,
@@ -25,6 +22,9 @@ from service.state_codec import (
     encode_session,
     loads,
 )
+from service.estimators.along_track import AlongTrackSmoother
+from service.maps.route_map import RouteMap
+from service.vision.features import Features
 
 # every estimator kind the service offers: (estimator, params)
 KINDS = [("dpso", {}), ("dpso", {"variant": "paper"}), ("pf-g", {}), ("pf-l", {})]
@@ -173,7 +173,7 @@ def test_an_attribute_the_codec_cannot_carry_is_named(small_map: RouteMap) -> No
 def test_a_state_missing_an_attribute_is_refused(small_map: RouteMap,
                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     """A state written before the estimator gained an attribute does not load half-set."""
-    import service.state_codec as codec
+    import service.engine.state_codec as codec
 
     blob = encode_session(SessionState("r1", Localizer(small_map), 0.0, 0.0, None, None))
 

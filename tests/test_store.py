@@ -16,10 +16,10 @@ import httpx
 import pytest
 
 from client.lab.processes import RedisServer, ServiceProcess
-from service.errors import Conflict, NotFound, Unavailable
-from service.models import SessionConfig
-from service.route_map import RouteMap, load_map, save_map
-from service.sessions import LocalizationService
+from service.api.errors import Conflict, NotFound, Unavailable
+from service.api.models import SessionConfig
+from service.engine.localization_service import LocalizationService
+from service.maps.route_map import RouteMap, load_map, save_map
 from service.settings import Settings
 
 SEED = 3

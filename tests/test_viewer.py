@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from client.transports import HttpClient, ZenohClient
+from service.engine.localization_service import LocalizationService
 from service.server import free_port, running_server
-from service.sessions import LocalizationService
 from service.settings import Settings
 from tests.browser import ARTIFACTS, browser_page
 
@@ -31,7 +31,7 @@ PIXEL_JS = """(id) => {
 
 @pytest.fixture(scope="module")
 def viewer_server(tmp_path_factory: pytest.TempPathFactory, small_map) -> Iterator[dict]:
-    from service.route_map import save_map
+    from service.maps.route_map import save_map
 
     maps = tmp_path_factory.mktemp("viewer_maps")
     save_map(small_map, maps / "small")

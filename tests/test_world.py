@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 
 from client.lab.world import Pose, World
-from service.features import extract, similarity
+from service.vision.features import extract, similarity
 
 
 def test_same_pose_renders_identically(small_world: World) -> None:

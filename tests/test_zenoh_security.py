@@ -20,11 +20,11 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from client.transports import SwarmlocError, ZenohClient
-from service.route_map import save_map
+from service.engine.localization_service import LocalizationService
+from service.maps.route_map import save_map
 from service.server import free_port, running_server
-from service.sessions import LocalizationService
 from service.settings import Settings
-from service.zenoh_config import zenoh_config
+from service.zenoh.config import zenoh_config
 
 TOKEN = "http-token"
 

@@ -13,8 +13,8 @@ import numpy as np
 
 from client.lab.world import Pose, World
 from client.transports import Client
-from service.features import BatchMatch, extract, match_batch, similarity_bfmatcher
-from service.route_map import prune
+from service.maps.route_map import prune
+from service.vision.features import BatchMatch, extract, match_batch, similarity_bfmatcher
 
 
 def _median_ms(fn: Callable[[], object], repeats: int) -> float:
@@ -76,8 +76,8 @@ def bench_latency(maps_dir: str, round_dir: str, frames: int = 200, seed: int = 
     (uvicorn + Zenoh bridge on loopback) and in process (no transport) for reference."""
     from client.dataset import read_round
     from client.transports import HttpClient, LocalClient, ZenohClient
+    from service.engine.localization_service import LocalizationService
     from service.server import free_port, running_server
-    from service.sessions import LocalizationService
     from service.settings import Settings
 
     rnd = read_round(round_dir)
@@ -125,8 +125,8 @@ def bench_ros2(seed: int = 0, repeats: int = 200) -> Ros2Bench:
     encoding of the answer, beside the frame's SIFT extraction."""
     import cv2
 
-    from service.models import Estimate
-    from service.ros2 import COMPRESSED_IMAGE, IMAGE, Codec, Stamp
+    from service.api.models import Estimate
+    from service.zenoh.ros2 import COMPRESSED_IMAGE, IMAGE, Codec, Stamp
 
     codec = Codec()
     t = codec.types
@@ -217,9 +217,9 @@ def bench_events(maps_dir: str, round_dir: str, frames: int = 150, block: int = 
     ``hook_calls`` times per condition, one call per millisecond.
     """
     from client.dataset import read_round
-    from service.models import SessionConfig
+    from service.api.models import SessionConfig
+    from service.engine.localization_service import LocalizationService
     from service.server import free_port, running_server
-    from service.sessions import LocalizationService
     from service.settings import Settings
 
     rnd = read_round(round_dir)
@@ -304,8 +304,8 @@ def bench_build_latency(maps_dir: str, round_dir: str, frames: int = 150, fps: f
     from client.dataset import read_round
     from client.map_remote import zip_round
     from client.transports import HttpClient
+    from service.engine.localization_service import LocalizationService
     from service.server import free_port, running_server
-    from service.sessions import LocalizationService
     from service.settings import Settings
 
     rnd = read_round(round_dir)
@@ -411,7 +411,7 @@ def _rendered_matcher_sets(seed: int, k: int, places: int) -> tuple[list, list]:
 
 def _codes(image: np.ndarray) -> np.ndarray:
     """The map's default descriptor codes (CLAHE + RootSIFT, uint8) of a frame."""
-    from service.features import extract
+    from service.vision.features import extract
 
     return extract(image).codes
 
@@ -485,8 +485,8 @@ def bench_matcher(photos: str | None = None, seed: int = 0, k: int = 20, places:
     the same descriptors (quantised CLAHE + RootSIFT; the float path gets them normalised)."""
     from threadpoolctl import threadpool_limits
 
-    from service.features import unit_descriptors
-    from service.matcher import match_batch_u8, match_batch_u8_reference, prepare, warm_up
+    from service.vision.features import unit_descriptors
+    from service.vision.matcher import match_batch_u8, match_batch_u8_reference, prepare, warm_up
 
     if photos:
         queries, sets = _photo_matcher_sets(photos, k, places)
@@ -563,8 +563,8 @@ def _feature_types() -> dict[str, tuple[Callable, Callable]]:
     """name -> (extract(image) -> descriptors, similarities(query, map sets) -> scores)."""
     import cv2
 
-    from service.features import SiftParams, extract, to_working_size
-    from service.matcher import match_batch_u8, prepare
+    from service.vision.features import SiftParams, extract, to_working_size
+    from service.vision.matcher import match_batch_u8, prepare
 
     def clahe(image: np.ndarray) -> np.ndarray:
         gray = to_working_size(image, SiftParams())
@@ -599,7 +599,7 @@ def bench_features(seed: int = 0, length_m: float = 120.0, map_step: int = 3,
     type, on a sunny map against cloudy (cross-light) and sunny (same-light) frames."""
     from threadpoolctl import threadpool_limits
 
-    from service.matcher import warm_up
+    from service.vision.matcher import warm_up
 
     world = World(seed, length_m=length_m)
     p0, t0, _ = world.round_trajectory(0)

@@ -8,7 +8,7 @@ yet cached); the service's own code is unchanged and pays nothing when no benchm
 
 Per frame and path:
 
-- ``decode``: PNG/JPEG to grayscale pixels (``service.imaging.decode_frame``);
+- ``decode``: PNG/JPEG to grayscale pixels (``service.vision.imaging.decode_frame``);
 - ``extract``: CLAHE + RootSIFT (the map's feature type);
 - ``step``: the localizer step, the estimator with its comparisons and the ``Estimate``;
   ``prepare`` (inside ``step``): map images prepared for the matcher on first use;
@@ -113,9 +113,9 @@ class _Probe:
     def installed(self, service: Any, server_ms: dict[tuple[str, int], dict[str, float]]
                   ) -> Iterator[None]:
         """Wrap the stage functions and ``service.process_frame``; restore them on exit."""
-        import service.route_map as route_map_mod
-        import service.sessions as sessions_mod
-        from service.localizer import Localizer
+        import service.engine.localization_service as sessions_mod
+        import service.maps.route_map as route_map_mod
+        from service.engine.localizer import Localizer
 
         saved: tuple[Callable[..., Any], ...] = (
             sessions_mod.decode_frame, route_map_mod.prepare, Localizer.extract, Localizer.step)
@@ -151,8 +151,8 @@ def _serialise_ms(transport: str, est: Any, repeats: int = 3) -> float:
     does them (HTTP: the route's JSON body and httpx's ``json()`` + ``Estimate(**...)``;
     Zenoh: ``json.dumps(model_dump(mode="json"))`` and ``json.loads`` + ``Estimate(**...)``;
     in process: the answer's ``model_copy``, already in ``glue``, so 0)."""
-    from service.http_api import estimate_json
-    from service.models import Estimate
+    from service.api.models import Estimate
+    from service.http.app import estimate_json
 
     if transport == "in-process":
         return 0.0
@@ -177,11 +177,11 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
 
     from client.dataset import read_round
     from client.transports import Client, HttpClient, LocalClient, ZenohClient
-    from service.features import extract
-    from service.matcher import warm_up
+    from service.engine.localization_service import LocalizationService
     from service.server import free_port, limit_native_threads, running_server
-    from service.sessions import LocalizationService
     from service.settings import Settings
+    from service.vision.features import extract
+    from service.vision.matcher import warm_up
 
     rnd = read_round(round_dir)
     data = [rnd.image_path(i % len(rnd)).read_bytes() for i in range(frames + warmup)]

@@ -46,11 +46,11 @@ def bench_geometry(dataset: Path, map_round: str, query_round: str, frames: int 
                    warmup: int = 20, seed: int = 0) -> GeometryBench:
     from client.dataset import read_round
     from client.lab.experiment_cli import map_for
-    from service.features import Features, extract
-    from service.localizer import Localizer
-    from service.map_geometry import GeometryParams, MapGeometry
-    from service.metric_pose import Offset, Structure
-    from service.params import DPSOParams
+    from service.api.params import DPSOParams
+    from service.engine.localizer import Localizer
+    from service.vision.features import Features, extract
+    from service.vision.map_geometry import GeometryParams, MapGeometry
+    from service.vision.metric_pose import Offset, Structure
 
     m = map_for(dataset, map_round, papers=False)
     if m.geometry is None:

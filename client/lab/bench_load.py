@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 
 from client.transports import Client, HttpClient, LocalClient, SwarmlocError, ZenohClient
-from service.models import Estimate, PosePrior
+from service.api.models import Estimate, PosePrior
 
 FUZZ_SUITE_S = 35.0  # seconds per unit of scale the fuzz tests take on the 2-core machine
 
@@ -178,10 +178,10 @@ class _PooledLocal(LocalClient):
 def local_service(maps_dir: Path) -> Iterator[Callable[[], Client]]:
     """The in-process baseline: a ``LocalizationService`` in this process, set up as
     ``swarmloc serve`` sets up its own (native thread limits, matcher warmed up)."""
-    from service.matcher import warm_up
+    from service.engine.localization_service import LocalizationService
     from service.server import limit_native_threads
-    from service.sessions import LocalizationService
     from service.settings import Settings
+    from service.vision.matcher import warm_up
 
     settings = Settings(maps_dir=maps_dir, zenoh_enabled=False, session_idle_s=3600)
     limit_native_threads(settings)

@@ -50,10 +50,10 @@ def bench_store_overhead(maps_dir: str, round_dir: str, redis_url: str, frames: 
     with a robot that stays on one replica (its state is cached: no decoding), and Redis with
     frames alternating between two replicas (every load decodes the other one's state)."""
     from client.dataset import read_round
-    from service.models import EstimatorName, SessionConfig
-    from service.sessions import LocalizationService
+    from service.api.models import EstimatorName, SessionConfig
+    from service.engine.localization_service import LocalizationService
+    from service.engine.state_codec import encode_session
     from service.settings import Settings
-    from service.state_codec import encode_session
 
     rnd = read_round(round_dir)
     mem = LocalizationService(Settings(maps_dir=Path(maps_dir), zenoh_enabled=False))

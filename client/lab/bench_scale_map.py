@@ -68,7 +68,7 @@ def frames_to_recover(err: np.ndarray, radius: float = RECOVER_RADIUS_M,
 @functools.lru_cache(maxsize=64)  # the same legs for every map size: extract them once
 def _features(round_dir: Path, params: object) -> tuple[list, np.ndarray]:
     from client.dataset import read_round
-    from service.features import SiftParams, extract
+    from service.vision.features import SiftParams, extract
 
     assert isinstance(params, SiftParams)
     rnd = read_round(round_dir)
@@ -115,8 +115,8 @@ def _server(path: Path, track_dir: Path, frames: int) -> tuple[float, float, flo
 
 def bench_size(path: Path, track_dir: Path, server_frames: int = 100,
                seed: int = 0) -> SizeResult:
-    from service.localizer import Localizer
-    from service.route_map import load_map
+    from service.engine.localizer import Localizer
+    from service.maps.route_map import load_map
 
     opens = []
     for _ in range(3):
@@ -149,8 +149,8 @@ def bench_relocal(path: Path, route_dir: Path, kidnap_after: int = 40, seed: int
                   params: dict | None = None, legs: int | None = None) -> list[RelocalRun]:
     """Fresh starts on every leg, and kidnaps from the tracking leg onto every leg."""
     from client.lab.world.long_route import read_legs
-    from service.localizer import Localizer
-    from service.route_map import load_map
+    from service.engine.localizer import Localizer
+    from service.maps.route_map import load_map
 
     m = load_map(path, verify="lazy")
     per_loop = int(json.loads((route_dir / "route.json").read_text())["per_loop"])
@@ -186,7 +186,7 @@ def bench_relocal(path: Path, route_dir: Path, kidnap_after: int = 40, seed: int
 def brute_force_ms(path: Path, route_dir: Path, sample: int = 400) -> tuple[float, int]:
     """(ms to compare one frame with every map image, images), from ``sample`` images timed
     and scaled to the map (the cost a global search without an index pays per frame)."""
-    from service.route_map import load_map
+    from service.maps.route_map import load_map
 
     m = load_map(path, verify="lazy")
     feats, _ = _features(route_dir / "queries" / "track", m.sift_params)

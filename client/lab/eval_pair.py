@@ -19,8 +19,8 @@ import numpy as np
 from client.dataset import DatasetError, Round, check_image
 from client.lab.experiments import SimilarityTable, run
 from client.runs import BAD_STATUS, WRONG_M
-from service.features import SiftParams, extract
-from service.route_map import build_map_from_rounds
+from service.maps.route_map import build_map_from_rounds
+from service.vision.features import SiftParams, extract
 
 
 def read_indexed_frames(folder: Path, spacing: float) -> Round:

@@ -21,14 +21,14 @@ if TYPE_CHECKING:
     from client.dataset import Round
     from client.lab.experiments import SimilarityTable
     from client.runs import Run
-    from service.route_map import RouteMap
+    from service.maps.route_map import RouteMap
 
 
 def map_for(dataset: Path, rounds: str, papers: bool) -> RouteMap:
     """The map of one round (or rounds joined by '+'), built once and kept in DATASET/.maps."""
     from client.dataset import read_round
-    from service.features import SiftParams
-    from service.route_map import build_map_from_rounds, load_map, save_map
+    from service.maps.route_map import build_map_from_rounds, load_map, save_map
+    from service.vision.features import SiftParams
 
     names = [r for r in rounds.split("+") if r]
     path = dataset / ".maps" / f"{'+'.join(names)}{'-papers' if papers else ''}.swmap"

@@ -16,9 +16,9 @@ import numpy as np
 
 from client.dataset import Round
 from client.runs import Run, frame_sequence
-from service.features import Features, extract
-from service.localizer import Localizer
-from service.route_map import RouteMap
+from service.engine.localizer import Localizer
+from service.maps.route_map import RouteMap
+from service.vision.features import Features, extract
 
 
 class SimilarityTable:

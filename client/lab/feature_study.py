@@ -32,7 +32,7 @@ HAMMING_RATIO = 0.8  # Lowe's ratio on Hamming distances (ORB's usual setting)
 def _clahe(image: np.ndarray) -> np.ndarray:
     import cv2
 
-    from service.features import SiftParams, to_working_size
+    from service.vision.features import SiftParams, to_working_size
 
     p = SiftParams()
     gray = to_working_size(image, p)
@@ -52,7 +52,7 @@ def extractor(kind: str) -> Callable[[np.ndarray], np.ndarray]:
     AKAZE's MLDB (n, 61)). ``orb`` keeps OpenCV's default 500 features, ``orbN`` N."""
     import cv2
 
-    from service.features import extract
+    from service.vision.features import extract
 
     if kind == "rootsift":
         return lambda image: extract(image).codes
@@ -169,7 +169,7 @@ class FeatureTable:
 
     def __init__(self, kind: str, queries: list[np.ndarray], map_sets: list[np.ndarray],
                  route_map: Any) -> None:
-        from service.matcher import prepare
+        from service.vision.matcher import prepare
 
         self.kind = kind
         self.queries = queries
@@ -194,7 +194,7 @@ class FeatureTable:
         return p
 
     def compute(self, q: int, ids: np.ndarray) -> np.ndarray:
-        from service.matcher import match_batch_u8
+        from service.vision.matcher import match_batch_u8
 
         sets = [self._prepared_set(int(i)) for i in ids]
         t0 = time.thread_time()
@@ -277,7 +277,7 @@ def study(dataset: Path, map_round: str, queries: list[str], kinds: list[str],
     from client.dataset import read_round
     from client.lab.experiment_cli import _runs, _starts, map_for, metrics
     from client.lab.methods import METHODS
-    from service.matcher import warm_up
+    from service.vision.matcher import warm_up
 
     warm_up()
     route_map = map_for(dataset, map_round, False) if cache is None else _map(dataset,
@@ -311,7 +311,7 @@ def study(dataset: Path, map_round: str, queries: list[str], kinds: list[str],
 def _map(dataset: Path, map_round: str, cache: Path) -> Any:
     """The map round's default map, built into ``cache`` (never into the dataset)."""
     from client.dataset import read_round
-    from service.route_map import build_map_from_rounds, load_map, save_map
+    from service.maps.route_map import build_map_from_rounds, load_map, save_map
 
     path = cache / f"{dataset.name}-{map_round}.swmap"
     if path.is_file():

@@ -1,6 +1,6 @@
 """The lab's method names (the papers' tables: DPSO-80, PF-l-300, ...), each listed once with
 the estimator and parameters it stands for. The estimator names themselves are the service's
-(``service.registry``)."""
+(``service.estimators.registry``)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any
 
 @dataclass(frozen=True)
 class Method:
-    estimator: str  # a name of service.models.EstimatorName
+    estimator: str  # a name of service.api.models.EstimatorName
     params: dict[str, Any] = field(default_factory=dict)
     papers_map: bool = False  # SIFT + pruning as in the papers, else the service's features
 

@@ -37,7 +37,8 @@ def paper(
     DPSO in each), figures as PNG, settings and wall time in run.json."""
     from client.lab import paper_figures as figs
     from client.lab import paper_tables as tabs
-    from client.lab.paper import Lab, Settings, iter_rounds, protocol, run_protocol, tab4_pairs
+    from client.lab.paper import Lab, Settings, iter_rounds, protocol, tab4_pairs
+    from client.lab.paper_pool import run_protocol
 
     s = Settings.quick() if quick else Settings()
     given = (("starts", starts), ("product_starts", product_starts), ("warmup", warmup))

@@ -5,8 +5,9 @@ hundreds of runs of hundreds of frames per case. Stepping one estimator object p
 about 0.4-1 ms per frame in Python overhead. Here R runs advance together, every array carries
 a leading run axis, and one frame of all runs is a few NumPy calls.
 
-The arithmetic is that of ``service/swarm.py`` (``DPSO``, journal Sec. 5, ``variant="paper"``)
-and ``service/particle_filter.py`` (PF-g, PF-l, Sec. 7.2), line by line, and the random numbers
+The arithmetic is that of ``service/estimators/paper_dpso.py`` (``DPSO``, journal Sec. 5,
+``variant="paper"``) and ``service/estimators/particle_filter.py`` (PF-g, PF-l, Sec. 7.2), line
+by line, and the random numbers
 are drawn in the same order and shapes with a run axis in front: with one run and the same
 seed the trajectories are the service's, bit for bit (tests/test_paper.py checks that).
 With many runs, the runs share one generator (statistically the same, not the same numbers).
@@ -25,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from service.params import DPSOParams, PFParams
-from service.registry import params_for
+from service.api.params import DPSOParams, PFParams
+from service.estimators.registry import params_for
 
 Arr = np.ndarray
 GatherFn = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (q (R,), ids (R, N)) -> m (R, N)
@@ -213,7 +214,7 @@ _COMPILED: dict[str, Callable[..., None]] = {}
 def _kernel(name: str) -> Callable[..., None]:
     """A numba kernel of this module (compiled on first use, cached on disk)."""
     if name not in _COMPILED:
-        from service.matcher import _jit
+        from service.vision.matcher import _jit
 
         _COMPILED[name] = _jit(_SOURCES[name])
     return _COMPILED[name]
@@ -287,7 +288,7 @@ class _Common:
 
 
 class BatchDPSO(_Common):
-    """``service.swarm.DPSO`` (the journal's DPSO) for R runs at once."""
+    """``service.estimators.paper_dpso.DPSO`` (the journal's DPSO) for R runs at once."""
 
     def __init__(self, positions: np.ndarray, p: DPSOParams, r: int,
                  rng: np.random.Generator) -> None:
@@ -365,7 +366,7 @@ class BatchDPSO(_Common):
 
 
 class BatchPF(_Common):
-    """``service.particle_filter.ParticleFilter`` (PF-g, PF-l) for R runs at once."""
+    """``service.estimators.particle_filter.ParticleFilter`` (PF-g, PF-l) for R runs at once."""
 
     def __init__(self, positions: np.ndarray, p: PFParams, r: int, rng: np.random.Generator,
                  motion: str) -> None:

@@ -13,13 +13,27 @@ from __future__ import annotations
 
 from collections.abc import Callable, Collection, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
 
-from client.lab.paper import Case, CaseResult, Lab, Settings, fill_missing, run_case, starts_of
+from client.lab.paper import (
+    SC_QUERY,
+    Case,
+    CaseResult,
+    Lab,
+    Settings,
+    driven_speed,
+    fill_missing,
+    merge_results,
+    protocol,
+    run_case,
+    same_cases,
+    starts_of,
+    with_driven_speed,
+)
 
 
 @dataclass(frozen=True)
@@ -97,3 +111,59 @@ def run_tasks(lab: Lab, tasks: Sequence[Task], s: Settings,
                 lab.table(c.map_round, c.query, c.method.papers_features).table.ravel()[idx] \
                     = vals
                 done(t, res)
+
+
+def run_protocol(lab: Lab, rounds: Sequence[str], s: Settings,
+                 on_section: Callable[[str, list[CaseResult]], None] | None = None,
+                 progress: bool = True) -> dict[str, list[CaseResult]]:
+    """Run every case (``s.workers`` processes) with a progress bar; ``on_section`` gets each
+    finished section in protocol order, and Tab. 4 so far after every fifth case of it."""
+    from tqdm import tqdm
+
+    sections = protocol(rounds, s)
+    sections["tab3"] = with_driven_speed(sections["tab3"], driven_speed(lab.round(SC_QUERY)))
+    copies = same_cases(sections)
+    skip = {c for cs in copies.values() for c in cs}
+    tasks = list(tasks_of(lab, sections, s, skip))
+    parts_left: dict[tuple[str, int], int] = dict.fromkeys(skip, 1)
+    for t in tasks:
+        parts_left[t.section, t.index] = parts_left.get((t.section, t.index), 0) + 1
+    parts: dict[tuple[str, int], list[tuple[int, CaseResult]]] = {}
+    out: dict[str, list[CaseResult]] = {}
+    order = list(sections)
+    bar = tqdm(total=len(parts_left), desc="paper cases", unit="case", disable=not progress)
+
+    def finished(name: str) -> list[CaseResult]:
+        return [merge_results([r for _, r in sorted(parts[name, i], key=lambda p: p[0])])
+                for i in range(len(sections[name])) if parts_left[name, i] == 0]
+
+    def done(t: Task, res: CaseResult) -> None:
+        key = (t.section, t.index)
+        parts.setdefault(key, []).append((t.runs[0] if t.runs else 0, res))
+        parts_left[key] -= 1
+        if parts_left[key]:
+            return
+        bar.update()
+        if key in copies:  # the same case elsewhere in the protocol: the same runs
+            merged = merge_results([r for _, r in sorted(parts[key], key=lambda p: p[0])])
+            for sec, i in copies[key]:
+                parts[sec, i] = [(0, replace(merged, case=sections[sec][i]))]
+                parts_left[sec, i] = 0
+                bar.update()
+        bar.set_postfix_str(f"{t.section}: {t.case.method.label} {t.case.map_round}/"
+                            f"{t.case.query}")
+        while order and all(parts_left[order[0], i] == 0 for i in range(len(sections[order[0]]))):
+            name = order.pop(0)
+            out[name] = finished(name)
+            lab.save()
+            if on_section is not None:
+                on_section(name, out[name])
+        if t.section == "tab4" and "tab4" in order and on_section is not None:
+            so_far = finished("tab4")
+            if len(so_far) % 5 == 0:
+                lab.save()
+                on_section("tab4", so_far)  # partial Tab. 4 after each round pair's worth
+
+    run_tasks(lab, tasks, s, done)
+    bar.close()
+    return out

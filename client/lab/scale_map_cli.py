@@ -33,7 +33,7 @@ def register(world_app: typer.Typer, bench_app: typer.Typer) -> None:
         import numpy as np
 
         from client.lab.world.long_route import Leg, LongRoute, assemble_maps, render_long_route
-        from service.features import SiftParams
+        from service.vision.features import SiftParams
 
         route = LongRoute(images, seed)
         if track_frames + 20 > min(images, route.per_loop):

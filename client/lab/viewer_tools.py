@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.models import Estimate
+from service.api.models import Estimate
 
 STATUSES = ("initializing", "tracking", "recovering", "lost")
 
@@ -55,8 +55,8 @@ def screenshot(maps_dir: Path, round_dir: Path, out: Path, map_name: str | None 
     particles shown), one lost (PF-l), all fed real frames of ``round_dir`` over HTTP."""
     from client.dataset import read_round
     from client.transports import HttpClient
+    from service.engine.localization_service import LocalizationService
     from service.server import free_port, running_server
-    from service.sessions import LocalizationService
     from service.settings import Settings
 
     rnd = read_round(round_dir)
@@ -183,8 +183,8 @@ def bench_viewer(maps_dir: Path, map_name: str | None = None, robots: int = 64,
                  ) -> ViewerBench:
     """The viewer in headless Chromium with ``robots`` robots at ``fps`` estimates per
     second: animation-frame intervals, canvas draw time, long tasks, messages delivered."""
+    from service.engine.localization_service import LocalizationService
     from service.server import free_port, running_server
-    from service.sessions import LocalizationService
     from service.settings import Settings
 
     settings = Settings(maps_dir=maps_dir, host="127.0.0.1", port=free_port(),

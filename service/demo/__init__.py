@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from service.round_archive import UploadedRound
+    from service.maps.round_archive import UploadedRound
 
 DEMO_ROUND_DIR = Path(__file__).resolve().parent / "round"
 DEMO_SOURCE = {"world_seed": 0, "length_m": 80.0, "spacing_m": 1.2, "round": "sunny1",
@@ -23,8 +23,8 @@ DEMO_HFOV_DEG = 65.0  # the synthetic world's camera (client/lab/world), 320 x 2
 
 def demo_round(path: Path = DEMO_ROUND_DIR) -> UploadedRound:
     """The shipped round (read like a round uploaded for a build)."""
-    from service.round_archive import UploadedRound
-    from service.round_format import POSES_FILE, camera_from_hfov, parse_positions
+    from service.api.round_format import POSES_FILE, camera_from_hfov, parse_positions
+    from service.maps.round_archive import UploadedRound
 
     names, xy, t, origin = parse_positions(path / POSES_FILE, None)
     return UploadedRound("sunny1", path, tuple(names), xy, t, origin, max_pixels=320 * 240,
@@ -33,7 +33,7 @@ def demo_round(path: Path = DEMO_ROUND_DIR) -> UploadedRound:
 
 def ensure_demo_map(maps_dir: Path, name: str = "demo") -> Path:
     """Build ``maps_dir/NAME.swmap`` from the shipped round if it is missing."""
-    from service.route_map import build_map_from_rounds, list_maps, save_map
+    from service.maps.route_map import build_map_from_rounds, list_maps, save_map
 
     path = maps_dir / f"{name}.swmap"
     if path in list_maps(maps_dir):

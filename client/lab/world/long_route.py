@@ -10,7 +10,7 @@ Rendering keeps one loop's world in memory at a time and writes only features: e
 becomes one ``loopNNNNN.npz`` (descriptor codes, keypoints, counts per image, global
 positions) in a spill directory, written atomically, so a long run can be resumed and loops
 can be rendered by several processes. ``assemble_map`` streams the spill files into one map
-file (service/route_map.py) without holding the descriptors in memory.
+file (service/maps/route_map.py) without holding the descriptors in memory.
 
 Query legs are short traversals of another round (other lateral offset, heading jitter,
 pedestrians, sensor noise) of one loop, written in the dataset format (images, poses.csv,
@@ -121,7 +121,7 @@ def render_loop(route: LongRoute, loop: int, spill_dir: Path, legs: list[Leg],
 
     from client.dataset import write_round
     from client.lab.world.rounds import round_movers, round_trajectory
-    from service.features import SiftParams, extract
+    from service.vision.features import SiftParams, extract
 
     assert isinstance(params, SiftParams)
     out = spill_dir / f"loop{loop:05d}.npz"
@@ -268,10 +268,10 @@ def assemble_maps(out_dir: str | Path, sizes: list[int]) -> list[Path]:
     place index) for every size N, streamed from the spill; existing maps are kept."""
     import datetime as dt
 
-    from service.features import DEFAULT_DELTA, SiftParams
-    from service.place_index import build_place_index
-    from service.round_format import camera_from_hfov
-    from service.route_map import SUFFIX, write_map
+    from service.api.round_format import camera_from_hfov
+    from service.maps.route_map import SUFFIX, write_map
+    from service.vision.features import DEFAULT_DELTA, SiftParams
+    from service.vision.place_index import build_place_index
 
     out_dir = Path(out_dir)
     meta_in = json.loads((out_dir / "route.json").read_text())

@@ -1,0 +1,222 @@
+"""Pydantic schemas shared by the HTTP and Zenoh transports (the single source of the API)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal, Self, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic.json_schema import JsonDict
+
+from service.api.errors import InvalidParameters, describe_errors
+from service.api.params import DPSOParams, PFParams
+
+# the largest radius a prior may have (m): beyond it a prior says nothing
+MAX_PRIOR_RADIUS_M = 10_000.0
+# |x|, |y| of any pose at most (m); the service also checks the map's extent plus a margin
+COORD_LIMIT_M = 1e7
+
+M = TypeVar("M", bound=BaseModel)
+StatusName = Literal["initializing", "tracking", "recovering", "lost"]
+#: every estimator's name, listed once (``service.estimators.registry`` dispatches each to its
+#: class)
+EstimatorName = Literal["dpso", "pf-g", "pf-l"]
+#: search radius of a pose prior or a reset near a pose when the robot gives none, m
+DEFAULT_PRIOR_RADIUS_M = 5.0
+
+
+class Hypothesis(BaseModel):
+    """A competing position hypothesis (a DPSO sub-swarm)."""
+
+    x: float = Field(description="m east")
+    y: float = Field(description="m north")
+    weight: float = Field(description="share of the support of all hypotheses, 0-1")
+
+
+class Estimate(BaseModel):
+    """One localization result: what a ROS 2 bridge needs for PoseWithCovarianceStamped."""
+
+    model_config = ConfigDict(frozen=True)
+
+    seq: int = Field(description="frame counter of the session, from 1")
+    stamp: float | None = Field(description="frame timestamp (s) as sent by the robot")
+    frame_id: str = Field(description="map name: the local east/north frame of the estimate")
+    estimator: EstimatorName
+    x: float = Field(description="metres east in the map frame")
+    y: float = Field(description="metres north in the map frame")
+    lat: float | None = Field(None, description="WGS84 latitude when the map has an origin")
+    lon: float | None = Field(None, description="WGS84 longitude when the map has an origin")
+    heading: float = Field(description="direction of motion, rad counter-clockwise from east")
+    speed: float = Field(description="speed estimate, m/s")
+    status: StatusName
+    lost: bool = Field(description="best match below the lost threshold for several frames")
+    score: float = Field(description="best image similarity m of this frame, 0..1")
+    comparisons: int = Field(description="distinct map images compared for this frame")
+    covariance: list[list[float]] = Field(description="2x2 position covariance, m^2")
+    pose_covariance: list[float] = Field(
+        description="6x6 row-major covariance (x, y, z, roll, pitch, yaw) for ROS; "
+        "unknown entries carry 1e6")
+    accuracy_m: float = Field(description="radius of the 68 % horizontal confidence disc, m")
+    nearest_image: int = Field(description="id of the map image nearest to the estimate")
+    nearest_image_name: str
+    spread_m: float = Field(description="mean distance of the particles to their centre, m")
+    hypotheses: list[Hypothesis] = Field(
+        default_factory=list,
+        description="competing places the swarm holds (best first; the estimate follows the "
+                    "first); more than one means the place is ambiguous")
+    robot_id: str | None = None
+    input_seq: int | None = Field(None, description="sequence number sent with the frame")
+
+
+class ErrorBody(BaseModel):
+    error: str
+    detail: Any | None = None
+
+
+
+
+class PosePrior(BaseModel):
+    """A known position with an uncertainty radius (like AMCL's initial pose). Finite, and
+    within the map's extent plus ``SWARMLOC_POSE_MARGIN_M`` (checked against the map)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    x: float = Field(description="metres east in the map frame", ge=-COORD_LIMIT_M,
+                     le=COORD_LIMIT_M)
+    y: float = Field(description="metres north in the map frame", ge=-COORD_LIMIT_M,
+                     le=COORD_LIMIT_M)
+    radius: float = Field(DEFAULT_PRIOR_RADIUS_M, description="search radius, m", gt=0,
+                                 le=MAX_PRIOR_RADIUS_M)
+
+
+def validated(model: type[M], data: Any, what: str) -> M:
+    """``model`` from ``data`` or InvalidParameters (422) with one line per problem: the
+    one validation of every transport, so HTTP and Zenoh give the same message."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise InvalidParameters(f"invalid {what}: {describe_errors(exc.errors())}") from None
+
+
+def pose_prior(x: float | None, y: float | None, radius: float | None) -> PosePrior | None:
+    """A prior from separate values (frame query, attachment): both x and y or neither."""
+    if x is None and y is None:
+        if radius is not None:
+            raise InvalidParameters("a prior radius needs prior x and y")
+        return None
+    if x is None or y is None:
+        raise InvalidParameters("a pose prior needs both x and y")
+    data = {"x": x, "y": y} | ({"radius": radius} if radius is not None else {})
+    return validated(PosePrior, data, "pose prior")
+
+
+_PARAMS_SCHEMA: JsonDict = {"anyOf": [DPSOParams.model_json_schema(), PFParams.model_json_schema()]}
+
+
+class SessionConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    map: str | None = Field(None, max_length=128,
+                            description="map name; default: the service's default map")
+    estimator: EstimatorName | None = Field(None, description="default: the service default")
+    params: dict[str, Any] = Field(
+        default_factory=dict, json_schema_extra=_PARAMS_SCHEMA,
+        description="estimator parameter overrides: DPSOParams for dpso, PFParams for pf-g "
+        "and pf-l (strict types, finite, bounded; n_particles also by SWARMLOC_MAX_PARTICLES)")
+    seed: int = Field(0, ge=0, lt=2**63,
+                      description="random seed: same seed and frames, same estimates")
+    initial_pose: PosePrior | None = None
+
+
+class ResetRequest(BaseModel):
+    """``POST /sessions/{id}/reset`` and Zenoh ``{"action": "reset"}``: no pose (global
+    re-initialisation) or x and y (and optionally radius) near a pose."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    x: float | None = Field(None, description="metres east in the map frame",
+                            ge=-COORD_LIMIT_M, le=COORD_LIMIT_M)
+    y: float | None = Field(None, description="metres north in the map frame",
+                            ge=-COORD_LIMIT_M, le=COORD_LIMIT_M)
+    radius: float | None = Field(None, description=f"search radius, m (default "
+                                 f"{DEFAULT_PRIOR_RADIUS_M})", gt=0,
+                                 le=MAX_PRIOR_RADIUS_M)
+
+    @model_validator(mode="after")
+    def _both_or_neither(self) -> Self:
+        if (self.x is None) != (self.y is None):
+            raise ValueError("reset near a pose needs both x and y")
+        if self.x is None and self.radius is not None:
+            raise ValueError("a reset radius needs x and y")
+        return self
+
+    def near(self) -> PosePrior | None:
+        if self.x is None or self.y is None:
+            return None
+        return PosePrior(x=self.x, y=self.y,
+                         radius=self.radius if self.radius is not None else DEFAULT_PRIOR_RADIUS_M)
+
+
+class FrameMeta(BaseModel):
+    """A Zenoh frame's attachment ``{"t", "seq", "prior"}``: the HTTP frame query."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+    t: float | None = Field(None, description="frame timestamp, s")
+    seq: int | None = Field(None, ge=-(2**63), lt=2**63,
+                            description="robot's frame sequence number")
+    prior: PosePrior | None = None
+
+
+class SessionInfo(BaseModel):
+    robot_id: str
+    map: str
+    estimator: EstimatorName
+    seed: int
+    params: dict[str, Any]
+    frames: int
+    created: float
+    last_used: float
+    last_estimate: Estimate | None = None
+    map_checksum: str | None = Field(
+        None, description="version of the map the session runs on (a replaced map keeps "
+        "serving its sessions until they are reset)")
+
+
+class MapSummary(BaseModel):
+    name: str
+    n_images: int
+    n_features: int
+    bounds: list[list[float]]
+    spacing_m: float
+    meta: dict[str, Any]
+    checksum: str | None = Field(None, description="map version: SHA-256 of the file, the ETag")
+    build_date: str | None = None
+
+
+class MapDetail(MapSummary):
+    positions: list[list[float]]
+    image_names: list[str]
+
+
+JobState = Literal["queued", "running", "done", "failed"]
+
+
+class JobInfo(BaseModel):
+    """A map build running on the service (``POST /maps/{name}/build``)."""
+
+    id: str
+    map: str
+    state: JobState
+    done: int = Field(description="images whose features are extracted")
+    total: int = Field(description="images in the round")
+    error: str | None = Field(None, description="why a failed job failed")
+    status: int | None = Field(None, description="HTTP status of that failure")
+    checksum: str | None = Field(None, description="version of the map a done job installed")
+    created: float
+    started: float | None = None
+    finished: float | None = None
+
+
+class MapDeleted(BaseModel):
+    map: str
+    ended_sessions: list[str] = Field(description="sessions ended by ?force=true")

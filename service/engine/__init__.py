@@ -1,0 +1,2 @@
+"""Robot sessions: the localization service, localizers, session stores, map admin, events,
+metrics."""

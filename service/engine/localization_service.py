@@ -1,0 +1,425 @@
+"""The localization engine behind both transports: maps, robot sessions, frame processing.
+
+Nothing here knows HTTP or Zenoh. A frame is decoded and its features extracted outside any
+lock (OpenCV and NumPy release the GIL, so robots run in parallel); only the estimator step
+holds the session's lock. Every check that can reject a frame runs before that step, so a
+rejected frame never changes the session.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from service.api.errors import (
+    Conflict,
+    InvalidParameters,
+    NotFound,
+    ServiceError,
+    Unavailable,
+    UnreadableSession,
+)
+from service.api.models import (
+    Estimate,
+    MapDetail,
+    MapSummary,
+    PosePrior,
+    SessionConfig,
+    SessionInfo,
+)
+from service.api.params import ParamError
+from service.engine.events import EventHub
+from service.engine.localizer import Localizer
+from service.engine.map_admin import MapAdmin
+from service.engine.metrics import Metrics
+from service.engine.state_codec import StateError
+from service.engine.store import (
+    InProcessStore,
+    RedisOptions,
+    RedisStore,
+    Session,
+    SessionLimit,
+    SessionStore,
+)
+from service.estimators.base import EstimatorStateError
+from service.maps.route_map import RouteMap, list_maps, load_map
+from service.settings import Settings
+from service.vision.imaging import decode_frame
+
+__all__ = ["LocalizationService", "Session"]
+log = logging.getLogger("swarmloc")
+
+
+class LocalizationService:
+    def __init__(self, settings: Settings, maps: dict[str, RouteMap] | None = None,
+                 metrics: Metrics | None = None) -> None:
+        self.settings = settings
+        self.metrics = metrics or Metrics()
+        self.events = EventHub(self.metrics)  # the estimate stream of GET /events
+        self.maps: dict[str, RouteMap] = maps if maps is not None else {}
+        self.load_errors: dict[str, str] = {}
+        self._lock = threading.Lock()
+        self.draining = False  # shutting down: new frames get 503
+        self._in_flight = 0
+        self._idle = threading.Condition(threading.Lock())
+        self.admin = MapAdmin(self)  # upload / replace / delete / build without a restart
+        if maps is None:
+            self.load_maps(settings.maps_dir)
+        self.store = open_store(settings, self.resolve_map)
+        snap = settings.session_snapshot
+        if isinstance(self.store, InProcessStore) and snap is not None and snap.exists():
+            try:
+                n, problems = self.store.load_snapshot(snap, self.resolve_map)
+            except StateError as exc:  # kept aside for a look, never half-read
+                aside = snap.with_name(snap.name + ".corrupt")
+                snap.replace(aside)
+                log.error("session snapshot not restored (%s); moved to %s", exc, aside)
+            else:
+                log.info("restored %d sessions from %s", n, snap)
+                for p in problems:
+                    log.warning("session not restored: %s", p)
+        self._update_gauge()
+
+    def close(self) -> None:
+        """At shutdown: the in-process store writes its snapshot (if configured)."""
+        self.store.close()
+
+    def _update_gauge(self) -> None:
+        if isinstance(self.store, InProcessStore):
+            self.metrics.sessions.set(len(self.store))
+
+    # ---- maps ---------------------------------------------------------------------------
+    def load_maps(self, directory: Path) -> None:
+        """Load every map file; a broken one is logged with its file name and skipped, the
+        others still load. Two files with the same map name: the first (by file name) wins
+        and the second is refused, naming both."""
+        for path in list_maps(directory):
+            try:
+                m = load_map(path, verify="lazy")  # images checked on first use
+                if m.name in self.maps:
+                    first = self.maps[m.name].path
+                    raise ValueError(f"map name '{m.name}' is already loaded from "
+                                     f"{first.name if first else '?'}; rename one of them")
+            except Exception as exc:  # a broken map is reported, the others still load
+                msg = str(exc) if str(path) in str(exc) else f"{path}: {exc}"
+                self.load_errors[path.name] = msg
+                self.metrics.map_loads.labels("startup", "failed").inc()
+                log.error("map file %s skipped: %s", path, msg)
+                continue
+            self.maps[m.name] = m
+            self.metrics.map_loads.labels("startup", "ok").inc()
+        self.metrics.maps.set(len(self.maps))
+
+    def check_pose(self, route_map: RouteMap, x: float, y: float, what: str) -> None:
+        """A pose must lie within the map's extent plus ``pose_margin_m``."""
+        lo, hi = route_map.bounds
+        m = self.settings.pose_margin_m
+        if not (lo[0] - m <= x <= hi[0] + m and lo[1] - m <= y <= hi[1] + m):
+            raise InvalidParameters(
+                f"{what} ({x:g}, {y:g}) is outside map '{route_map.name}': x must be in "
+                f"[{lo[0] - m:g}, {hi[0] + m:g}] and y in [{lo[1] - m:g}, {hi[1] + m:g}] m "
+                f"(its extent plus SWARMLOC_POSE_MARGIN_M={m:g})")
+
+    def is_heavy(self, robot_id: str) -> bool:
+        """A session over ``heavy_particles`` runs in its own smaller worker pool, so it
+        cannot starve the light robots (fair scheduling)."""
+        try:
+            s = self.store.peek(robot_id)
+        except ServiceError:  # the store is down: the frame's own error will say so
+            return False
+        n = getattr(s.localizer.estimator.params, "n_particles", 0) if s else 0
+        return n > self.settings.heavy_particles
+
+    # ---- shutdown -----------------------------------------------------------------------
+    def begin_shutdown(self) -> None:
+        """From now on new frames get 503; frames in flight finish."""
+        self.draining = True
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Wait until no frame is in flight, at most ``timeout_s``; True when idle."""
+        deadline = time.monotonic() + timeout_s
+        with self._idle:
+            while self._in_flight:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._idle.wait(left)
+        return True
+
+    @property
+    def ready(self) -> bool:
+        return bool(self.maps)
+
+    @property
+    def default_map(self) -> str:
+        name = self.settings.default_map
+        if name:
+            return name
+        if len(self.maps) == 1:
+            return next(iter(self.maps))
+        if "demo" in self.maps:
+            return "demo"
+        raise InvalidParameters(f"no default map: name one of {sorted(self.maps)}")
+
+    def get_map(self, name: str) -> RouteMap:
+        try:
+            return self.maps[name]
+        except KeyError:
+            raise NotFound(f"unknown map '{name}'; loaded maps: {sorted(self.maps)}") from None
+
+    def map_summary(self, name: str) -> MapSummary:
+        return self._summary(self.get_map(name))
+
+    @staticmethod
+    def _summary(m: RouteMap) -> MapSummary:
+        s = m.summary()
+        return MapSummary(name=s.pop("name"), n_images=s.pop("n_images"),
+                          n_features=s.pop("n_features"), bounds=s.pop("bounds"),
+                          spacing_m=s.pop("spacing_m"), meta=s, checksum=m.meta.get("checksum"),
+                          build_date=s.get("build_date"))
+
+    def resolve_map(self, name: str, checksum: str | None, strict: bool = True) -> RouteMap:
+        """The loaded map a stored session runs on; with ``strict`` the same version."""
+        m = self.maps.get(name)
+        if m is None:
+            raise NotFound(f"the session's map '{name}' is not loaded here; loaded maps: "
+                           f"{sorted(self.maps)}")
+        have = m.meta.get("checksum")
+        if strict and checksum != have:
+            raise Conflict(f"the session's map '{name}' (version {str(checksum)[:12]}) was "
+                           f"replaced by version {str(have)[:12]}; reset the session to "
+                           "continue on the new version")
+        return m
+
+    def map_detail(self, name: str) -> MapDetail:
+        m = self.get_map(name)  # one version for the summary and the positions
+        return MapDetail(**self._summary(m).model_dump(),
+                         positions=m.positions.tolist(), image_names=m.image_names)
+
+    # ---- sessions -----------------------------------------------------------------------
+    def put_session(self, robot_id: str, config: SessionConfig, replace: bool = True
+                    ) -> tuple[SessionInfo, bool]:
+        """Create or (with ``replace``) replace a robot's session; True when it was created.
+
+        Without ``replace`` an existing session is kept: two transports creating the same
+        robot's session at once end with one session, not one silently replacing the other.
+        """
+        _check_robot_id(robot_id)
+        map_name = config.map or self.default_map
+        route_map = self.get_map(map_name)
+        estimator = config.estimator or self.settings.default_estimator
+        n = config.params.get("n_particles") if isinstance(config.params, dict) else None
+        if isinstance(n, int) and not isinstance(n, bool) and n > self.settings.max_particles:
+            self.metrics.rejected.labels("cost_ceiling").inc()
+            raise InvalidParameters(f"invalid parameter: n_particles: {n} is over this "
+                                    f"service's ceiling of {self.settings.max_particles} "
+                                    "(SWARMLOC_MAX_PARTICLES)")
+        if config.initial_pose is not None:
+            self.check_pose(route_map, config.initial_pose.x, config.initial_pose.y,
+                            "initial_pose")
+        try:
+            loc = Localizer(route_map, estimator, config.params, config.seed)
+        except ParamError as exc:
+            raise InvalidParameters(str(exc)) from None
+        if config.initial_pose is not None:
+            p = config.initial_pose
+            loc.reset((p.x, p.y), p.radius)
+        now = time.time()
+        with self._lock:
+            if self.maps.get(map_name) is not route_map:
+                raise Conflict(f"map '{map_name}' was replaced or deleted meanwhile; retry")
+            try:
+                s, created = self.store.create(Session(robot_id, loc, now, now), replace,
+                                               self.settings.max_sessions)
+            except SessionLimit:
+                self.metrics.rejected.labels("session_limit").inc()
+                raise Unavailable(f"session limit of {self.settings.max_sessions} reached; "
+                                  "delete idle sessions or raise SWARMLOC_MAX_SESSIONS"
+                                  ) from None
+            self._update_gauge()
+        if not created and replace:  # viewers drop the old session (maybe on another map)
+            self.events.remove(robot_id)
+        return s.info(), created
+
+    def session(self, robot_id: str) -> Session:
+        s = self.store.get(robot_id)
+        if s is None:
+            raise NotFound(f"no session for robot '{robot_id}'; create it with "
+                           f"PUT /sessions/{robot_id}")
+        return s
+
+    def ensure_session(self, robot_id: str) -> Session:
+        """The robot's session, created with the default map and estimator if missing."""
+        s = self.store.get(robot_id)
+        if s is None:
+            self.put_session(robot_id, SessionConfig(), replace=False)
+            s = self.session(robot_id)
+        return s
+
+    def sessions_on_map(self, name: str) -> list[str]:
+        """Robots whose session runs on map ``name`` (any version of it)."""
+        return sorted(rid for rid, m in self.store.maps_of().items() if m == name)
+
+    def sessions(self) -> list[SessionInfo]:
+        """The live sessions; one whose stored state cannot be read is left out (its own
+        requests say why), so the listing serves everyone else."""
+        out = []
+        for rid in self.store.ids():
+            try:
+                s = self.store.get(rid)
+            except UnreadableSession as exc:
+                log.warning("%s", exc)
+                continue
+            if s is not None:
+                out.append(s.info())
+        return out
+
+    def delete_session(self, robot_id: str) -> None:
+        with self._lock:
+            if not self.store.delete(robot_id):
+                raise NotFound(f"no session for robot '{robot_id}'")
+            self._update_gauge()
+        self.events.remove(robot_id)
+
+    def reset_session(self, robot_id: str, near: PosePrior | None = None) -> SessionInfo:
+        with self.store.locked(robot_id, strict_map=False) as s:
+            if near is not None:
+                self.check_pose(self.maps.get(s.localizer.map.name) or s.localizer.map,
+                                near.x, near.y, "reset pose")
+            current = self.maps.get(s.localizer.map.name)
+            if current is not None and (s.map_changed or current is not s.localizer.map):
+                old = s.localizer  # the map was replaced: a reset moves to the new version
+                s.localizer = Localizer(current, old.estimator_name, old.params, old.seed)
+                s.map_changed = False
+            if near is None:
+                s.localizer.reset()
+            else:
+                s.localizer.reset((near.x, near.y), near.radius)
+            s.last_t = None
+            s.last_input_seq = None
+            s.last_used = time.time()
+        return s.info()
+
+    def expire_idle(self, now: float | None = None) -> list[str]:
+        now = time.time() if now is None else now
+        with self._lock:
+            try:
+                gone = self.store.expire(self.settings.session_idle_s, now)
+            except Unavailable as exc:  # Redis down: its TTLs expire sessions meanwhile
+                log.warning("session expiry skipped: %s", exc.message)
+                return []
+            self._update_gauge()
+        self.metrics.expired.inc(len(gone))
+        for rid in gone:
+            self.events.remove(rid)
+        return gone
+
+    def claim(self, robot_id: str) -> bool:
+        """Whether this replica serves the robot's Zenoh traffic (service/engine/store.py)."""
+        return self.store.claim(robot_id)
+
+    # ---- frames -------------------------------------------------------------------------
+    def process_frame(self, robot_id: str, data: bytes | np.ndarray, *,
+                      content_type: str | None = None, t: float | None = None,
+                      prior: PosePrior | None = None, transport: str = "http",
+                      session: Session | None = None, input_seq: int | None = None,
+                      create: bool = False) -> Estimate:
+        """Decode, validate, extract and step one frame; raises ServiceError on bad input.
+
+        ``data`` is an encoded PNG/JPEG, or already validated 8-bit grayscale pixels (a ROS 2
+        sensor_msgs/Image, checked by service/zenoh/ros2.py). With ``create`` a missing session is
+        created with the defaults, but only once the frame has passed every check."""
+        if self.draining:
+            self.metrics.rejected.labels("shutting_down").inc()
+            raise Unavailable("the service is shutting down; send the frame to another "
+                              "replica or retry after the restart")
+        with self._idle:
+            self._in_flight += 1
+        try:
+            return self._process_frame(robot_id, data, content_type, t, prior, transport,
+                                       session, input_seq, create)
+        finally:
+            with self._idle:
+                self._in_flight -= 1
+                self._idle.notify_all()
+
+    def _process_frame(self, robot_id: str, data: bytes | np.ndarray, content_type: str | None,
+                       t: float | None, prior: PosePrior | None, transport: str,
+                       session: Session | None, input_seq: int | None, create: bool
+                       ) -> Estimate:
+        t0 = time.perf_counter()
+        s = session if session is not None or create else self.session(robot_id)
+        try:
+            image = data if isinstance(data, np.ndarray) else decode_frame(
+                data, content_type, self.settings.max_body_bytes, self.settings.max_pixels,
+                self.settings.min_frame_side)
+            if t is not None and not math.isfinite(t):
+                raise InvalidParameters("timestamp t must be a finite number of seconds")
+            if s is None:
+                s = self.ensure_session(robot_id)
+            if prior is not None:
+                self.check_pose(s.localizer.map, prior.x, prior.y, "pose prior")
+            loc = s.localizer
+            features = loc.extract(image)
+            with self.store.locked(robot_id) as s:
+                if s.localizer.map is not loc.map:  # reset onto a new map version meanwhile
+                    features = s.localizer.extract(image)
+                last = s.localizer.last
+                if input_seq is not None and input_seq == s.last_input_seq \
+                        and t == s.last_t and last is not None:
+                    # the last frame sent again (same seq and timestamp: a retry after a lost
+                    # answer, possibly to another replica, or the same image in a second
+                    # encoding): answered with its estimate, not applied twice
+                    return last.model_copy(update={"robot_id": robot_id,
+                                                   "input_seq": input_seq})
+                if t is not None and s.last_t is not None and t < s.last_t:
+                    raise Conflict(f"frame timestamp {t} is older than the last processed "
+                                   f"frame ({s.last_t}); send frames in time order")
+                try:
+                    est = s.localizer.step(features, t,
+                                           (prior.x, prior.y, prior.radius) if prior else None)
+                except EstimatorStateError as exc:  # re-initialised: the next frame works
+                    raise ServiceError(f"internal error: {exc}", 500) from None
+                if t is not None:
+                    s.last_t = t
+                if input_seq is not None:
+                    s.last_input_seq = input_seq
+                s.last_used = time.time()
+                particles = self.events.particles_due(robot_id, s.localizer)
+        except Exception as exc:
+            self.metrics.rejected.labels(type(exc).__name__).inc()
+            raise
+        self.metrics.frames.labels(transport).inc()
+        self.metrics.comparisons.inc(est.comparisons)
+        elapsed = time.perf_counter() - t0
+        self.metrics.latency.labels(transport).observe(elapsed)
+        est = est.model_copy(update={"robot_id": robot_id, "input_seq": input_seq})
+        self.events.publish(est, elapsed, particles)
+        return est
+
+
+def open_store(settings: Settings,
+               resolve: Callable[[str, str | None, bool], RouteMap]) -> SessionStore:
+    """The store ``SWARMLOC_SESSION_STORE`` names: ``memory`` or ``redis://host:port/db``."""
+    url = settings.session_store
+    if url == "memory":
+        return InProcessStore(settings.session_snapshot)
+    if url.startswith(("redis://", "rediss://", "unix://")):
+        return RedisStore(url, resolve, RedisOptions(
+            idle_s=settings.session_idle_s, lock_lease_s=settings.session_lock_lease_s,
+            lock_wait_s=settings.session_lock_wait_s,
+            claim_lease_s=settings.zenoh_claim_lease_s, replica_id=settings.replica_id or ""))
+    raise ValueError(f"SWARMLOC_SESSION_STORE={url!r}: use 'memory' or redis://host:port/db")
+
+
+def _check_robot_id(robot_id: str) -> None:
+    ok = robot_id and len(robot_id) <= 128 and all(c.isalnum() or c in "-_." for c in robot_id)
+    if not ok:
+        raise InvalidParameters(f"robot id '{robot_id}' must be 1-128 characters of letters, "
+                                "digits, '-', '_' or '.'")

@@ -1,0 +1,108 @@
+"""One robot's localizer: a map, an estimator (DPSO | PF-g | PF-l) and its generator."""
+
+from __future__ import annotations
+
+from typing import Any, cast
+
+import numpy as np
+
+from service.api.models import Estimate, EstimatorName, Hypothesis
+from service.api.params import DPSOParams
+from service.estimators.base import StepResult
+from service.estimators.fitness import LocateFn
+from service.estimators.registry import make_estimator
+from service.maps.route_map import RouteMap
+from service.vision.features import Features, extract
+from service.vision.map_geometry import GeometryParams
+from service.vision.place_index import PlaceSeeder
+
+_UNKNOWN_VAR = 1e6
+
+
+class Localizer:
+    """Feeds frames to an estimator and turns its output into an ``Estimate``.
+
+    Same map, frames, parameters and seed give identical estimates, bit for bit.
+    """
+
+    def __init__(self, route_map: RouteMap, estimator: str = "dpso",
+                 params: dict[str, Any] | None = None, seed: int = 0) -> None:
+        self.map = route_map
+        self.estimator_name = estimator
+        self.seed = seed
+        self.estimator = make_estimator(route_map, estimator, params,
+                                        np.random.default_rng(seed))
+        p = self.estimator.params  # the papers' estimators keep their random placements
+        k = p.place_candidates if isinstance(p, DPSOParams) and p.variant == "swarmloc" else 0
+        self.seeder = (PlaceSeeder(route_map.place_index, route_map.positions, k)
+                       if route_map.place_index is not None and k > 0 else None)
+        self.seq = 0
+        self.last: Estimate | None = None
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return self.estimator.params.as_dict()
+
+    def reset(self, near: tuple[float, float] | None = None, radius: float | None = None) -> None:
+        self.estimator.reset(near, radius)
+
+    def extract(self, image: np.ndarray) -> Features:
+        return extract(image, self.map.sift_params)
+
+    def localize(self, image: np.ndarray, t: float | None = None,
+                 prior: tuple[float, float, float] | None = None) -> Estimate:
+        return self.step(self.extract(image), t, prior)
+
+    def step(self, features: Features, t: float | None = None,
+             prior: tuple[float, float, float] | None = None) -> Estimate:
+        """One frame: optional pose prior (x, y, radius), estimator step, Estimate."""
+        if prior is not None:
+            self.estimator.constrain((prior[0], prior[1]), prior[2])
+        codes = features.codes
+        self.seed_places(codes)
+        res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t,
+                                  self.locator(features))
+        self.seq += 1
+        self.last = self._estimate(res, t)
+        return self.last
+
+    def locator(self, features: Features) -> LocateFn | None:
+        """The frame located at a map image by two-view geometry (service/vision/map_geometry.py),
+        None for a map without the camera's intrinsics."""
+        geometry = self.map.geometry
+        if geometry is None:
+            return None
+        params = GeometryParams()
+        return lambda image_id: geometry.locate(features, image_id, params)
+
+    def seed_places(self, codes: np.ndarray) -> None:
+        """Candidate places of this frame for a searching estimator (service/vision/place_index.py);
+        a no-op without a place index."""
+        if self.seeder is not None:
+            last = self.last
+            self.seeder.before_step(self.estimator, codes, None if last is None
+                                    else np.array([last.x, last.y]))
+
+    def _estimate(self, res: StepResult, t: float | None) -> Estimate:
+        x, y = (float(v) for v in res.position)
+        lat = lon = None
+        frame = self.map.frame
+        if frame is not None:
+            lat, lon = (float(v) for v in frame.to_geo(res.position)[0])
+        ids, _ = self.map.nearest(res.position[None, :])
+        nid = int(ids[0])
+        cov = res.covariance
+        pose_cov = np.diag([0.0, 0.0, _UNKNOWN_VAR, _UNKNOWN_VAR, _UNKNOWN_VAR, _UNKNOWN_VAR])
+        pose_cov[:2, :2] = cov
+        return Estimate(
+            seq=self.seq, stamp=t, frame_id=self.map.name,
+            estimator=cast(EstimatorName, self.estimator_name),
+            x=x, y=y, lat=lat, lon=lon, heading=float(res.heading), speed=float(res.speed_mps),
+            status=res.status.value, lost=bool(res.lost), score=float(res.score),
+            comparisons=int(res.comparisons), covariance=cov.tolist(),
+            pose_covariance=pose_cov.ravel().tolist(), accuracy_m=res.accuracy_m,
+            nearest_image=nid, nearest_image_name=self.map.image_names[nid],
+            spread_m=res.spread_m,
+            hypotheses=[Hypothesis(x=h.x, y=h.y, weight=h.weight)
+                        for h in res.hypotheses],
+        )

@@ -1,0 +1,391 @@
+"""Map lifecycle without a restart: upload, replace, delete, and build jobs with progress.
+
+Versions: a map's version is its file checksum (SHA-256 of header and data), sent as the
+``ETag``. ``If-Match`` (a list of versions, or ``*``: the map exists) and ``If-None-Match``
+(``*``: the map does not exist yet) are checked under one lock together with the rename, so
+two fleet tools never overwrite each other's map unnoticed (412).
+
+Uploads are staged in a hidden temporary file in the maps directory, verified with
+``load_map(verify=True)`` (magic, version, layout, checksum, consistent arrays), then renamed
+over the old file (same filesystem: atomic) and registered. A replaced map stays memory-mapped
+by the sessions that run on it (the old inode lives until they let go); new sessions get the
+new version, and ``reset`` moves a session to it.
+
+Builds: the archive is extracted and validated before the job is accepted (bad input: 4xx at
+once, nothing left behind). One worker thread builds one map at a time; after each image it
+sleeps so that it works at most ``build_duty`` of the time, leaving the CPU to robots' frames.
+The map is built in memory, saved atomically and only then registered: never half-built.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import re
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from service.api.errors import (
+    BadRequest,
+    Conflict,
+    InvalidParameters,
+    NotFound,
+    PayloadTooLarge,
+    PreconditionFailed,
+    ServiceError,
+)
+from service.api.models import JobInfo, JobState, MapDeleted, MapSummary
+from service.maps.round_archive import ArchiveLimits, UploadedRound, extract_round, remove_tree
+from service.maps.route_map import (
+    SUFFIX,
+    MapError,
+    RouteMap,
+    build_map_from_rounds,
+    load_map,
+    save_map,
+)
+
+if TYPE_CHECKING:
+    from service.engine.metrics import Metrics
+    from service.settings import Settings
+
+
+class MapHost(Protocol):
+    """What map admin needs of the service that serves the maps (``LocalizationService``)."""
+
+    settings: Settings
+    metrics: Metrics
+    maps: dict[str, RouteMap]
+    load_errors: dict[str, str]
+
+    def get_map(self, name: str) -> RouteMap: ...
+    def map_summary(self, name: str) -> MapSummary: ...
+    def sessions_on_map(self, name: str) -> list[str]: ...
+    def delete_session(self, robot_id: str) -> None: ...
+
+TEMP_PREFIX = ".swarmloc-"  # hidden and without the .swmap suffix: never loaded as a map
+_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
+_KEEP_JOBS = 100
+STALE_S = 24 * 3600.0
+
+
+def check_map_name(name: str) -> None:
+    if not _NAME.fullmatch(name or ""):
+        raise InvalidParameters(f"map name '{name}' must be 1-64 letters, digits, '-', '_' or "
+                                "'.', not starting with '.'")
+
+
+def _tags(header: str | None) -> list[str] | None:
+    """Entity tags of an If-Match / If-None-Match header (quotes and W/ dropped)."""
+    if header is None:
+        return None
+    return [t.strip().removeprefix("W/").strip('"') for t in header.split(",") if t.strip()]
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@dataclass
+class Job:
+    id: str
+    map: str
+    round: UploadedRound
+    workdir: Path
+    if_match: str | None
+    if_none_match: str | None
+    state: JobState = "queued"
+    done: int = 0
+    error: str | None = None
+    status: int | None = None
+    checksum: str | None = None
+    created: float = field(default_factory=time.time)
+    started: float | None = None
+    finished: float | None = None
+
+    def info(self) -> JobInfo:
+        return JobInfo(id=self.id, map=self.map, state=self.state, done=self.done,
+                       total=len(self.round), error=self.error, status=self.status,
+                       checksum=self.checksum, created=self.created, started=self.started,
+                       finished=self.finished)
+
+
+class MapAdmin:
+    """Map upload / replace / delete and the build queue of one service."""
+
+    def __init__(self, service: MapHost) -> None:
+        self.service = service
+        self.settings = service.settings
+        self._lock = threading.RLock()  # preconditions + rename + register, delete
+        self._jobs: dict[str, Job] = {}
+        self._queue: queue.Queue[Job] = queue.Queue()
+        self._worker: threading.Thread | None = None
+        self.remove_stale()
+
+    def remove_stale(self, older_than_s: float = STALE_S) -> list[str]:
+        """Remove temporary files and folders a crash left in the maps directory (only old
+        ones: another service on the same directory may be using fresh ones)."""
+        gone: list[str] = []
+        if not self.directory.is_dir():
+            return gone
+        limit = time.time() - older_than_s
+        for p in self.directory.glob(f"{TEMP_PREFIX}*"):
+            try:
+                if p.lstat().st_mtime >= limit:
+                    continue
+                if p.is_dir():
+                    remove_tree(p)
+                else:
+                    p.unlink()
+                gone.append(p.name)
+            except OSError:
+                pass
+        return gone
+
+    @property
+    def directory(self) -> Path:
+        return Path(self.settings.maps_dir)
+
+    # ---- versions -----------------------------------------------------------------------
+    def etag(self, name: str) -> str | None:
+        m = self.service.maps.get(name)
+        return None if m is None else m.meta.get("checksum")
+
+    def check_preconditions(self, name: str, if_match: str | None,
+                            if_none_match: str | None) -> None:
+        current = self.etag(name)
+        exists = name in self.service.maps
+        wanted = _tags(if_match)
+        if wanted is not None and not (exists and ("*" in wanted or current in wanted)):
+            raise PreconditionFailed(
+                f"If-Match: map '{name}' is " + (f"at version {current}" if exists else
+                                                 "not loaded") + "; someone changed it, fetch "
+                "GET /maps/{name} and retry with its ETag")
+        avoid = _tags(if_none_match)
+        if avoid is not None and exists and ("*" in avoid or current in avoid):
+            raise PreconditionFailed(f"If-None-Match: map '{name}' already exists (version "
+                                     f"{current}); replace it with If-Match instead")
+
+    # ---- uploads ------------------------------------------------------------------------
+    def staging_file(self, kind: str) -> Path:
+        """A new hidden temporary file in the maps directory (removed by the caller)."""
+        self.directory.mkdir(parents=True, exist_ok=True)
+        fd, path = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{kind}-", suffix=".part",
+                                    dir=self.directory)
+        os.close(fd)
+        return Path(path)
+
+    def install_upload(self, name: str, staged: Path, if_match: str | None = None,
+                       if_none_match: str | None = None) -> tuple[MapSummary, bool]:
+        """Verify a staged .swmap, rename it into place and load it; True when created.
+
+        The staged file is gone afterwards, whatever happened.
+        """
+        metrics = self.service.metrics
+        try:
+            check_map_name(name)
+            try:
+                m = load_map(staged, verify=True)
+            except MapError as exc:
+                metrics.map_loads.labels("upload", "failed").inc()
+                raise BadRequest(str(exc).replace(str(staged), "uploaded map")) from None
+            if m.name != name:
+                raise InvalidParameters(
+                    f"the uploaded map is named '{m.name}' in its header, not '{name}'; upload "
+                    f"it to /maps/{m.name} or rebuild it under the name '{name}'")
+            with staged.open("rb+") as fh:
+                os.fsync(fh.fileno())
+            staged.chmod(0o644)  # mkstemp made it private; maps are readable like save_map's
+            with self._lock:
+                self.check_preconditions(name, if_match, if_none_match)
+                final = self._file_of(name)
+                os.replace(staged, final)
+                _fsync_dir(final.parent)
+                m.path = final
+                created = self._register(m, "upload")
+        except ServiceError:
+            metrics.map_uploads.labels("rejected").inc()
+            raise
+        finally:
+            staged.unlink(missing_ok=True)
+        metrics.map_uploads.labels("created" if created else "replaced").inc()
+        return self.service.map_summary(name), created
+
+    def _file_of(self, name: str) -> Path:
+        old = self.service.maps.get(name)
+        if old is not None and old.path is not None and old.path.parent == self.directory:
+            return old.path  # replace the file it was loaded from (its name may differ)
+        path = self.directory / f"{name}{SUFFIX}"
+        other = [m.name for m in self.service.maps.values() if m.path == path]
+        if other:
+            raise Conflict(f"{path.name} holds the loaded map '{other[0]}'; delete that map "
+                           f"first or use another name than '{name}'")
+        return path
+
+    def _register(self, m: RouteMap, source: str) -> bool:
+        created = m.name not in self.service.maps
+        self.service.maps[m.name] = m
+        self.service.load_errors.pop(m.path.name if m.path else "", None)
+        self.service.metrics.map_loads.labels(source, "ok").inc()
+        self.service.metrics.maps.set(len(self.service.maps))
+        return created
+
+    def open_file(self, name: str) -> tuple[object, str, int]:
+        """An open binary file of the current version of a map, its ETag and size."""
+        with self._lock:
+            m = self.service.get_map(name)
+            if m.path is None:
+                raise NotFound(f"map '{name}' has no file on this service")
+            fh = m.path.open("rb")
+            return fh, m.meta.get("checksum", ""), os.fstat(fh.fileno()).st_size
+
+    # ---- delete -------------------------------------------------------------------------
+    def delete(self, name: str, force: bool = False, if_match: str | None = None
+               ) -> MapDeleted:
+        with self._lock:
+            m = self.service.get_map(name)
+            self.check_preconditions(name, if_match, None)
+            users = self.service.sessions_on_map(name)
+            if users and not force:
+                raise Conflict(f"map '{name}' is used by {len(users)} session(s): "
+                               f"{', '.join(users)}; delete or move them first, or send "
+                               "?force=true to end them")
+            for robot_id in users:
+                try:
+                    self.service.delete_session(robot_id)
+                except NotFound:
+                    pass
+            del self.service.maps[name]
+            if m.path is not None and m.path.parent == self.directory:
+                m.path.unlink(missing_ok=True)
+                _fsync_dir(self.directory)
+            self.service.metrics.maps.set(len(self.service.maps))
+            self.service.metrics.map_deletes.inc()
+        return MapDeleted(map=name, ended_sessions=users)
+
+    # ---- builds -------------------------------------------------------------------------
+    def limits(self) -> ArchiveLimits:
+        s = self.settings
+        return ArchiveLimits(s.max_archive_members, s.max_unpacked_bytes, s.max_archive_ratio,
+                             s.max_pixels)
+
+    def submit_build(self, name: str, archive: Path, if_match: str | None = None,
+                     if_none_match: str | None = None) -> JobInfo:
+        """Extract and validate a round archive, queue its build; the archive is removed."""
+        metrics = self.service.metrics
+        workdir: Path | None = None
+        try:
+            check_map_name(name)
+            self.check_preconditions(name, if_match, if_none_match)
+            workdir = Path(tempfile.mkdtemp(prefix=f"{TEMP_PREFIX}build-", dir=self.directory))
+            rnd = extract_round(archive, workdir / "round", self.limits())
+        except ServiceError:
+            metrics.map_builds.labels("rejected").inc()
+            if workdir is not None:
+                remove_tree(workdir)
+            raise
+        except BaseException:
+            if workdir is not None:
+                remove_tree(workdir)
+            raise
+        finally:
+            archive.unlink(missing_ok=True)
+        job = Job(uuid.uuid4().hex[:12], name, rnd, workdir, if_match, if_none_match)
+        with self._lock:
+            self._jobs[job.id] = job
+            self._trim_jobs()
+            if self._worker is None or not self._worker.is_alive():
+                self._worker = threading.Thread(target=self._work, name="map-builder",
+                                                daemon=True)
+                self._worker.start()
+        self._queue.put(job)
+        metrics.map_builds.labels("submitted").inc()
+        return job.info()
+
+    def job(self, job_id: str) -> JobInfo:
+        try:
+            return self._jobs[job_id].info()
+        except KeyError:
+            raise NotFound(f"no job '{job_id}' (the last {_KEEP_JOBS} jobs are kept)") from None
+
+    def jobs(self) -> list[JobInfo]:
+        return [j.info() for j in sorted(self._jobs.values(), key=lambda j: j.created)]
+
+    def _trim_jobs(self) -> None:
+        finished = [j for j in self._jobs.values() if j.state in ("done", "failed")]
+        for j in sorted(finished, key=lambda j: j.created)[:max(0, len(self._jobs) - _KEEP_JOBS)]:
+            del self._jobs[j.id]
+
+    def _work(self) -> None:
+        while True:
+            job = self._queue.get()
+            try:
+                self._build(job)
+            finally:
+                remove_tree(job.workdir)
+                self._queue.task_done()
+
+    def _paced_images(self, job: Job) -> Iterator[np.ndarray]:
+        """The round's images, counting progress and sleeping to keep to the duty cycle."""
+        duty = self.settings.build_duty
+        for i in range(len(job.round)):
+            t0 = time.perf_counter()
+            yield job.round.load_image(i)  # resumes once build_map extracted its features
+            job.done = i + 1
+            if duty < 1.0:
+                time.sleep((time.perf_counter() - t0) * (1.0 - duty) / duty)
+
+    def _build(self, job: Job) -> None:
+        metrics = self.service.metrics
+        job.state, job.started = "running", time.time()
+        rnd = job.round
+        try:
+            m = build_map_from_rounds([rnd], name=job.map, images=self._paced_images(job),
+                                      source={"name": rnd.name, "uploaded": True, "job": job.id})
+            with self._lock:
+                self.check_preconditions(job.map, job.if_match, job.if_none_match)
+                final = save_map(m, self._file_of(job.map))
+                try:
+                    loaded = load_map(final, verify=True)
+                except MapError:
+                    metrics.map_loads.labels("build", "failed").inc()
+                    raise
+                self._register(loaded, "build")
+            job.checksum = loaded.meta.get("checksum")
+            job.state = "done"
+            metrics.map_builds.labels("done").inc()
+        except ServiceError as exc:
+            job.state, job.error, job.status = "failed", exc.message, exc.status
+        except Exception as exc:  # a failed build never takes the worker down
+            job.state, job.error, job.status = "failed", f"{type(exc).__name__}: {exc}", 500
+        finally:
+            job.finished = time.time()
+            metrics.map_build_seconds.observe(job.finished - job.started)
+            if job.state == "failed":
+                metrics.map_builds.labels("failed").inc()
+
+
+def payload_to_file(admin: MapAdmin, data: bytes, kind: str, limit: int) -> Path:
+    """Stage an in-memory payload (Zenoh) like an HTTP body: size limit, hidden temp file."""
+    if len(data) > limit:
+        raise PayloadTooLarge(f"{kind} is {len(data)} bytes; the limit is {limit} bytes")
+    path = admin.staging_file(kind)
+    try:
+        with path.open("wb") as fh:
+            fh.write(data)
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+    return path

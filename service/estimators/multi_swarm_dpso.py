@@ -1,0 +1,446 @@
+"""Multi-swarm DPSO: the papers' future work (journal Sec. 8), built for changing light.
+
+The swarm moves as in the papers (Eqs. 4-6, self-adaptive v0, recovery boost), with these
+changes, each measured in README "Localization across lighting":
+
+- **Coasting.** A frame whose best match falls below ``coast_ratio`` of the level seen while
+  tracking is weak: its estimate does not feed the tracked velocity, and the next frame's
+  swarm is carried by the velocity tracked before (at most ``coast_max_frames`` frames), as a
+  particle filter's motion model carries its particles through frames that say little.
+- **Evidence along paths.** Each particle accumulates its fitness with a decay
+  (A <- lambda A + f, in the spirit of sequence matching); redrawn particles start from zero.
+  A sub-swarm's support is the most evidence one of its particles carries, so one spurious
+  match cannot move the estimate to another sub-swarm unless the evidence persists.
+- **Sub-swarms (speciation).** Particles are grouped each frame around seeds taken in order of
+  this frame's fitness (species PSO, Li 2004; Parrott & Li 2006 for moving optima): a particle
+  within ``species_radius_m`` of a seed belongs to its species and is attracted to it. Each
+  species is a hypothesis, supported by the most evidence one of its particles carries. The
+  estimate follows the best-supported species; the others are reported as ``hypotheses``. A
+  species whose support falls below ``dissolve_ratio`` of the best is dissolved and its
+  particles join the best one, unless it is young and better: the mean of the fitness along
+  its particles' paths (the evidence without the bias of its age) is at least
+  ``dissolve_mean_ratio`` of the best one's. A scout that finds the true place survives
+  until its evidence takes the estimate; a young species that is not better does not.
+- **Attractors ahead** (``predict_attractor``, off by default). Each sub-swarm is attracted
+  to where its seed will be at the next frame (the seed plus the tracked step), and the
+  quantum particles are redrawn there: a motion prior for a robot that moves about an image
+  spacing per frame.
+- **Scouts.** A few particles with the least evidence are redrawn at random map images every
+  frame (more while recovering). They are the background the lost detection measures
+  against, and the way the swarm discovers a place it is not searching.
+- **Local scouts.** While tracking, every ``local_scout_every``-th frame, a few more are
+  redrawn at map images 4-15 m from the estimate: the local search a particle filter's motion
+  noise gives. A swarm that stalled (the robot set off after a stop while weak matches kept
+  the estimate still) finds the robot again through them.
+- **The estimate** is the place the images say: the centre of the map images compared near
+  the best species, weighted by m ** ``estimate_image_power``; its covariance is that
+  species' spread, scaled to a calibrated 68 % radius. While tracking, the reported position
+  is that estimate smoothed along the map's path (service/estimators/along_track.py: the correction
+  across the path in full, ``along_track_alpha`` of it along the path); the swarm itself
+  works on the raw estimate.
+- **The located camera** (``metric_pose``; maps with the camera's intrinsics): while
+  tracking, the frame is located against the best-matching compared image near the estimate
+  by two-view geometry (service/vision/map_geometry.py); where that succeeds, the estimate is the
+  located position, beside and along the path, up to ``metric_reach_m`` from the image (a
+  place held a few metres off is corrected), with a radius from the map's position error
+  and the located positions' measured jitter (service/estimators/located_noise.py). A frame located
+  more than ``metric_steer_m`` from the swarm's estimate steers the swarm: the best
+  sub-swarm is attracted to the located position, and its quantum particles and local
+  scouts are drawn around it. A frame the geometry does not locate moves the reported
+  position less along the path (``along_track_alpha_unlocated``, ``along_track_alpha_weak``
+  for a weak one). ``verify_frames``
+  (off by default) also lets frames that cannot be located within ``metric_gate_m`` for
+  that many tracked frames in a row count as not good for the lost detection;
+  ``verify_switch_frames`` (off by default) then moves the estimate to another sub-swarm
+  where the frame is located.
+- **Lost detection** is relative (service/estimators/lost_detection.py): recovery starts when no
+  match stands out for ``lost_frames`` frames, not when matches are merely weak.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from service.api.params import DPSOParams
+from service.estimators.along_track import AlongTrackSmoother, path_tangent
+from service.estimators.base import Hypothesis, Status, StepResult, weighted_covariance
+from service.estimators.fitness import FrameFitness, MapIndex
+from service.estimators.located_noise import LocatedNoise
+from service.estimators.lost_detection import DistinctnessMonitor
+from service.estimators.paper_dpso import DPSO
+
+
+def speciate(x: np.ndarray, evidence: np.ndarray, radius: float, max_species: int
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(seed index per species, species label per particle; -1 = no species).
+
+    Seeds are taken in decreasing evidence; a particle joins the first seed within ``radius``.
+    """
+    order = np.argsort(-evidence, kind="stable")
+    label = np.full(len(x), -1, np.int64)
+    seeds: list[int] = []
+    r2 = radius * radius
+    for i in order:
+        if len(seeds) >= max_species:
+            break
+        if label[i] >= 0:
+            continue
+        d2 = np.einsum("ij,ij->i", x - x[i], x - x[i])
+        free = (label < 0) & (d2 <= r2)
+        label[free] = len(seeds)
+        seeds.append(int(i))
+    return np.asarray(seeds, np.int64), label
+
+
+class MultiSwarmDPSO(DPSO):
+    """DPSO with a motion prior, path evidence, sub-swarms, scouts and relative lost detection."""
+
+    name = "dpso"
+
+    def __init__(self, index: MapIndex, params: DPSOParams, rng: np.random.Generator) -> None:
+        super().__init__(index, params, rng)
+        self.evidence = np.zeros(params.n_particles)
+        self.age = np.zeros(params.n_particles)  # frames of evidence each particle carries
+        self.frame_count = 0  # frames stepped (local scouts run every local_scout_every-th)
+        self.monitor = DistinctnessMonitor(params.distinct_ratio, params.distinct_floor_m,
+                                           params.distinct_far_m, params.ema_alpha)
+        self.smoother = AlongTrackSmoother()  # the reported position (tracked frames)
+        self.unverified = 0  # tracked frames in a row the geometry could not locate
+        self.noise = LocatedNoise()  # the located positions' noise: their radius
+        self._reset_coasting()
+
+    def _initialize(self) -> None:
+        super()._initialize()
+        self.evidence = np.zeros(self.params.n_particles)
+        self.age = np.zeros(self.params.n_particles)
+        self.monitor.reset()
+        self.smoother.reset()
+        self.unverified = 0
+        self.noise.reset()
+        self._reset_coasting()
+
+    def _reset_coasting(self) -> None:
+        self.level: float | None = None  # EMA of the best match in good, non-weak frames
+        self.weak_frames = 0  # weak frames in a row (their estimates do not feed ema_step)
+
+    def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
+        if self._needs_init:
+            self._initialize()
+        p = self.params
+        dt = self.frame_dt(t)
+        if p.motion_prior and self.ema_step is not None and self._converged \
+                and not self.recovering:
+            self.x = np.clip(self.x + self.ema_step, self.lower, self.upper)  # motion prior
+        elif self._coasting():  # carried through weak frames by the kept velocity
+            assert self.ema_step is not None
+            self.x = np.clip(self.x + self.ema_step, self.lower, self.upper)
+        self.frame_count += 1
+        f, _, _ = fitness(self.x)
+        self.evidence = p.evidence_decay * self.evidence + f
+        self.age = self.age + 1
+        # sub-swarms around the best particles of this frame (their attractors, as p^n in the
+        # papers); a sub-swarm's support is the most evidence any of its particles carries
+        seeds, label = speciate(self.x, f, p.species_radius_m, p.max_species)
+        support = np.array([self.evidence[label == s].max() for s in range(len(seeds))])
+        best_s = int(np.argmax(support))
+        if 0 < p.verify_switch_frames <= self.unverified and len(seeds) > 1:
+            alt = self._verified_alternative(fitness, seeds, support, best_s)
+            if alt is not None:  # the geometry locates the frame there, not at the held place
+                self.evidence[label == alt] += support[best_s]
+                support[alt] += support[best_s]
+                best_s = alt
+        # the estimate: the particles of the best group near its best particle (the front of
+        # a moving swarm: a centre over the whole group trails the robot)
+        seed_x = self.x[seeds[best_s]]
+        members = (label == best_s) & (np.linalg.norm(self.x - seed_x, axis=1)
+                                       <= p.estimate_radius_m)
+        w = f[members] if f[members].sum() > 0 else self.evidence[members]
+        pos = weighted_centre(self.x[members], w)
+        cov = weighted_covariance(self.x[members], w, p.estimate_floor_m) * p.covariance_scale
+        spread = float(np.mean(np.linalg.norm(self.x - pos, axis=1)))
+        hypotheses = self._hypotheses(seeds, label, support, f, best_s)
+
+        ids, scores = fitness.compared
+        compared_xy = np.asarray(self.index.positions)[ids]
+        pos = image_centre(compared_xy, scores, pos, p.estimate_image_radius_m,
+                           p.estimate_image_power)
+        ev = self.monitor.judge(compared_xy, scores, pos, p.species_radius_m)
+        cov = cov + np.eye(2) * (match_sigma(ev.best_m, p) ** 2 + p.lateral_sigma_m ** 2)
+        # the geometry's verdict on the last frames: the place the swarm holds is refuted
+        # when the frame could not be located at it for verify_frames tracked frames in a row
+        refuted = 0 < p.verify_frames <= self.unverified
+        status, lost = self._update_evidence_status(ev.good and not refuted)
+        # a weak frame's estimate lags where images look alike: it does not teach the velocity
+        self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))
+        if self.recovery_phase(lost):
+            status = Status.RECOVERING
+        located = self._located(fitness, status, pos, ids, scores, compared_xy)
+
+        # attractors: the seeds where the robot will be at the next frame (the tracked step
+        # ahead), so the swarm does not trail the robot where matches are weak
+        lead = self.ema_step if p.predict_attractor and self.ema_step is not None else 0.0
+        attractor = self.x[seeds][np.where(label >= 0, label, best_s)] + lead
+        # a sub-swarm is dissolved when it carries less than dissolve_ratio of the best one's
+        # evidence and is not better per frame: a young one (a scout that found the place has
+        # one frame of evidence against the incumbent's five) survives while the mean of the
+        # fitness along its particles' paths is at least dissolve_mean_ratio of the best's
+        weak_s = support < p.dissolve_ratio * support[best_s]
+        if p.dissolve_mean_ratio > 0 and weak_s.any():
+            mean_ev = self.mean_evidence()
+            judge = np.array([mean_ev[label == s].max() for s in range(len(seeds))])
+            weak_s &= judge < p.dissolve_mean_ratio * judge[best_s]
+        dissolve = (label >= 0) & weak_s[label.clip(0)]
+        p_n, around = self.x[seeds[best_s]] + lead, pos + lead
+        if located is not None and p.metric_steer_m > 0 and \
+                float(np.linalg.norm(located - pos)) > p.metric_steer_m:
+            # the located camera steers the swarm: the best sub-swarm is attracted to it and
+            # its quantum particles and local scouts are drawn around it
+            p_n = around = located + lead
+            attractor = np.where((label == best_s)[:, None], p_n, attractor)
+        self._move_species(attractor, p_n, dissolve, around)
+        speed, heading = self.motion(dt)
+        if located is not None:
+            pos = located
+            self.noise.add(self.frame_count, pos)
+            sigma = self.noise.sigma(p.metric_map_sigma_m, p.metric_jitter_gain,
+                                     p.metric_jitter_prior_m)
+            cov = np.eye(2) * sigma ** 2
+        reported = self._reported(pos, status, ids, compared_xy,
+                                  self._along_alpha(self._geometry_runs(fitness),
+                                                    located is not None))
+        return StepResult(reported, cov, heading, speed, status,
+                          lost or self.recovering, ev.best_m, fitness.comparisons, spread,
+                          hypotheses)
+
+    def _geometry_runs(self, fitness: FrameFitness) -> bool:
+        """Whether frames are located by two-view geometry: ``metric_pose`` is on and the
+        map keeps the camera (the fitness can locate)."""
+        return self.params.metric_pose and fitness.locate is not None
+
+    def _along_alpha(self, geometry: bool, located: bool) -> float:
+        """The share of the along-path correction the reported position takes this frame:
+        ``along_track_alpha``; where the map's geometry runs but did not locate the frame,
+        ``along_track_alpha_unlocated`` (the image estimate scatters along the path more than
+        a located camera), and ``along_track_alpha_weak`` when the frame is also weak (its
+        best match below ``coast_ratio`` of the tracking level: the images say little, the
+        smoother's prediction carries the position)."""
+        p = self.params
+        if not geometry or located:
+            return p.along_track_alpha
+        return p.along_track_alpha_weak if self.weak_frames > 0 else p.along_track_alpha_unlocated
+
+    def _located(self, fitness: FrameFitness, status: Status, pos: np.ndarray,
+                 ids: np.ndarray, scores: np.ndarray, compared_xy: np.ndarray
+                 ) -> np.ndarray | None:
+        """While tracking, the camera's position from two-view geometry against the
+        best-matching compared image within ``estimate_image_radius_m`` of ``pos``: that
+        image's position plus the located offset, right and ahead along the path there
+        (service/vision/metric_pose.py); where it cannot be located there within
+        ``metric_reach_m``, against the next best compared images within
+        ``metric_search_m``, ``metric_tries`` images in all; None where none locates it."""
+        p = self.params
+        if not self._geometry_runs(fitness) or status is not Status.TRACKING:
+            self.unverified = 0  # counted while tracking only
+            return None
+        locate = fitness.locate
+        assert locate is not None  # _geometry_runs
+        anchor = best_image_near(ids, scores, compared_xy, pos, p.estimate_image_radius_m)
+        if anchor is None:
+            self.unverified += 1
+            return None
+        # the best image near the estimate first (its verdict confirms the place), then the
+        # next best compared within metric_search_m: where the light left the first
+        # unlocatable, another often is (a lab count: 23-77 % of such frames)
+        d = compared_xy - pos
+        near = np.einsum("ij,ij->i", d, d) <= p.metric_search_m ** 2
+        others = ids[near][np.argsort(-scores[near], kind="stable")]
+        tries = [anchor, *[int(i) for i in others if i != anchor]][:p.metric_tries]
+        for k, image in enumerate(tries):
+            tangent = path_tangent(self._map_positions, image, self._spacing)
+            off = locate(image) if tangent is not None else None
+            reach = math.hypot(off.right_m, off.ahead_m) if off is not None else math.inf
+            if k == 0:  # the held place is confirmed where the camera stands near its image
+                self.unverified = 0 if reach <= p.metric_gate_m else self.unverified + 1
+            if off is not None and tangent is not None and reach <= p.metric_reach_m:
+                right = np.array([tangent[1], -tangent[0]])
+                return self._map_positions[image] + off.right_m * right + off.ahead_m * tangent
+        return None
+
+    def _verified_alternative(self, fitness: FrameFitness, seeds: np.ndarray,
+                              support: np.ndarray, best_s: int) -> int | None:
+        """The best-supported other sub-swarm (of the next two) at whose best-matching
+        compared image the frame is located, or None."""
+        p = self.params
+        if fitness.locate is None:
+            return None
+        ids, scores = fitness.compared
+        xy = np.asarray(self.index.positions)[ids]
+        for s in [s for s in np.argsort(-support) if s != best_s][:2]:
+            anchor = best_image_near(ids, scores, xy, self.x[seeds[s]],
+                                     p.estimate_image_radius_m)
+            off = fitness.locate(anchor) if anchor is not None else None
+            if off is not None and math.hypot(off.right_m, off.ahead_m) <= p.metric_gate_m:
+                return int(s)
+        return None
+
+    def _reported(self, pos: np.ndarray, status: Status, ids: np.ndarray,
+                  compared_xy: np.ndarray, alpha: float) -> np.ndarray:
+        """The position reported for the estimate ``pos``: smoothed along the map's path
+        while tracking (service/estimators/along_track.py; ``alpha`` of the along-path correction),
+        ``pos`` itself otherwise. The path's
+        direction is taken at the compared image nearest ``pos`` (the estimate is their
+        centre, so no map-wide query is needed)."""
+        p = self.params
+        if status is not Status.TRACKING or p.along_track_alpha >= 1 or not len(ids):
+            self.smoother.reset()
+            return pos
+        nearest = int(ids[np.argmin(np.einsum("ij,ij->i", compared_xy - pos,
+                                              compared_xy - pos))])
+        tangent = path_tangent(self._map_positions, nearest, self._spacing)
+        return self.smoother.update(pos, tangent, alpha, p.along_track_gate_m, self.ema_step)
+
+    def mean_evidence(self) -> np.ndarray:
+        """Each particle's evidence as a decayed mean of the fitness along its path (A with
+        the bias of its age removed: A (1 - lambda) / (1 - lambda ** age))."""
+        lam = self.params.evidence_decay
+        age = np.maximum(self.age, 1)
+        return self.evidence * (1 - lam) / (1 - lam ** age)
+
+    def _coasting(self) -> bool:
+        """Whether this frame's swarm is carried by the kept velocity: the previous frame was
+        weak, the robot was being tracked, and the weak stretch is not too long."""
+        return (self.weak_frames > 0 and self.ema_step is not None and self._converged
+                and not self.recovering and self.weak_frames <= self.params.coast_max_frames)
+
+    def _judge_weak(self, best_m: float, good: bool) -> bool:
+        """A frame is weak when its best match falls below ``coast_ratio`` of the level seen
+        while tracking; strong, good frames update that level (EMA)."""
+        p = self.params
+        if self.weak_frames >= p.coast_max_frames:
+            # weak for longer than coasting may last: a lasting change of the match level
+            # (less texture, other light) is the new normal, not a stretch to carry through
+            self.level = None
+        weak = self.level is not None and best_m < p.coast_ratio * self.level
+        if not weak and good:
+            a = p.level_alpha
+            self.level = best_m if self.level is None else (1 - a) * self.level + a * best_m
+        self.weak_frames = self.weak_frames + 1 if weak else 0
+        return weak
+
+    def _update_evidence_status(self, good: bool) -> tuple[Status, bool]:
+        p = self.params
+        if good:
+            self._good += 1
+            self._bad = 0
+        else:
+            self._bad += 1
+            self._good = 0
+        if self._good >= p.converge_frames:
+            self._converged = True
+        if self._bad >= p.lost_frames:
+            return Status.LOST, True
+        return (Status.TRACKING if self._converged else Status.INITIALIZING), False
+
+    def _hypotheses(self, seeds: np.ndarray, label: np.ndarray, support: np.ndarray,
+                    f: np.ndarray, best_s: int) -> tuple[Hypothesis, ...]:
+        p = self.params
+        keep = [s for s in np.argsort(-support) if support[s] >= p.hypothesis_ratio
+                * support[best_s] and support[s] > 0][: p.max_species]
+        total = float(sum(support[s] for s in keep)) or 1.0
+        out = []
+        for s in keep:
+            mem = label == s
+            w = f[mem] if f[mem].sum() > 0 else self.evidence[mem]
+            c = weighted_centre(self.x[mem], w)
+            out.append(Hypothesis(float(c[0]), float(c[1]), float(support[s] / total)))
+        return tuple(out)
+
+    def _move_species(self, attractor: np.ndarray, p_n: np.ndarray, weak: np.ndarray,
+                      around: np.ndarray) -> None:
+        """Eqs. 4-5 towards each particle's species seed; Eq. 6 quantum particles around the
+        best seed; scouts (weak species and the least evidence) redrawn at map images."""
+        p, rng, n = self.params, self.rng, self.params.n_particles
+        r0 = rng.uniform(-1.0, 1.0, (n, 2))
+        r2 = rng.uniform(0.0, 1.0, (n, 2))
+        v = p.omega * self.v + p.phi0 * r0 * self.delta * self.v0 \
+            + self.phi2 * r2 * (attractor - self.x)
+        norm = np.linalg.norm(v / self.delta, axis=1)
+        limit = self.v0 * np.where(self.high_energy, p.high_energy_factor, 1.0)
+        v *= np.minimum(1.0, limit / np.maximum(norm, 1e-12))[:, None]
+        x = self.x + v
+        # Eq. 6 around the best seed: local while tracking, the papers' q_d while recovering
+        k = min(round(self.q_r * n), n - int(self.high_energy.sum()))
+        sigma = self.delta * p.quantum_sigma if self.recovering else \
+            np.full(2, p.quantum_track_sigma_m)
+        x[:k] = p_n + sigma * rng.normal(0.0, 1.0, (k, 2))
+        v[:k] = 0.0
+        fresh = np.zeros(n, bool)
+        fresh[:k] = True
+        # particles of dissolved sub-swarms join the best one (redrawn like quantum particles)
+        joiners = weak & ~fresh
+        nj = int(joiners.sum())
+        if nj:
+            x[joiners] = p_n + sigma * rng.normal(0.0, 1.0, (nj, 2))
+            v[joiners] = 0.0
+        fresh |= joiners
+        # scouts: the particles with the least evidence, redrawn at random map images; and
+        # while tracking, every local_scout_every-th frame, local scouts around the estimate
+        n_scouts = round((p.scout_ratio_recovery if self.recovering else p.scout_ratio) * n)
+        self._redraw_least_evidence(x, v, fresh, n_scouts, self.sample_map_positions)
+        if not self.recovering and self.frame_count % p.local_scout_every == 0:
+            self._redraw_least_evidence(
+                x, v, fresh, round(p.local_scout_ratio * n),
+                lambda k: self.sample_map_positions_near(
+                    around, p.local_scout_inner_m, p.local_scout_radius_m, k))
+        below, above = x < self.lower, x > self.upper
+        x = np.where(below, 2 * self.lower - x, np.where(above, 2 * self.upper - x, x))
+        x = np.clip(x, self.lower, self.upper)
+        v = np.where(below | above, -v, v)
+        self.x, self.v = x, v
+        self.evidence = np.where(fresh, 0.0, self.evidence)
+        self.age = np.where(fresh, 0.0, self.age)
+
+    def _redraw_least_evidence(self, x: np.ndarray, v: np.ndarray, fresh: np.ndarray, k: int,
+                               draw: Callable[[int], np.ndarray]) -> None:
+        """Redraw the ``k`` not yet fresh particles with the least evidence at ``draw(k)``."""
+        candidates = np.flatnonzero(~fresh)
+        chosen = candidates[np.argsort(self.evidence[candidates], kind="stable")[:k]]
+        if len(chosen):
+            x[chosen] = draw(len(chosen))
+            v[chosen] = 0.0
+            fresh[chosen] = True
+
+
+def match_sigma(best_m: float, p: DPSOParams) -> float:
+    """Std (m) of the image estimate from the strength of its best match: fewer matched
+    features place the robot less sharply between neighbouring images (``match_sigma_m`` at
+    m = 1, times m ** -``match_sigma_power``; m floored at ``distinct_floor_m``)."""
+    return float(p.match_sigma_m * max(best_m, p.distinct_floor_m, 1e-6)
+                 ** -p.match_sigma_power)
+
+
+def best_image_near(ids: np.ndarray, m: np.ndarray, xy: np.ndarray, around: np.ndarray,
+                    radius: float) -> int | None:
+    """The compared map image with the best similarity within ``radius`` of ``around``;
+    None where no compared image lies there."""
+    d = xy - around
+    near = np.einsum("ij,ij->i", d, d) <= radius ** 2
+    return int(ids[near][np.argmax(m[near])]) if near.any() else None
+
+
+def image_centre(xy: np.ndarray, m: np.ndarray, around: np.ndarray, radius: float,
+                 power: float) -> np.ndarray:
+    """Centre of the compared map images within ``radius`` of ``around``, weighted by
+    m ** power; ``around`` itself where no image there matched."""
+    near = np.linalg.norm(xy - around, axis=1) <= radius
+    w = m[near] ** power
+    total = float(w.sum())
+    return (w @ xy[near]) / total if total > 0 else np.asarray(around, float)
+
+
+def weighted_centre(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    total = float(w.sum())
+    return (w @ x) / total if total > 0 else x.mean(axis=0)

@@ -1,0 +1,1 @@
+"""The HTTP transport: FastAPI app, routers, SSE, auth, viewer."""

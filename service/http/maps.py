@@ -1,0 +1,155 @@
+"""HTTP routes of the map lifecycle (thin: the work is in ``map_admin``).
+
+``PUT /maps/{name}`` (a .swmap body), ``GET /maps/{name}/file``, ``DELETE /maps/{name}``,
+``POST /maps/{name}/build`` (a zip or tar(.gz) of a round), ``GET /jobs``, ``GET /jobs/{id}``.
+Bodies are streamed to a hidden temporary file in the maps directory under a size limit.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Annotated, Any
+
+import anyio
+from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi.responses import StreamingResponse
+
+from service.api.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
+from service.api.models import ErrorBody, JobInfo, MapDeleted, MapSummary
+from service.engine.localization_service import LocalizationService
+from service.engine.map_admin import check_map_name
+
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    code: {"model": ErrorBody} for code in (400, 401, 404, 409, 412, 413, 415, 422)}
+_MAP_TYPES = ("application/octet-stream", "application/x-swarmloc-map")
+_ARCHIVE_TYPES = ("application/zip", "application/x-zip-compressed", "application/x-tar",
+                  "application/gzip", "application/x-gzip", "application/x-compressed-tar",
+                  "application/x-bzip2", "application/x-xz", "application/octet-stream")
+IfMatch = Annotated[str | None, Header(description="only if the map is at this version (ETag)")]
+IfNoneMatch = Annotated[str | None, Header(description="'*': only if there is no such map")]
+
+
+def _binary_body(types: tuple[str, ...]) -> dict:
+    return {"requestBody": {"required": True, "content": {
+        t: {"schema": {"type": "string", "format": "binary"}} for t in types}}}
+
+
+def _check_type(request: Request, allowed: tuple[str, ...], what: str) -> None:
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype and ctype not in allowed:
+        raise UnsupportedMediaType(f"content type '{ctype}' is not accepted for {what}; send "
+                                   f"{' or '.join(allowed[:2])}")
+
+
+async def _stage(request: Request, path: Path, limit: int, what: str) -> None:
+    """Stream the body into ``path``, refusing more than ``limit`` bytes."""
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise PayloadTooLarge(f"{what} is {declared} bytes; the limit is {limit} bytes")
+    size = 0
+    fh = await anyio.open_file(path, "wb")
+    async with fh:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > limit:
+                raise PayloadTooLarge(f"{what} is over the limit of {limit} bytes")
+            await fh.write(chunk)
+    if size == 0:
+        raise BadRequest(f"empty body: send the {what}")
+
+
+@contextlib.asynccontextmanager
+async def _staged(request: Request, service: LocalizationService, kind: str, limit: int,
+                  what: str) -> AsyncIterator[Path]:
+    path = service.admin.staging_file(kind)
+    try:
+        try:
+            await _stage(request, path, limit, what)
+        except Exception as exc:
+            label = "uploads" if kind == "upload" else "builds"
+            getattr(service.metrics, f"map_{label}").labels("rejected").inc()
+            service.metrics.rejected.labels(type(exc).__name__).inc()
+            raise
+        yield path
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def map_router(service: LocalizationService, dependencies: list) -> APIRouter:
+    admin = service.admin
+    settings = service.settings
+    router = APIRouter(dependencies=dependencies, responses=_ERRORS)
+
+    @router.put("/maps/{name}", tags=["maps"], openapi_extra=_binary_body(_MAP_TYPES),
+                responses={201: {"model": MapSummary}})
+    async def put_map(name: str, request: Request, response: Response,
+                      if_match: IfMatch = None, if_none_match: IfNoneMatch = None
+                      ) -> MapSummary:
+        """Upload (201) or replace (200) a map: a .swmap file built by `swarmloc map build`."""
+        check_map_name(name)
+        _check_type(request, _MAP_TYPES, "a map")
+        admin.check_preconditions(name, if_match, if_none_match)  # fail before the upload
+        async with _staged(request, service, "upload", settings.max_map_bytes, "map") as path:
+            summary, created = await anyio.to_thread.run_sync(
+                admin.install_upload, name, path, if_match, if_none_match)
+        response.status_code = 201 if created else 200
+        response.headers["ETag"] = f'"{summary.checksum}"'
+        response.headers["Location"] = f"/maps/{name}"
+        return summary
+
+    @router.get("/maps/{name}/file", tags=["maps"],
+                responses={200: {"content": {"application/octet-stream": {}}}})
+    async def get_map_file(name: str, if_none_match: IfNoneMatch = None) -> Response:
+        """The map's .swmap file (its current version), with its ETag."""
+        fh, etag, size = admin.open_file(name)
+        headers = {"ETag": f'"{etag}"'}
+        if if_none_match is not None and etag in [t.strip().strip('"')
+                                                  for t in if_none_match.split(",")]:
+            fh.close()  # type: ignore[attr-defined]
+            return Response(status_code=304, headers=headers)
+
+        def chunks() -> Any:
+            with fh:  # type: ignore[attr-defined]
+                while data := fh.read(1 << 20):  # type: ignore[attr-defined]
+                    yield data
+
+        headers["Content-Length"] = str(size)
+        headers["Content-Disposition"] = f'attachment; filename="{name}.swmap"'
+        return StreamingResponse(chunks(), media_type="application/octet-stream",
+                                 headers=headers)
+
+    @router.delete("/maps/{name}", tags=["maps"])
+    async def delete_map(name: str, force: Annotated[bool, Query(
+            description="end the sessions that use the map")] = False,
+            if_match: IfMatch = None) -> MapDeleted:
+        """Delete a map; 409 names the sessions on it unless ?force=true ends them."""
+        return admin.delete(name, force, if_match)
+
+    @router.post("/maps/{name}/build", tags=["maps"], status_code=202,
+                 openapi_extra=_binary_body(_ARCHIVE_TYPES))
+    async def build_map(name: str, request: Request, response: Response,
+                        if_match: IfMatch = None, if_none_match: IfNoneMatch = None
+                        ) -> JobInfo:
+        """Build a map from a zip/tar(.gz) of a round (poses.csv + images) in the background;
+        follow GET /jobs/{id}. The map appears (or is replaced) when the build is done."""
+        check_map_name(name)
+        _check_type(request, _ARCHIVE_TYPES, "a round archive")
+        admin.check_preconditions(name, if_match, if_none_match)
+        async with _staged(request, service, "archive", settings.max_archive_bytes,
+                           "round archive") as path:
+            job = await anyio.to_thread.run_sync(
+                admin.submit_build, name, path, if_match, if_none_match)
+        response.headers["Location"] = f"/jobs/{job.id}"
+        return job
+
+    @router.get("/jobs", tags=["jobs"])
+    async def list_jobs() -> list[JobInfo]:
+        return admin.jobs()
+
+    @router.get("/jobs/{job_id}", tags=["jobs"])
+    async def get_job(job_id: str) -> JobInfo:
+        return admin.job(job_id)
+
+    return router

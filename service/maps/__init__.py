@@ -1,0 +1,1 @@
+"""Route maps: the file format, building from rounds, uploaded round archives."""

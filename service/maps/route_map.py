@@ -1,0 +1,767 @@
+"""Route maps: build from a round, save atomically, load memory-mapped and verified.
+
+File layout (``NAME.swmap``), all little-endian:
+
+    MAGIC (8 bytes) | header length (uint64) | header JSON (utf-8) | padding to 64 | arrays
+
+Format version 3 (version 2 plus the place index and per-image digests) stores descriptors
+as uint8 codes (SIFT is integer-valued; RootSIFT is quantised, see service/vision/features.py), the
+layer (traversal) of every image, for maps merged from several traversals, and the global
+place-recognition index (service/vision/place_index.py: VLAD vocabulary, PCA, one descriptor per
+image). The header holds the format version, the metadata (feature type and parameters, delta,
+working image size, geodetic origin, build date, pruning statistics, source, place index) and,
+for every array, its dtype, shape, byte offset and SHA-256. ``checksum`` is the SHA-256 of the
+header without that field (canonical JSON), so it covers every array through their digests.
+``image_digests`` holds a BLAKE2b-64 of each image's codes and of its keypoints.
+
+Loading verifies the header and every array (``verify=True``), or, for a server start-up whose
+time and memory must not grow with the map (``verify="lazy"``), the header and every array
+except the descriptors and keypoints, whose images are checked against their digests when
+first used: a flipped bit anywhere is still caught before it is used, and a 40,000-image map
+opens without reading its gigabytes. Arrays are 64-byte aligned and opened with
+``numpy.memmap``: a map opens without copying its descriptors into memory.
+
+Version 2 maps (no index, one checksum over everything) still load, fully verified; their
+place index is absent, so global initialisation falls back to random map images (rebuild the
+map with 'swarmloc map build' to get the index).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+import math
+import os
+import struct
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Literal, Protocol
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from service.api.geo import LocalFrame
+from service.vision.features import (
+    DEFAULT_DELTA,
+    Features,
+    SiftParams,
+    match_batch,
+    unit_descriptors,
+)
+from service.vision.map_geometry import MapGeometry
+from service.vision.matcher import PreparedSet, match_batch_u8, prepare
+from service.vision.metric_pose import Camera
+from service.vision.place_index import PlaceIndex, build_place_index
+
+MAGIC = b"SWMAP\x00\r\n"
+# the dtype of every stored array, as save_map writes them (anything else is refused)
+_DTYPES: dict[str, np.dtype] = {
+    "positions": np.dtype("<f8"), "offsets": np.dtype("<i8"), "codes": np.dtype(np.uint8),
+    "keypoints": np.dtype("<f4"), "image_names": np.dtype(np.uint8), "layers": np.dtype("<i8")}
+# version 3: small arrays first, then the descriptors, keypoints and their per-image digests;
+# the place index arrays are optional (a map too small for a vocabulary has none)
+_DTYPES_V3: dict[str, np.dtype] = {
+    "positions": np.dtype("<f8"), "offsets": np.dtype("<i8"), "image_names": np.dtype(np.uint8),
+    "layers": np.dtype("<i8"), "place_words": np.dtype("<f4"), "place_mean": np.dtype("<f4"),
+    "place_projection": np.dtype("<f4"), "place_descriptors": np.dtype("<f4"),
+    "codes": np.dtype(np.uint8), "keypoints": np.dtype("<f4"),
+    "image_digests": np.dtype(np.uint8)}
+_OPTIONAL = ("place_words", "place_mean", "place_projection", "place_descriptors")
+_LAZY = ("codes", "keypoints")  # checked per image on first use with verify="lazy"
+_DIGEST = 8  # bytes of each BLAKE2b image digest (codes, then keypoints)
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (2, 3)
+Verify = bool | Literal["lazy"]
+SUFFIX = ".swmap"
+_ALIGN = 64
+
+
+class MapError(ValueError):
+    """A map file is missing, corrupted, of another format version, or inconsistent."""
+
+
+@dataclass(frozen=True)
+class PruneStats:
+    features_before: int
+    features_after: int
+
+    @property
+    def removed_fraction(self) -> float:
+        return 1.0 - self.features_after / max(self.features_before, 1)
+
+
+def prune(features: list[Features], delta: float = DEFAULT_DELTA
+          ) -> tuple[list[Features], PruneStats]:
+    """Keep only features with a symmetric match in a neighbouring image of the round.
+
+    As in the papers (Sec. 6): image i is compared with i-1 and i+1 (the first and last image
+    with their one neighbour); features found in neither are noise and are dropped.
+    """
+    kept: list[Features] = []
+    for i, f in enumerate(features):
+        neighbours = [features[j].descriptors for j in (i - 1, i + 1) if 0 <= j < len(features)]
+        if len(f) == 0 or not neighbours:
+            kept.append(f)
+            continue
+        mask = match_batch(f.descriptors, neighbours, delta).matched.any(axis=0)
+        kept.append(Features(f.keypoints[mask], f.codes[mask]))
+    before = sum(len(f) for f in features)
+    return kept, PruneStats(before, sum(len(f) for f in kept))
+
+
+@dataclass
+class RouteMap:
+    """A loaded map: image positions, descriptor codes (memory-mapped) and KD-trees.
+
+    A map merged from several traversals of one route (conditions) has one *layer* per
+    traversal; ``nearest_per_layer`` answers the nearest image of every layer, so a particle
+    is compared with its place's image from each condition.
+    """
+
+    name: str
+    meta: dict
+    positions: np.ndarray  # (n, 2) metres east/north
+    image_names: list[str]
+    codes: np.ndarray  # (total, D) uint8 descriptor codes, memory-mapped
+    offsets: np.ndarray  # (n + 1,) row offsets of each image's descriptors
+    keypoints: np.ndarray  # (total, 2) float32
+    path: Path | None = None
+    layers: np.ndarray | None = None  # (n,) traversal index of each image; None: one
+    place_index: PlaceIndex | None = None  # global place recognition (None: not built)
+    # (n, 16) BLAKE2b-64 digests of each image's codes and keypoints, checked on first use
+    # of an image when the map was opened with verify="lazy" (None: nothing left to check)
+    lazy_digests: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.positions)
+        if self.layers is None:
+            self.layers = np.zeros(n, np.int64)
+        self._tree = cKDTree(self.positions)
+        self._layer_ids = [np.flatnonzero(self.layers == k) for k in range(self.n_layers)]
+        self._layer_trees = ([self._tree] if self.n_layers == 1 else
+                             [cKDTree(self.positions[ids]) for ids in self._layer_ids])
+        self._sets: list[np.ndarray | None] = [None] * n
+        self._prepared: list[PreparedSet | None] = [None] * n
+        self._checked = np.zeros(n if self.lazy_digests is not None else 0, bool)
+
+    def _check_image(self, image_id: int) -> None:
+        """With lazy verification: the image's codes and keypoints against their digests,
+        once (a corrupted image raises MapError instead of being matched)."""
+        if self.lazy_digests is None or self._checked[image_id]:
+            return
+        a, b = int(self.offsets[image_id]), int(self.offsets[image_id + 1])
+        if _image_digest(self.codes[a:b], self.keypoints[a:b]) != \
+                bytes(self.lazy_digests[image_id]):
+            raise MapError(f"{self.path}: image {image_id} ('{self.image_names[image_id]}') "
+                           "does not match its digest, the file is corrupted; rebuild the map")
+        self._checked[image_id] = True
+
+    @property
+    def n_layers(self) -> int:
+        return int(self.layers.max()) + 1 if self.layers is not None and len(self.layers) else 1
+
+    @property
+    def n_images(self) -> int:
+        return len(self.positions)
+
+    @property
+    def delta(self) -> float:
+        return float(self.meta["delta"])
+
+    @cached_property
+    def sift_params(self) -> SiftParams:
+        p = {k: v for k, v in self.meta["feature"].items() if k != "type"}
+        return SiftParams(**p)
+
+    @cached_property
+    def frame(self) -> LocalFrame | None:
+        """The geodetic frame (built once: a pyproj transformer is not cheap)."""
+        o = self.meta.get("origin")
+        return LocalFrame(o["lat"], o["lon"]) if o else None
+
+    @cached_property
+    def camera(self) -> Camera | None:
+        """The camera's intrinsics (metadata ``camera``), None when the map was built without
+        them: its frames are then placed at map images, never located between them."""
+        c = self.meta.get("camera")
+        return Camera.from_dict(c) if c else None
+
+    @cached_property
+    def geometry(self) -> MapGeometry | None:
+        """Two-view geometry against this map's images (service/vision/map_geometry.py), None
+        without a camera."""
+        cam = self.camera
+        if cam is None:
+            return None
+        return MapGeometry(self, cam, self.sift_params.width, self.sift_params.height)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners of the map positions."""
+        return self.positions.min(axis=0), self.positions.max(axis=0)
+
+    @property
+    def spacing(self) -> float:
+        """Median distance between consecutive map images (metres)."""
+        if self.n_images < 2:
+            return 1.0
+        return float(np.median(np.linalg.norm(np.diff(self.positions, axis=0), axis=1)))
+
+    def features_of(self, image_id: int) -> np.ndarray:
+        """Unit descriptors of one map image (from its codes; kept after the first use)."""
+        cached = self._sets[image_id]
+        if cached is None:
+            self._check_image(image_id)
+            cached = unit_descriptors(self.codes[self.offsets[image_id]:
+                                                 self.offsets[image_id + 1]])
+            self._sets[image_id] = cached
+        return cached
+
+    def nearest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest map image id and its distance for each of many positions, in one call."""
+        dist, idx = self._tree.query(np.asarray(positions, float).reshape(-1, 2))
+        return idx.astype(np.int64), dist
+
+    def nearest_per_layer(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, distances), each (n, layers): the nearest image of every layer."""
+        pts = np.asarray(positions, float).reshape(-1, 2)
+        if self.n_layers == 1:
+            ids, dist = self.nearest(pts)
+            return ids[:, None], dist[:, None]
+        out_i = np.empty((len(pts), self.n_layers), np.int64)
+        out_d = np.empty((len(pts), self.n_layers))
+        for k, (tree, ids) in enumerate(zip(self._layer_trees, self._layer_ids, strict=True)):
+            out_d[:, k], local = tree.query(pts)
+            out_i[:, k] = ids[local]
+        return out_i, out_d
+
+    def prepared(self, image_id: int) -> PreparedSet:
+        """One map image's codes prepared for the exact uint8 matcher (kept after first use;
+        the codes stay memory-mapped)."""
+        cached = self._prepared[image_id]
+        if cached is None:
+            self._check_image(image_id)
+            cached = prepare(np.asarray(
+                self.codes[self.offsets[image_id]: self.offsets[image_id + 1]]))
+            self._prepared[image_id] = cached
+        return cached
+
+    def similarity(self, frame_codes: np.ndarray, image_ids: Iterable[int]) -> np.ndarray:
+        """m(frame, map image) for each id: the exact uint8 matcher (service/vision/matcher.py) on
+        the frame's descriptor codes (``Features.codes``)."""
+        sets = [self.prepared(int(i)) for i in image_ids]
+        return match_batch_u8(frame_codes, sets, self.delta).scores
+
+    def codes_of(self, image_id: int) -> np.ndarray:
+        """One image's descriptor codes (a memory-mapped view; verified with lazy loading)."""
+        self._check_image(image_id)
+        return self.codes[self.offsets[image_id]: self.offsets[image_id + 1]]
+
+    def keypoints_of(self, image_id: int) -> np.ndarray:
+        """One image's keypoints (working-size pixels; verified with lazy loading)."""
+        self._check_image(image_id)
+        return self.keypoints[self.offsets[image_id]: self.offsets[image_id + 1]]
+
+    def summary(self) -> dict:
+        return {
+            "name": self.name,
+            "n_images": self.n_images,
+            "n_features": int(self.offsets[-1]),
+            "n_layers": self.n_layers,
+            "bounds": [self.bounds[0].tolist(), self.bounds[1].tolist()],
+            "spacing_m": self.spacing,
+            **{k: v for k, v in self.meta.items() if k not in ("arrays", "checksum")},
+            "place_index": self.place_index.meta() if self.place_index is not None else None,
+        }
+
+
+def build_map(
+    name: str,
+    images: Iterable[np.ndarray],
+    positions: np.ndarray,
+    image_names: list[str],
+    *,
+    params: SiftParams | None = None,
+    delta: float = DEFAULT_DELTA,
+    origin: tuple[float, float] | None = None,
+    source: dict | None = None,
+    extract: Callable[[np.ndarray, SiftParams], Features] | None = None,
+    prune_features: bool = False,
+    layers: np.ndarray | None = None,
+    place_index: bool = True,
+    camera: Camera | None = None,
+) -> RouteMap:
+    """Extract, (optionally) prune and assemble a map in memory (``save_map`` writes it).
+
+    ``prune_features``: the papers' neighbour pruning (Sec. 6), off by default: it throws
+    away the features that survive a change of light (README, "Features across lighting").
+    ``layers``: traversal index per image for a map merged from several traversals; pruning
+    compares neighbours within a traversal. ``place_index``: build the global
+    place-recognition index (service/vision/place_index.py; seeded, so a build is reproducible).
+    ``camera``: the intrinsics, kept in the metadata, with which frames are located between
+    map images (service/vision/map_geometry.py); None: they are placed at map images only.
+    """
+    from service.vision.features import extract as sift_extract
+
+    params = params or SiftParams()
+    extract = extract or sift_extract
+    feats = [extract(img, params) for img in images]
+    positions = np.asarray(positions, float)
+    if len(feats) != len(positions) or len(feats) != len(image_names):
+        raise MapError("images, positions and names must have the same length")
+    if len(feats) == 0:
+        raise MapError("a map needs at least one image")
+    layer_arr = (np.zeros(len(feats), np.int64) if layers is None
+                 else np.asarray(layers, np.int64))
+    if len(layer_arr) != len(feats) or layer_arr.min() < 0:
+        raise MapError("layers must give a non-negative traversal index per image")
+    kept = feats
+    stats = PruneStats(sum(len(f) for f in feats), sum(len(f) for f in feats))
+    if prune_features:
+        kept = list(feats)
+        before = after = 0
+        for k in np.unique(layer_arr):
+            idx = np.flatnonzero(layer_arr == k)
+            part, st = prune([feats[i] for i in idx], delta)
+            for i, f in zip(idx, part, strict=True):
+                kept[i] = f
+            before, after = before + st.features_before, after + st.features_after
+        stats = PruneStats(before, after)
+    counts = np.array([len(f) for f in kept], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    codes = (np.concatenate([f.codes for f in kept]) if offsets[-1]
+             else np.zeros((0, 128), np.uint8)).astype(np.uint8)
+    kps = (np.concatenate([f.keypoints for f in kept]) if offsets[-1]
+           else np.zeros((0, 2), np.float32)).astype(np.float32)
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "feature": params.as_dict(),
+        "delta": delta,
+        "image_size": [params.width, params.height],
+        "origin": {"lat": origin[0], "lon": origin[1]} if origin else None,
+        "build_date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "pruning": {
+            "enabled": prune_features,
+            "features_before": stats.features_before,
+            "features_after": stats.features_after,
+            "removed_fraction": round(stats.removed_fraction, 4),
+        },
+        "source": source or {},
+        "camera": camera.as_dict() if camera is not None else None,
+    }
+    m = RouteMap(name, meta, positions, list(image_names), codes, offsets, kps,
+                 layers=layer_arr)
+    if place_index:
+        m.place_index = build_place_index(m, np.random.default_rng(0))
+    return m
+
+
+class RoundLike(Protocol):
+    """What a map is built from: a traversal's images and positions (the client's ``Round``,
+    the service's ``UploadedRound``)."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def images(self) -> Sequence[str]: ...
+    @property
+    def xy(self) -> np.ndarray: ...
+    @property
+    def origin(self) -> tuple[float, float] | None: ...
+    @property
+    def camera(self) -> dict[str, float] | None: ...
+    def __len__(self) -> int: ...
+    def load_image(self, i: int) -> np.ndarray: ...
+
+
+def build_map_from_rounds(
+    rounds: Sequence[RoundLike],
+    *,
+    name: str | None = None,
+    params: SiftParams | None = None,
+    delta: float = DEFAULT_DELTA,
+    prune_features: bool = False,
+    source: dict[str, Any] | None = None,
+    images: Iterable[np.ndarray] | None = None,
+    wrap: Callable[[Iterator[np.ndarray]], Iterable[np.ndarray]] | None = None,
+    camera: Camera | None = None,
+) -> RouteMap:
+    """The map of one round, or of several traversals of one route (one layer each).
+
+    ``name`` defaults to the rounds' names joined by '+'. Image names are the round's, or
+    ``ROUND/IMAGE`` for several rounds. ``images`` replaces the rounds' own images (e.g. paced
+    for a background build); ``wrap`` wraps the image iterator (e.g. a progress bar);
+    ``camera``: the intrinsics kept in the map (see ``build_map``); by default the rounds'
+    own (all must have the same).
+    """
+    if not rounds:
+        raise MapError("a map needs at least one round")
+    origin = rounds[0].origin
+    if any(r.origin != origin for r in rounds[1:]):
+        raise MapError("the rounds have different geodetic origins: give them one "
+                       "dataset.json origin")
+    if camera is None and rounds[0].camera is not None:
+        if any(r.camera != rounds[0].camera for r in rounds[1:]):
+            raise MapError("the rounds were recorded with different cameras (dataset.json "
+                           "'camera' or calib.txt); build one map per camera")
+        try:
+            camera = Camera.from_dict(rounds[0].camera)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MapError(f"the round's camera intrinsics are invalid ({exc})") from None
+    it: Iterable[np.ndarray] = (images if images is not None else
+                                (r.load_image(i) for r in rounds for i in range(len(r))))
+    if wrap is not None:
+        it = wrap(iter(it))
+    multi = len(rounds) > 1
+    return build_map(
+        name or "+".join(r.name for r in rounds), it,
+        np.concatenate([np.asarray(r.xy, float) for r in rounds]),
+        [f"{r.name}/{n}" if multi else n for r in rounds for n in r.images],
+        params=params, delta=delta, origin=origin,
+        source=source if source is not None else {"rounds": [r.name for r in rounds]},
+        prune_features=prune_features,
+        layers=np.concatenate([np.full(len(r), k) for k, r in enumerate(rounds)]),
+        camera=camera,
+    )
+
+
+Chunk = tuple[np.ndarray, np.ndarray, np.ndarray]  # (codes, keypoints, counts) of whole images
+
+
+def _image_digest(codes: np.ndarray, keypoints: np.ndarray) -> bytes:
+    return (hashlib.blake2b(_raw(np.ascontiguousarray(codes, np.uint8)),
+                            digest_size=_DIGEST).digest()
+            + hashlib.blake2b(_raw(np.ascontiguousarray(keypoints, "<f4")),
+                              digest_size=_DIGEST).digest())
+
+
+def _small_arrays(positions: np.ndarray, offsets: np.ndarray, image_names: list[str],
+                  layers: np.ndarray, place_index: PlaceIndex | None) -> dict[str, np.ndarray]:
+    out = {
+        "positions": np.ascontiguousarray(positions, "<f8"),
+        "offsets": np.ascontiguousarray(offsets, "<i8"),
+        "image_names": np.frombuffer(json.dumps(image_names).encode(), np.uint8),
+        "layers": np.ascontiguousarray(layers, "<i8"),
+    }
+    if place_index is not None:
+        out.update({k: np.ascontiguousarray(v, "<f4") for k, v in place_index.arrays().items()})
+    return out
+
+
+def _canonical(header: dict) -> bytes:
+    return json.dumps({k: v for k, v in header.items() if k != "checksum"},
+                      sort_keys=True, separators=(",", ":")).encode()
+
+
+def _raw(arr: np.ndarray) -> memoryview | bytes:
+    """The array's bytes without copying a (memory-mapped) contiguous array."""
+    if arr.nbytes == 0:
+        return b""
+    return np.ascontiguousarray(arr).data.cast("B")
+
+
+def _pad(n: int) -> int:
+    return (-n) % _ALIGN
+
+
+def _sha256(arr: np.ndarray) -> str:
+    h = hashlib.sha256()
+    for a in range(0, max(len(arr), 1), 1 << 16):  # bounded memory for a memmap
+        h.update(_raw(arr[a: a + (1 << 16)]))
+    return h.hexdigest()
+
+
+def save_map(m: RouteMap, path: str | Path) -> Path:
+    """Write the map atomically: a crash leaves the old file or none, never half of one."""
+    n = m.n_images
+    counts = np.diff(m.offsets)
+
+    def chunks() -> Iterator[Chunk]:
+        for a in range(0, n, 512):  # whole images, bounded memory for a memory-mapped map
+            b = min(n, a + 512)
+            lo, hi = int(m.offsets[a]), int(m.offsets[b])
+            yield m.codes[lo:hi], m.keypoints[lo:hi], counts[a:b]
+
+    assert m.layers is not None
+    out = write_map(path, m.name, m.meta, m.positions, m.image_names, m.layers, counts,
+                    chunks(), m.place_index)
+    m.path = out
+    return out
+
+
+def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
+              image_names: list[str], layers: np.ndarray, counts: np.ndarray,
+              chunks: Iterable[Chunk], place_index: PlaceIndex | None = None) -> Path:
+    """Stream a map into ``path`` atomically (temp + fsync + rename), chunk by chunk of whole
+    images, so a map of any size is written without holding its descriptors in memory.
+
+    ``counts``: features per image (the chunks' counts, in order, must repeat them).
+    """
+    path = Path(path)
+    if path.suffix != SUFFIX:
+        path = path.with_name(path.name + SUFFIX)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    counts = np.asarray(counts, np.int64)
+    n, total = len(counts), int(counts.sum())
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    small = _small_arrays(positions, offsets, list(image_names), layers, place_index)
+    shapes = {**{k: v.shape for k, v in small.items()}, "codes": (total, 128),
+              "keypoints": (total, 2), "image_digests": (n, 2 * _DIGEST)}
+    layout: dict[str, dict[str, Any]] = {}
+    offset = 0
+    for key, dtype in _DTYPES_V3.items():
+        if key not in shapes:
+            continue
+        nbytes = math.prod(shapes[key]) * dtype.itemsize
+        layout[key] = {"dtype": dtype.str, "shape": list(shapes[key]), "offset": offset,
+                       "nbytes": int(nbytes), "sha256": "0" * 64}
+        offset += nbytes + _pad(nbytes)
+    header = {k: v for k, v in meta.items() if k not in ("arrays", "checksum", "name")}
+    header.update({"name": name, "format_version": FORMAT_VERSION, "arrays": layout,
+                   "place_index": place_index.meta() if place_index is not None else None,
+                   "checksum": "0" * 64})
+    head_len = len(json.dumps(header).encode())
+    start = len(MAGIC) + 8 + head_len
+    data_start = start + _pad(start)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with tmp.open("wb") as fh:
+            fh.truncate(data_start + offset)
+            fd = fh.fileno()
+
+            def put(key: str, at: int, arr: np.ndarray) -> None:
+                if arr.nbytes:
+                    os.pwrite(fd, _raw(arr), data_start + layout[key]["offset"] + at)
+
+            for key, arr in small.items():
+                put(key, 0, arr)
+                layout[key]["sha256"] = _sha256(arr)
+            h_codes, h_kps = hashlib.sha256(), hashlib.sha256()
+            digests = np.zeros((n, 2 * _DIGEST), np.uint8)
+            img = row = 0
+            for codes, kps, cnt in chunks:
+                codes = np.ascontiguousarray(codes, np.uint8)
+                kps = np.ascontiguousarray(kps, "<f4")
+                cnt = np.asarray(cnt, np.int64)
+                if not np.array_equal(cnt, counts[img: img + len(cnt)]) or \
+                        len(codes) != int(cnt.sum()) or len(kps) != len(codes):
+                    raise MapError("map chunks do not add up to the images' feature counts")
+                put("codes", row * 128, codes)
+                put("keypoints", row * 8, kps)
+                h_codes.update(_raw(codes))
+                h_kps.update(_raw(kps))
+                local = np.concatenate([[0], np.cumsum(cnt)])
+                for j in range(len(cnt)):
+                    a, b = int(local[j]), int(local[j + 1])
+                    digests[img + j] = np.frombuffer(_image_digest(codes[a:b], kps[a:b]),
+                                                     np.uint8)
+                img += len(cnt)
+                row += len(codes)
+            if img != n:
+                raise MapError(f"map chunks hold {img} images, expected {n}")
+            put("image_digests", 0, digests)
+            layout["codes"]["sha256"] = h_codes.hexdigest()
+            layout["keypoints"]["sha256"] = h_kps.hexdigest()
+            layout["image_digests"]["sha256"] = _sha256(digests)
+            header["checksum"] = hashlib.sha256(_canonical(header)).hexdigest()
+            head = json.dumps(header).encode()
+            assert len(head) == head_len  # digests are fixed-length hex: same header size
+            prefix = MAGIC + struct.pack("<Q", len(head)) + head
+            os.pwrite(fd, prefix + b"\x00" * _pad(len(prefix)), 0)
+            fh.flush()
+            os.fsync(fd)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+    return path
+
+
+def _read_header(path: Path) -> tuple[dict, int]:
+    try:
+        with path.open("rb") as fh:
+            magic = fh.read(len(MAGIC))
+            if magic != MAGIC:
+                raise MapError(f"{path}: not a swarmloc map (bad magic bytes)")
+            raw_len = fh.read(8)
+            if len(raw_len) != 8:
+                raise MapError(f"{path}: truncated header")
+            (n,) = struct.unpack("<Q", raw_len)
+            if n > 64 * 1024 * 1024:
+                raise MapError(f"{path}: header length {n} is implausible (corrupted file)")
+            raw = fh.read(n)
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read ({exc})") from None
+    if len(raw) != n:
+        raise MapError(f"{path}: truncated header")
+    try:
+        header = json.loads(raw.decode())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise MapError(f"{path}: header is not valid JSON (corrupted file)") from None
+    if not isinstance(header, dict):
+        raise MapError(f"{path}: header is not a JSON object (corrupted file)")
+    start = len(MAGIC) + 8 + n
+    return header, start + _pad(start)
+
+
+def _open_arrays(path: Path, header: dict, data_start: int, dtypes: dict[str, np.dtype],
+                 optional: tuple[str, ...]) -> dict[str, np.ndarray]:
+    size = path.stat().st_size
+    arrays: dict[str, np.ndarray] = {}
+    try:
+        layout = header["arrays"]
+        for key, want in dtypes.items():
+            if key not in layout and key in optional:
+                continue
+            spec = layout[key]
+            dtype = np.dtype(spec["dtype"])
+            offset, nbytes = int(spec["offset"]), int(spec["nbytes"])
+            shape = tuple(int(x) for x in spec["shape"])
+            if dtype != want or offset < 0 or any(d < 0 for d in shape) or \
+                    nbytes != math.prod(shape) * dtype.itemsize:
+                raise MapError(f"{path}: array '{key}' is described inconsistently (dtype "
+                               f"{spec['dtype']}, shape {spec['shape']}, {nbytes} bytes)")
+            begin = data_start + offset
+            if begin + nbytes > size:
+                raise MapError(f"{path}: truncated file (array '{key}' runs past the end)")
+            arrays[key] = (np.memmap(path, dtype=dtype, mode="r", offset=begin, shape=shape)
+                           if nbytes else np.zeros(shape, dtype))
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        if isinstance(exc, MapError):
+            raise
+        raise MapError(f"{path}: header does not describe the arrays ({exc})") from None
+    return arrays
+
+
+def _verify_v2(path: Path, header: dict, arrays: dict[str, np.ndarray]) -> None:
+    digest = hashlib.sha256(_canonical(header))
+    for arr in arrays.values():
+        digest.update(_raw(arr))
+    if digest.hexdigest() != header.get("checksum"):
+        raise MapError(f"{path}: checksum mismatch, the file is corrupted; rebuild the map")
+
+
+def _verify_v3(path: Path, header: dict, arrays: dict[str, np.ndarray], lazy: bool) -> None:
+    if hashlib.sha256(_canonical(header)).hexdigest() != header.get("checksum"):
+        raise MapError(f"{path}: checksum mismatch (header), the file is corrupted; rebuild "
+                       "the map")
+    for key, arr in arrays.items():
+        if lazy and key in _LAZY:
+            continue
+        if _sha256(arr) != header["arrays"][key].get("sha256"):
+            raise MapError(f"{path}: checksum mismatch (array '{key}'), the file is "
+                           "corrupted; rebuild the map")
+
+
+def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
+    """Open a map memory-mapped; check version, layout and (by default) every checksum.
+
+    ``verify="lazy"``: check the header and every array but the descriptors and keypoints
+    now, each image's descriptors and keypoints against its digest when first used; start-up
+    time and memory then do not grow with the map (service start-up uses it).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MapError(f"{path}: no such map file")
+    header, data_start = _read_header(path)
+    version = header.get("format_version")
+    if version not in READABLE_VERSIONS:
+        raise MapError(
+            f"{path}: map format version {version} is not supported (this swarmloc reads "
+            f"versions {', '.join(map(str, READABLE_VERSIONS))}); rebuild it with "
+            "'swarmloc map build'"
+        )
+    if version == 2:
+        arrays = _open_arrays(path, header, data_start, _DTYPES, ())
+        if verify:
+            _verify_v2(path, header, arrays)
+    else:
+        arrays = _open_arrays(path, header, data_start, _DTYPES_V3, _OPTIONAL)
+        if verify:
+            _verify_v3(path, header, arrays, lazy=verify == "lazy")
+    positions = np.asarray(arrays["positions"])
+    offsets = np.asarray(arrays["offsets"])
+    n = len(positions)
+    layers = np.asarray(arrays["layers"])
+    if positions.ndim != 2 or positions.shape[1] != 2 or len(offsets) != n + 1 or \
+            offsets[-1] != len(arrays["codes"]) or np.any(np.diff(offsets) < 0) or \
+            len(layers) != n or (n and layers.min() < 0):
+        raise MapError(f"{path}: inconsistent arrays (positions/offsets/codes/layers)")
+    if not np.isfinite(positions).all():
+        raise MapError(f"{path}: image positions are not all finite numbers (NaN or inf)")
+    if n and len(np.unique(layers)) != int(layers.max()) + 1:
+        # traversal ids are 0 .. L-1, each with images (a stray huge id would otherwise
+        # make a per-layer index of that many entries)
+        raise MapError(f"{path}: layer ids are not 0..L-1 with images in each (largest "
+                       f"{int(layers.max())}, {len(np.unique(layers))} distinct)")
+    try:
+        names = json.loads(bytes(arrays["image_names"]).decode())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise MapError(f"{path}: image names are corrupted") from None
+    if not isinstance(names, list) or len(names) != n or \
+            not all(isinstance(x, str) for x in names):
+        got = len(names) if isinstance(names, list) else type(names).__name__
+        raise MapError(f"{path}: {got} image names for {n} image positions; every image "
+                       "needs one name")
+    codes, kps = arrays["codes"], arrays["keypoints"]
+    if codes.ndim != 2 or codes.shape[1] != 128 or kps.shape != (len(codes), 2):
+        raise MapError(f"{path}: descriptor codes {codes.shape} / keypoints {kps.shape} do "
+                       "not have the shapes (n, 128) / (n, 2)")
+    place_index = None
+    if version == 3:
+        place_index = _check_place_index(path, arrays, n)
+        if arrays["image_digests"].shape != (n, 2 * _DIGEST):
+            raise MapError(f"{path}: image digests {arrays['image_digests'].shape} do not "
+                           f"have the shape ({n}, {2 * _DIGEST})")
+    delta, feature = header.get("delta"), header.get("feature")
+    if not isinstance(delta, int | float) or not 0 < delta <= 1 or \
+            not isinstance(feature, dict):
+        raise MapError(f"{path}: header lacks valid matching parameters (delta, feature)")
+    try:
+        sp = SiftParams(**{k: v for k, v in feature.items() if k != "type"})
+    except (TypeError, ValueError) as exc:
+        raise MapError(f"{path}: feature parameters are invalid ({exc})") from None
+    sizes = (sp.width, sp.height, sp.clahe_tile, sp.n_features)
+    if not all(type(v) is int for v in sizes) or not (
+            8 <= sp.width <= 8192 and 8 <= sp.height <= 8192 and 1 <= sp.clahe_tile <= 64
+            and sp.n_features >= 0):
+        raise MapError(f"{path}: feature parameters are invalid ({feature})")
+    cam = header.get("camera")
+    if cam is not None:
+        try:
+            Camera.from_dict(cam)
+        except (TypeError, ValueError, KeyError) as exc:
+            raise MapError(f"{path}: camera intrinsics are invalid ({exc}); rebuild the map "
+                           "with a valid --hfov, or without one") from None
+    meta = {k: v for k, v in header.items() if k not in ("name",)}
+    name = str(header.get("name", path.stem))
+    lazy = (np.asarray(arrays["image_digests"]) if version == 3 and verify == "lazy"
+            else None)
+    return RouteMap(name, meta, positions, names, arrays["codes"], offsets,
+                    arrays["keypoints"], path, layers, place_index, lazy)
+
+
+def _check_place_index(path: Path, arrays: dict[str, np.ndarray], n: int) -> PlaceIndex | None:
+    present = [k for k in _OPTIONAL if k in arrays]
+    if not present:
+        return None
+    if len(present) != len(_OPTIONAL):
+        raise MapError(f"{path}: the place index is incomplete (has {present})")
+    w, mu, proj, desc = (arrays[k] for k in _OPTIONAL)
+    if w.ndim != 2 or w.shape[1] != 128 or mu.shape != (w.shape[0] * 128,) or \
+            proj.ndim != 2 or proj.shape[0] != len(mu) or desc.shape != (n, proj.shape[1]):
+        raise MapError(f"{path}: the place index arrays do not fit together (words "
+                       f"{w.shape}, projection {proj.shape}, descriptors {desc.shape})")
+    return PlaceIndex.from_arrays(arrays)
+
+
+def list_maps(directory: str | Path) -> list[Path]:
+    directory = Path(directory)
+    return sorted(p for p in directory.glob(f"*{SUFFIX}") if p.is_file())

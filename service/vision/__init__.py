@@ -1,0 +1,1 @@
+"""Pixels to features: imaging, RootSIFT features, matcher, place index, two-view geometry."""

@@ -1,0 +1,109 @@
+"""A map's two-view geometry: the structure of its images, kept, and a frame located at one.
+
+``MapGeometry.locate(features, i)`` answers where the frame's camera stands relative to map
+image ``i`` (service/vision/metric_pose.py). The structure of ``i`` (its features' 3-D points, from
+``i`` and a neighbour of its traversal ``baseline_m`` away) depends on the map alone, so it is
+computed once per image and kept, bounded, for every session on the map.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from service.vision.features import Features
+from service.vision.matcher import PreparedSet
+from service.vision.metric_pose import Camera, Offset, Structure, locate, match_pairs, triangulate
+
+
+class _Images(Protocol):  # what this module needs of a RouteMap (service/maps/route_map.py)
+    positions: np.ndarray
+    layers: np.ndarray | None
+
+    def codes_of(self, image_id: int) -> np.ndarray: ...
+
+    def keypoints_of(self, image_id: int) -> np.ndarray: ...
+
+    def prepared(self, image_id: int) -> PreparedSet: ...
+
+
+@dataclass(frozen=True)
+class GeometryParams:
+    """How a frame is located at a map image."""
+
+    delta: float = 0.9  # ratio threshold of the matches used for geometry (looser than m's)
+    min_inliers: int = 8  # RANSAC inliers needed, for the structure and for the frame
+    baseline_m: float = 2.4  # distance to the neighbour that gives an image its structure
+
+
+class MapGeometry:
+    """The geometry of one map with camera ``camera``; thread-safe, bounded cache."""
+
+    def __init__(self, images: _Images, camera: Camera, width: int, height: int,
+                 max_cached: int = 4096) -> None:
+        self.images = images
+        self.k = camera.matrix(width, height)
+        self.max_cached = max_cached
+        self._cache: OrderedDict[tuple[int, GeometryParams], Structure | None] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def partner(self, image_id: int, baseline_m: float) -> int | None:
+        """The image of ``image_id``'s traversal nearest to ``baseline_m`` away along the id
+        order (ahead, else behind), between half and twice that distance; None if none."""
+        pos = self.images.positions
+        layers = self.images.layers
+        here = pos[image_id]
+        for step in (1, -1):
+            j, best, best_gap = image_id + step, None, np.inf
+            while 0 <= j < len(pos) and (layers is None or layers[j] == layers[image_id]):
+                d = float(np.linalg.norm(pos[j] - here))
+                if d > 2.0 * baseline_m:
+                    break
+                if d >= 0.5 * baseline_m and abs(d - baseline_m) < best_gap:
+                    best, best_gap = j, abs(d - baseline_m)
+                j += step
+            if best is not None:
+                return best
+        return None
+
+    def structure(self, image_id: int, p: GeometryParams) -> Structure | None:
+        key = (int(image_id), p)
+        with self._lock:
+            if key in self._cache:
+                self._cache.move_to_end(key)
+                return self._cache[key]
+        j = self.partner(image_id, p.baseline_m)
+        st = None
+        if j is not None:
+            baseline = float(np.linalg.norm(self.images.positions[j]
+                                             - self.images.positions[image_id]))
+            pairs = match_pairs(self.images.codes_of(image_id), self.images.prepared(j),
+                                p.delta)
+            try:
+                st = triangulate(self.images.keypoints_of(image_id),
+                                 self.images.keypoints_of(j), pairs, baseline, self.k,
+                                 p.min_inliers)
+            except cv2.error:  # a degenerate configuration: no structure, not a failed frame
+                st = None
+        with self._lock:
+            self._cache[key] = st
+            while len(self._cache) > self.max_cached:
+                self._cache.popitem(last=False)
+        return st
+
+    def locate(self, frame: Features, image_id: int, p: GeometryParams) -> Offset | None:
+        """The frame's camera centre relative to map image ``image_id``'s camera (metres
+        right, ahead); None where the geometry is not reliable."""
+        st = self.structure(image_id, p)
+        if st is None:
+            return None
+        pairs = match_pairs(frame.codes, self.images.prepared(image_id), p.delta)
+        try:
+            return locate(frame.keypoints, pairs, st, self.k, p.min_inliers)
+        except cv2.error:  # a degenerate configuration: the frame is not located
+            return None

@@ -1,0 +1,443 @@
+"""Exact, fast m(A, B) on uint8 descriptors (quantised RootSIFT).
+
+The similarity is the papers' symmetric ratio test (see ``service.vision.features``), defined here
+precisely for integer descriptors, so that the fast path and the reference agree bit for bit:
+
+- ``d(a, b)`` is the exact integer dot product, ``|a| = sqrt(float64(sum a^2))``;
+- ``cos(a, b) = min(d / (|a| * |b|), 1)`` in float64, the angle is ``math.acos(cos)``;
+- the nearest neighbour of ``a`` in B is the first ``b`` of largest cos; the second-nearest
+  angle comes from the largest cos among the other rows (an exact tie makes both angles equal,
+  so a tie never passes);
+- ``a`` passes iff ``acos(cos1) < delta * acos(cos2)``; a pair counts when ``a`` and ``b`` are
+  each other's nearest neighbour and both pass; m = count / min(|A|, |B|); a set with fewer
+  than two features matches nothing.
+
+Fast path: the integer dot products come from an exact uint8 GEMM (NumKong's packed kernels:
+AMX / VNNI where the CPU has them; float32 BLAS as a fallback, exact because every dot is an
+integer below 2^24). A fused numba kernel keeps the two best float32 keys per row
+(``d * 1/|b|``) and per column (``d * 1/|a|``) without materialising anything else. The float32
+keys are within 2.5e-7 (relative) of the exact ratio; wherever the two best keys are closer than
+``_TOL`` or the decision could flip within that error, the row or column is rescanned exactly in
+integers and float64, so the result equals the reference's.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from service.vision.features import DEFAULT_DELTA, BatchMatch
+
+_TOL = 1e-6  # relative; the float32 key error is at most ~2.5e-7
+_TILE = 256  # rows of A per GEMM tile (the uint32 tile stays in L2)
+
+
+def _jit(fn: Callable) -> Callable:
+    """numba ``njit(cache=True, nogil=True)``; without the on-disk cache where it cannot be
+    written (read-only install and no writable user cache): compiled per process instead."""
+    import numba
+
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError:  # "cannot cache function ...: no locator available"
+        return numba.njit(nogil=True)(fn)
+
+
+try:  # NumKong: exact packed uint8 GEMM (AMX / AVX-512 VNNI); optional, BLAS otherwise
+    import numkong as _nk
+except ImportError:  # pragma: no cover - numkong is a main dependency
+    _nk = None  # type: ignore[assignment]
+
+
+@dataclass(frozen=True)
+class PreparedSet:
+    """A descriptor set prepared once (per map image): its rows, norms and packed GEMM operand."""
+
+    desc: np.ndarray  # (n, D) uint8
+    norms: np.ndarray  # (n,) float64, |b|
+    inv_norms: np.ndarray  # (n,) float32, 1 / |b|
+    packed: Any  # numkong PackedMatrix, or None (BLAS path)
+
+    def __len__(self) -> int:
+        return len(self.desc)
+
+
+def _check_u8(x: np.ndarray, name: str) -> np.ndarray:
+    x = np.asarray(x)
+    if x.dtype != np.uint8 or x.ndim != 2:
+        raise ValueError(f"{name}: expected a 2-D uint8 descriptor array, got {x.dtype} {x.shape}")
+    if x.shape[1] * 255 * 255 >= 2**24:
+        raise ValueError(f"{name}: descriptors of length {x.shape[1]} are too long for exact "
+                         "float32 dot products (at most 258)")
+    return np.ascontiguousarray(x)
+
+
+def norms_u8(x: np.ndarray) -> np.ndarray:
+    """|x| per row in float64 from the exact integer sum of squares; zero rows are refused."""
+    x = _check_u8(x, "descriptors")
+    f = x.astype(np.float32)
+    sq = np.einsum("ij,ij->i", f, f)  # integer partial sums below 2^24: exact in float32
+    if np.any(sq == 0):
+        raise ValueError("descriptor rows must be non-zero")
+    return np.sqrt(sq.astype(np.float64))
+
+
+def prepare(b: np.ndarray, backend: str = "auto") -> PreparedSet:
+    """Prepare a map image's uint8 descriptors once: norms and (NumKong) packed layout."""
+    b = _check_u8(b, "set")
+    norms = norms_u8(b)
+    inv = (1.0 / norms).astype(np.float32) if len(b) else np.zeros(0, np.float32)
+    packed = None
+    if _use_numkong(backend) and len(b):
+        packed = _nk.dots_pack(b, dtype="uint8")
+    return PreparedSet(b, norms, inv, packed)
+
+
+def _use_numkong(backend: str) -> bool:
+    if backend not in ("auto", "numkong", "blas"):
+        raise ValueError(f"unknown matcher backend {backend!r}: use auto, numkong or blas")
+    if backend == "numkong" and _nk is None:
+        raise ValueError("matcher backend 'numkong' needs the numkong package")
+    return backend != "blas" and _nk is not None
+
+
+# ---- numba kernels ------------------------------------------------------------------------
+def _scan_columns(dots, r0, inv_na, cm1, cm2):
+    """Update the two best float32 keys d * (1/|a|) of every column with rows r0.. of a tile.
+
+    Four rows per sweep: the column state is loaded and stored once for four updates.
+    """
+    nr, nb = dots.shape
+    r = 0
+    while r + 4 <= nr:
+        sa = inv_na[r0 + r]
+        sb = inv_na[r0 + r + 1]
+        sc = inv_na[r0 + r + 2]
+        sd = inv_na[r0 + r + 3]
+        ra = dots[r]
+        rb = dots[r + 1]
+        rc = dots[r + 2]
+        rd = dots[r + 3]
+        for j in range(nb):
+            c1 = cm1[j]
+            c2 = cm2[j]
+            k = np.float32(ra[j]) * sa
+            c2 = max(c2, min(c1, k))
+            c1 = max(c1, k)
+            k = np.float32(rb[j]) * sb
+            c2 = max(c2, min(c1, k))
+            c1 = max(c1, k)
+            k = np.float32(rc[j]) * sc
+            c2 = max(c2, min(c1, k))
+            c1 = max(c1, k)
+            k = np.float32(rd[j]) * sd
+            c2 = max(c2, min(c1, k))
+            c1 = max(c1, k)
+            cm1[j] = c1
+            cm2[j] = c2
+        r += 4
+    while r < nr:
+        sa = inv_na[r0 + r]
+        ra = dots[r]
+        for j in range(nb):
+            k = np.float32(ra[j]) * sa
+            c1 = cm1[j]
+            cm2[j] = max(cm2[j], min(c1, k))
+            cm1[j] = max(c1, k)
+        r += 1
+
+
+def _finish_row(row, inv_nb, nfull, lm1, lm2, lj1):
+    """Best key, its column and the second key of a row from its lanes plus the tail."""
+    m1 = np.float32(-1.0)
+    m2 = np.float32(-1.0)
+    j1 = -1
+    for j in range(nfull, row.shape[0]):
+        k = np.float32(row[j]) * inv_nb[j]
+        if k > m1:
+            m2 = m1
+            m1 = k
+            j1 = j
+        elif k > m2:
+            m2 = k
+    for q in range(lm1.shape[0]):  # merge the lanes (an equal value goes to m2: a tie is kept)
+        v = lm1[q]
+        if v > m1 or (v == m1 and lj1[q] < j1):
+            m2 = m1
+            m1 = v
+            j1 = lj1[q]
+        elif v > m2:
+            m2 = v
+        m2 = max(m2, lm2[q])
+    return m1, j1, m2
+
+
+def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1):
+    """Best key d * (1/|b|), its column and dot, and the second key of rows r0.. of a tile.
+
+    Two rows at a time, each over 32 independent lanes: the loop vectorises, enough chains are
+    in flight to hide the latency of max, and the 1/|b| loads are shared; then lanes merge.
+    """
+    nr, nb = dots.shape
+    nl = 32
+    a1 = np.empty(nl, np.float32)
+    a2 = np.empty(nl, np.float32)
+    aj = np.empty(nl, np.int32)
+    b1 = np.empty(nl, np.float32)
+    b2 = np.empty(nl, np.float32)
+    bj = np.empty(nl, np.int32)
+    nfull = nb - nb % nl
+    for r in range(0, nr, 2):
+        ra = dots[r]
+        rb = dots[min(r + 1, nr - 1)]  # an odd last row is simply done twice
+        for q in range(nl):
+            a1[q] = -1.0
+            a2[q] = -1.0
+            aj[q] = -1
+            b1[q] = -1.0
+            b2[q] = -1.0
+            bj[q] = -1
+        for jb in range(0, nfull, nl):
+            for q in range(nl):
+                j = jb + q
+                s = inv_nb[j]
+                k = np.float32(ra[j]) * s
+                l1 = a1[q]
+                aj[q] = np.int32(j) if k > l1 else aj[q]
+                a2[q] = max(a2[q], min(l1, k))
+                a1[q] = max(l1, k)
+                k = np.float32(rb[j]) * s
+                l1 = b1[q]
+                bj[q] = np.int32(j) if k > l1 else bj[q]
+                b2[q] = max(b2[q], min(l1, k))
+                b1[q] = max(l1, k)
+        m1, j1, m2 = _finish_row(ra, inv_nb, nfull, a1, a2, aj)
+        rm1[r0 + r] = m1
+        rj1[r0 + r] = j1
+        rm2[r0 + r] = m2
+        rd1[r0 + r] = ra[j1]
+        if r + 1 < nr:
+            m1, j1, m2 = _finish_row(rb, inv_nb, nfull, b1, b2, bj)
+            rm1[r0 + r + 1] = m1
+            rj1[r0 + r + 1] = j1
+            rm2[r0 + r + 1] = m2
+            rd1[r0 + r + 1] = rb[j1]
+
+
+def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, rd1, cm1, cm2):
+    """The float32 top-2 keys of rows r0.. (best column and its dot kept) and of every column
+    (values)."""
+    _scan_columns(dots, r0, inv_na, cm1, cm2)
+    _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1)
+
+
+def _dot(x, y):  # numba kernel
+    d = np.int64(0)
+    for t in range(x.shape[0]):
+        d += np.int64(x[t]) * np.int64(y[t])
+    return d
+
+
+def _cos(x, y, nx, ny):
+    return min(_dot(x, y) / (nx * ny), 1.0)
+
+
+def _exact_scan(x, nx, ys, nys):
+    """Exact best index, best cos and second cos of x over the rows of ys."""
+    c1 = -1.0
+    c2 = -1.0
+    j1 = -1
+    for j in range(ys.shape[0]):
+        c = _cos(x, ys[j], nx, nys[j])
+        if c > c1:
+            c2 = c1
+            c1 = c
+            j1 = j
+        elif c > c2:
+            c2 = c
+    return j1, c1, c2
+
+
+def _passes(c1, c2, delta):
+    return math.acos(c1) < delta * math.acos(c2)
+
+
+def _ratio(c1, m2, n, delta, tol):
+    """Ratio test with the exact best cos c1 and the second from its float32 key m2 (cos =
+    m2 / n within tol): 1 pass, 0 fail, -1 undecided (needs the exact scan)."""
+    c2 = m2 / n
+    if _passes(c1, min(c2 * (1.0 + tol), 1.0), delta):
+        return 1
+    if not _passes(c1, min(c2 * (1.0 - tol), 1.0), delta):
+        return 0
+    return -1
+
+
+def _decide(a, na, b, nb, inv_na, rm1, rj1, rm2, rd1, cm1, cm2, delta, tol, matched):
+    """Mark rows of A in a symmetric ratio-test match with B; return the count.
+
+    Cheap checks first: a row whose float32 best is clear and whose column's clear best is
+    another row is no match (no angle is computed); exact rescans only where keys are close.
+    """
+    count = 0
+    for i in range(a.shape[0]):
+        c2 = 0.0
+        row_clear = rm1[i] > rm2[i] * (1.0 + tol)  # a clear float32 winner is the exact one
+        if row_clear:
+            j = rj1[i]
+            d = rd1[i]
+            c1 = min(d / (na[i] * nb[j]), 1.0)
+        else:
+            j, c1, c2 = _exact_scan(a[i], na[i], b, nb)
+            d = _dot(a[i], b[j])
+        col_clear = cm1[j] > cm2[j] * (1.0 + tol)
+        if col_clear and np.float32(d) * inv_na[i] != cm1[j]:
+            continue  # column j's nearest neighbour is another row
+        if row_clear:
+            ok = _ratio(c1, rm2[i], na[i], delta, tol)
+            if ok < 0:
+                _, c1, c2 = _exact_scan(a[i], na[i], b, nb)
+                ok = _passes(c1, c2, delta)
+        else:
+            ok = _passes(c1, c2, delta)
+        if not ok:
+            continue
+        if col_clear:
+            okb = _ratio(c1, cm2[j], nb[j], delta, tol)
+            if okb < 0:
+                ib, c1b, c2b = _exact_scan(b[j], nb[j], a, na)
+                okb = ib == i and _passes(c1b, c2b, delta)
+        else:
+            ib, c1b, c2b = _exact_scan(b[j], nb[j], a, na)
+            okb = ib == i and _passes(c1b, c2b, delta)
+        if okb:
+            matched[i] = True
+            count += 1
+    return count
+
+
+_scan_columns = _jit(_scan_columns)
+_finish_row = _jit(_finish_row)
+_scan_rows = _jit(_scan_rows)
+_scan_tile = _jit(_scan_tile)
+_dot = _jit(_dot)
+_cos = _jit(_cos)
+_exact_scan = _jit(_exact_scan)
+_passes = _jit(_passes)
+_ratio = _jit(_ratio)
+_decide = _jit(_decide)
+
+
+# ---- public API -----------------------------------------------------------------------------
+def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
+                   delta: float = DEFAULT_DELTA, backend: str = "auto") -> BatchMatch:
+    """Exact symmetric ratio-test matches of uint8 descriptors ``a`` (nA, D) against each set.
+
+    ``sets`` holds uint8 arrays (nB, D) or, better, ``PreparedSet``s from ``prepare`` (a map
+    prepares each image once). ``backend``: ``auto`` (NumKong if installed), ``numkong`` or
+    ``blas`` (float32 GEMM). Equal to ``match_batch_u8_reference`` on every input.
+    """
+    a = _check_u8(a, "a")
+    k = len(sets)
+    na_rows = len(a)
+    counts = np.zeros(k, np.int64)
+    matched = np.zeros((k, na_rows), bool)
+    use_nk = _use_numkong(backend)
+    prepared = [s if isinstance(s, PreparedSet) else prepare(s, backend) for s in sets]
+    for s in prepared:
+        if s.desc.shape[1] != a.shape[1] and len(s) and na_rows:
+            raise ValueError(f"descriptor length differs: {a.shape[1]} vs {s.desc.shape[1]}")
+    nb_all = np.array([len(s) for s in prepared], np.int64)
+    if k == 0 or na_rows < 2:
+        return BatchMatch(counts, np.zeros(k), matched)
+    na = norms_u8(a)
+    inv_na = (1.0 / na).astype(np.float32)
+    a_f32 = None if use_nk else a.astype(np.float32)
+    tile = min(_TILE, na_rows)
+    rm1 = np.empty(na_rows, np.float32)
+    rm2 = np.empty(na_rows, np.float32)
+    rj1 = np.empty(na_rows, np.int64)
+    rd1 = np.empty(na_rows, np.int64)
+    for idx, s in enumerate(prepared):
+        nb = len(s)
+        if nb < 2:
+            continue
+        cm1 = np.full(nb, -1.0, np.float32)
+        cm2 = np.full(nb, -1.0, np.float32)
+        if use_nk:
+            packed = s.packed if s.packed is not None else _nk.dots_pack(s.desc, dtype="uint8")
+            out = _nk.empty((tile, nb), dtype="uint32")
+            buf = np.asarray(out)
+        else:
+            b_t = s.desc.astype(np.float32).T
+            buf = np.empty((tile, nb), np.float32)
+        for r0 in range(0, na_rows, tile):
+            r1 = min(r0 + tile, na_rows)
+            if use_nk:
+                if r1 - r0 != tile:
+                    out = _nk.empty((r1 - r0, nb), dtype="uint32")
+                    buf = np.asarray(out)
+                _nk.dots_packed(a[r0:r1], packed, out=out)
+                dots = buf
+            else:
+                assert a_f32 is not None
+                dots = np.matmul(a_f32[r0:r1], b_t, out=buf[: r1 - r0])
+            _scan_tile(dots, r0, inv_na, s.inv_norms, rm1, rj1, rm2, rd1, cm1, cm2)
+        counts[idx] = _decide(a, na, s.desc, s.norms, inv_na, rm1, rj1, rm2, rd1, cm1, cm2,
+                              float(delta), _TOL, matched[idx])
+    denom = np.minimum(na_rows, nb_all)
+    scores = np.where(denom > 0, counts / np.maximum(denom, 1), 0.0)
+    return BatchMatch(counts, scores, matched)
+
+
+def match_batch_u8_reference(a: np.ndarray, sets: Sequence[np.ndarray],
+                             delta: float = DEFAULT_DELTA) -> BatchMatch:
+    """The definition above, written plainly: float64 dot products (exact for uint8),
+    cos = min(d / (|a| |b|), 1), angles with ``math.acos``, full argmax both ways."""
+    a = _check_u8(a, "a")
+    k = len(sets)
+    counts = np.zeros(k, np.int64)
+    matched = np.zeros((k, len(a)), bool)
+    nb_all = np.array([len(b) for b in sets], np.int64)
+    if len(a) >= 2:
+        na = norms_u8(a)
+        for idx, b in enumerate(sets):
+            b = _check_u8(b, "set")
+            if len(b) < 2:
+                continue
+            nb = norms_u8(b)
+            cos = np.minimum((a.astype(np.float64) @ b.astype(np.float64).T)
+                             / (na[:, None] * nb[None, :]), 1.0)
+            row_best, row_pass = _reference_side(cos, delta)
+            col_best, col_pass = _reference_side(cos.T, delta)
+            rows = np.arange(len(a))
+            ok = row_pass & col_pass[row_best] & (col_best[row_best] == rows)
+            matched[idx] = ok
+            counts[idx] = int(ok.sum())
+    denom = np.minimum(len(a), nb_all)
+    scores = np.where(denom > 0, counts / np.maximum(denom, 1), 0.0)
+    return BatchMatch(counts, scores, matched)
+
+
+def _reference_side(cos: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarray]:
+    best = cos.argmax(axis=1)
+    rows = np.arange(len(cos))
+    c1 = cos[rows, best]
+    rest = cos.copy()
+    rest[rows, best] = -np.inf
+    c2 = rest.max(axis=1)
+    ok = np.array([math.acos(x) < delta * math.acos(y) for x, y in zip(c1, c2, strict=True)],
+                  bool)
+    return best, ok
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) the numba kernels, outside any timed section."""
+    rng = np.random.default_rng(0)
+    x = rng.integers(1, 255, (20, 128), dtype=np.uint8)
+    for backend in ("auto", "blas"):
+        match_batch_u8(x, [x[:19], prepare(x[1:], backend)], backend=backend)

@@ -1,0 +1,136 @@
+"""Where the camera stands relative to a map image, in metres: two-view geometry.
+
+Image retrieval places the robot *at* a map image; it cannot tell how far the robot is beside
+or ahead of it (two traversals of a street differ by a lane position, neighbouring images look
+alike). The features matched with a map image can. The map image ``i`` and a neighbour ``j``
+of the same traversal, a known distance apart, give the 3-D points of ``i``'s features (the
+essential matrix of the pair, its translation scaled to the distance between their recorded
+positions, then triangulation); the frame's features matched with ``i``'s give the frame's
+camera pose against those points (PnP with RANSAC). The result is the camera centre in the
+frame of ``i``'s camera: metres to the right and ahead.
+
+Everything here is pure computation on arrays (OpenCV's RANSAC draws from its own fixed-seed
+generator, so one input always gives one result).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from service.vision.matcher import PreparedSet, match_batch_u8, prepare
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics as fractions of the image's width (fx, cx) and height (fy, cy), so
+    that one camera serves any working size of the same aspect."""
+
+    fx: float
+    fy: float
+    cx: float = 0.5
+    cy: float = 0.5
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Camera:
+        cam = cls(float(d["fx"]), float(d["fy"]), float(d.get("cx", 0.5)),
+                  float(d.get("cy", 0.5)))
+        if not all(math.isfinite(v) and v > 0 for v in (cam.fx, cam.fy, cam.cx, cam.cy)):
+            raise ValueError(f"camera intrinsics must be finite and positive, got {d}")
+        return cam
+
+    def as_dict(self) -> dict[str, float]:
+        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy}
+
+    def matrix(self, width: int, height: int) -> np.ndarray:
+        return np.array([[self.fx * width, 0.0, self.cx * width],
+                         [0.0, self.fy * height, self.cy * height],
+                         [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class Structure:
+    """3-D points (n, 3) of some of a map image's features, in that image's camera frame
+    (x right, y down, z ahead; metres), and the features' indices in the image."""
+
+    feature_ids: np.ndarray
+    points: np.ndarray
+
+
+@dataclass(frozen=True)
+class Offset:
+    """A frame's camera centre in a map image's camera frame: metres right and ahead."""
+
+    right_m: float
+    ahead_m: float
+
+
+def match_pairs(a: np.ndarray, b: np.ndarray | PreparedSet, delta: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (ia, ib) of the symmetric ratio-test matches between uint8 descriptor codes
+    ``a`` and ``b`` (the similarity's own matches, service/vision/matcher.py)."""
+    pb = b if isinstance(b, PreparedSet) else prepare(np.asarray(b, np.uint8))
+    rows = np.flatnonzero(match_batch_u8(a, [pb], delta).matched[0])
+    if not len(rows):
+        return rows, rows
+    # a matched pair is a pair of mutual nearest neighbours: b's partner is a's nearest
+    dots = np.asarray(a[rows], np.float32) @ pb.desc.astype(np.float32).T
+    return rows, np.argmax(dots * pb.inv_norms[None, :], axis=1)
+
+
+def triangulate(kp_i: np.ndarray, kp_j: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
+                baseline_m: float, k: np.ndarray, min_points: int,
+                max_depth_m: float = 100.0) -> Structure | None:
+    """Structure of image ``i`` from its matches with image ``j`` taken ``baseline_m`` away:
+    None when the pair gives no reliable geometry (too few matches or inliers)."""
+    ia, ib = pairs
+    if len(ia) < max(min_points, 8) or baseline_m <= 0:
+        return None
+    p1 = np.ascontiguousarray(kp_i[ia], np.float64)
+    p2 = np.ascontiguousarray(kp_j[ib], np.float64)
+    e, mask = cv2.findEssentialMat(p1, p2, k, cv2.RANSAC, 0.999, 1.0)
+    if e is None or e.shape != (3, 3) or mask is None:
+        return None
+    _, r, t, mask = cv2.recoverPose(e, p1, p2, k, mask=mask.copy())
+    ok = mask.ravel() > 0
+    if ok.sum() < min_points:
+        return None
+    proj_i = k @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    proj_j = k @ np.hstack([r, t * baseline_m])
+    xh = cv2.triangulatePoints(proj_i, proj_j, p1[ok].T, p2[ok].T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (xh[:3] / xh[3]).T
+    good = np.isfinite(x).all(axis=1) & (x[:, 2] > 0.5) & (x[:, 2] < max_depth_m)
+    if good.sum() < min_points:
+        return None
+    return Structure(ia[ok][good].astype(np.int64), x[good])
+
+
+def locate(kp_q: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], structure: Structure,
+           k: np.ndarray, min_inliers: int, reprojection_px: float = 2.0,
+           max_offset_m: float = 50.0) -> Offset | None:
+    """The frame's camera centre in the structure's camera frame from the frame's matches
+    ``pairs`` (frame feature, map image feature) by PnP with RANSAC; None with fewer than
+    ``min_inliers`` inliers, or a centre farther than ``max_offset_m`` (a degenerate
+    configuration: image points that do not span the view)."""
+    iq, ii = pairs
+    pos = np.searchsorted(structure.feature_ids, ii)
+    pos = np.minimum(pos, len(structure.feature_ids) - 1)
+    hit = structure.feature_ids[pos] == ii
+    if hit.sum() < max(min_inliers, 6):
+        return None
+    obj = np.ascontiguousarray(structure.points[pos[hit]], np.float64)
+    img = np.ascontiguousarray(kp_q[iq[hit]], np.float64)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, k, None,
+                                             reprojectionError=reprojection_px,
+                                             iterationsCount=200, confidence=0.999)
+    if not ok or inl is None or len(inl) < min_inliers:
+        return None
+    rot, _ = cv2.Rodrigues(rvec)
+    centre = (-rot.T @ tvec).ravel()
+    if not np.isfinite(centre).all() or float(np.linalg.norm(centre)) > max_offset_m:
+        return None
+    return Offset(float(centre[0]), float(centre[2]))

@@ -1,0 +1,1 @@
+"""The Zenoh transport: bridge, ROS 2 codecs, map queryables, config."""

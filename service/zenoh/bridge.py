@@ -1,0 +1,305 @@
+"""Zenoh transport: key expressions <-> robot sessions (eclipse-zenoh 1.x, same process).
+
+Keys (prefix ``swarmloc`` by default):
+
+- ``{prefix}/{robot}/frame``     robot publishes an encoded PNG/JPEG; the attachment is JSON
+                                 ``{"t": seconds, "seq": n, "prior": {"x", "y", "radius"}}``
+                                 (all optional). The estimate, or an error, is published on
+- ``{prefix}/{robot}/estimate``  as JSON (the HTTP Estimate schema plus robot_id, input_seq;
+                                 errors are ``{"error", "status", "robot_id", "input_seq"}``).
+- ``{prefix}/{robot}/localize``  queryable: a frame in the query payload (same attachment),
+                                 the estimate as the reply, or an error reply (same JSON).
+- ``{prefix}/{robot}/control``   queryable: JSON ``{"action": "put", ...SessionConfig}``,
+                                 ``{"action": "reset", "x", "y", "radius"}``,
+                                 ``{"action": "delete"}`` or ``{"action": "get"}``.
+
+With ``ros2_enabled`` the same session also speaks ROS 2 (CDR messages on the keys of
+``zenoh-bridge-ros2dds`` or ``rmw_zenoh``): see service/zenoh/ros2.py, imported only then.
+
+A session is created on the first frame with the default map if no control message made one.
+Frames that arrive while the robot's previous frame is still being processed wait in a
+one-frame slot: a newer frame replaces the waiting one (counted as dropped), so a robot always
+gets the estimate of its newest frame and never a growing backlog.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from service.api.errors import BadRequest, ServiceError
+from service.api.models import FrameMeta, PosePrior, ResetRequest, SessionConfig, validated
+from service.engine.localization_service import LocalizationService
+from service.settings import Settings
+from service.zenoh.config import service_zenoh_config
+from service.zenoh.maps import declare_map_queryables
+from service.zenoh.replies import answer, error_body, internal_error
+
+log = logging.getLogger("swarmloc")
+
+
+class ZenohSecurityError(RuntimeError):
+    """Zenoh would bypass the HTTP token: refused at start-up."""
+
+
+def check_security(settings: Settings) -> None:
+    """With a bearer token on HTTP, Zenoh must be secured too (a config file with TLS/mTLS,
+    user/password or access control), or the operator must accept it explicitly."""
+    if settings.auth_token and not settings.zenoh_config_file and \
+            not settings.zenoh_unauthenticated:
+        raise ZenohSecurityError(
+            "HTTP needs a bearer token but Zenoh has no authentication: give a Zenoh config "
+            "file with TLS/mTLS, user/password or access control (SWARMLOC_ZENOH_CONFIG_FILE, "
+            "README 'Hardening'), turn Zenoh off (SWARMLOC_ZENOH_ENABLED=false), or accept "
+            "an open Zenoh with SWARMLOC_ZENOH_UNAUTHENTICATED=true")
+
+
+@dataclass
+class _Frame:
+    data: bytes | np.ndarray  # encoded image, or grayscale pixels (ROS 2 sensor_msgs/Image)
+    meta: dict[str, Any]
+    content_type: str | None = None
+    reply: Callable[[dict[str, Any]], None] | None = None  # also answer here (ROS 2)
+
+
+def parse_attachment(raw: bytes | None) -> dict[str, Any]:
+    if not raw:
+        return {}
+    try:
+        meta = json.loads(raw)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise BadRequest("attachment must be JSON like {\"t\": 12.5, \"seq\": 3}") from None
+    if not isinstance(meta, dict):
+        raise BadRequest("attachment must be a JSON object")
+    return meta
+
+
+def _frame_args(meta: dict[str, Any]) -> tuple[float | None, int | None, PosePrior | None]:
+    m = validated(FrameMeta, meta, "attachment")
+    return m.t, m.seq, m.prior
+
+
+def _seq_of(meta: dict[str, Any]) -> int | None:
+    """The frame's seq for an error reply, when it is a plain integer."""
+    seq = meta.get("seq")
+    return seq if isinstance(seq, int) and not isinstance(seq, bool) and \
+        -(2**63) <= seq < 2**63 else None
+
+
+def control(service: LocalizationService, robot: str, body: Any) -> dict[str, Any]:
+    """One control message (``{robot}/control``): the same validation and answers as the
+    HTTP session routes. Raises ServiceError."""
+    if not isinstance(body, dict):
+        raise BadRequest("control payload must be a JSON object")
+    body = dict(body)
+    action = body.pop("action", "put")
+    if action == "put":
+        config = validated(SessionConfig, body, "request")
+        info, _ = service.put_session(robot, config)
+        return info.model_dump(mode="json")
+    if action == "get":
+        return service.session(robot).info().model_dump(mode="json")
+    if action == "delete":
+        service.delete_session(robot)
+        return {"deleted": robot}
+    if action == "reset":
+        near = validated(ResetRequest, body, "request").near()
+        return service.reset_session(robot, near).model_dump(mode="json")
+    raise BadRequest(f"unknown action {action!r}; use put, get, reset or delete")
+
+
+class ZenohBridge:
+    """Owns one Zenoh session and the declarations serving ``service``."""
+
+    def __init__(self, service: LocalizationService, settings: Settings | None = None) -> None:
+        self.service = service
+        self.settings = settings or service.settings
+        self.prefix = self.settings.zenoh_prefix.strip("/")
+        self._session: zenoh.Session | None = None
+        self._decls: list[Any] = []
+        self._pool = ThreadPoolExecutor(max_workers=self.settings.frame_workers,
+                                        thread_name_prefix="zenoh-frames")
+        # sessions over heavy_particles get their own quarter of the workers (fairness)
+        self._heavy_pool = ThreadPoolExecutor(
+            max_workers=max(1, self.settings.frame_workers // 4),
+            thread_name_prefix="zenoh-heavy")
+        self._slots: dict[str, _Frame | None] = {}
+        self._busy: set[str] = set()
+        self._lock = threading.Lock()
+
+    # ---- lifecycle ----------------------------------------------------------------------
+    def start(self) -> ZenohBridge:
+        check_security(self.settings)
+        s = zenoh.open(service_zenoh_config(self.settings))
+        self._session = s
+        p = self.prefix
+        self._decls = [
+            s.declare_subscriber(f"{p}/*/frame", self._on_frame),
+            s.declare_queryable(f"{p}/*/localize", self._on_localize),
+            s.declare_queryable(f"{p}/*/control", self._on_control),
+            *declare_map_queryables(s, p, self.service, self._pool),  # {p}/@maps, {p}/@jobs
+        ]
+        if self.settings.ros2_enabled:
+            from service.zenoh.ros2 import Ros2Endpoints
+
+            ros2 = Ros2Endpoints(self.settings, self.service, self.submit_frame, self._publish)
+            self._decls += ros2.declare(s)
+        return self
+
+    def close(self) -> None:
+        """Stop taking queries and frames; frames in flight get the shutdown deadline."""
+        for d in self._decls:
+            d.undeclare()
+        self._decls = []
+        self.service.begin_shutdown()
+        for pool in (self._pool, self._heavy_pool):
+            pool.shutdown(wait=False, cancel_futures=True)
+        if not self.service.wait_idle(self.settings.shutdown_deadline_s):
+            log.warning("Zenoh frames still running after the %.1f s shutdown deadline",
+                        self.settings.shutdown_deadline_s)
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    async def __aenter__(self) -> ZenohBridge:
+        return self.start()
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- helpers ------------------------------------------------------------------------
+    def _robot(self, key: str) -> str:
+        parts = str(key).split("/")
+        return parts[-2]
+
+    def _publish(self, robot: str, body: dict[str, Any]) -> None:
+        if self._session is not None:
+            self._session.put(f"{self.prefix}/{robot}/estimate", json.dumps(body).encode(),
+                              encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    def _serves(self, robot: str) -> bool:
+        """Several replicas on one Zenoh network all hear a robot; with a shared session
+        store exactly one serves it: the one holding the robot's claim (service/engine/store.py)."""
+        try:
+            return self.service.claim(robot)
+        except ServiceError:  # the store is down: answer, the frame's error says why
+            return True
+
+    def _localize(self, robot: str, frame: _Frame) -> dict[str, Any] | None:
+        """The estimate or error body; None when another replica serves the robot."""
+        if not self._serves(robot):
+            return None
+        seq = _seq_of(frame.meta)
+        try:
+            t, seq, prior = _frame_args(frame.meta)
+            est = self.service.process_frame(
+                robot, frame.data, content_type=frame.content_type, t=t, prior=prior,
+                transport="zenoh", input_seq=seq, create=self.settings.zenoh_creates_sessions)
+            return est.model_dump(mode="json")
+        except ServiceError as exc:
+            return error_body(exc, robot, seq)
+        except Exception as exc:  # never let one robot's failure reach the others
+            return error_body(internal_error(exc), robot, seq)
+
+    # ---- frames (publish/subscribe) -----------------------------------------------------
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        robot = self._robot(str(sample.key_expr))
+        data = sample.payload.to_bytes()
+        try:
+            meta = parse_attachment(sample.attachment.to_bytes() if sample.attachment else None)
+        except ServiceError as exc:
+            if self._serves(robot):
+                self.service.metrics.rejected.labels(type(exc).__name__).inc()
+                self._publish(robot, error_body(exc, robot))
+            return
+        self.submit_frame(robot, data, meta)
+
+    def submit_frame(self, robot: str, data: bytes | np.ndarray, meta: dict[str, Any],
+                     content_type: str | None = None,
+                     reply: Callable[[dict[str, Any]], None] | None = None) -> None:
+        """Queue a frame in the robot's one-frame slot (newest wins) and process it."""
+        with self._lock:
+            if self._slots.get(robot) is not None:
+                self.service.metrics.dropped.inc()  # a newer frame replaces the waiting one
+            self._slots[robot] = _Frame(data, meta, content_type, reply)
+            if robot in self._busy:
+                return
+            self._busy.add(robot)
+        pool = self._heavy_pool if self.service.is_heavy(robot) else self._pool
+        try:
+            pool.submit(self._drain, robot)
+        except RuntimeError:  # shutting down: the pool takes no more work
+            with self._lock:
+                self._busy.discard(robot)
+                self._slots[robot] = None
+
+    def _drain(self, robot: str) -> None:
+        while True:
+            with self._lock:
+                frame = self._slots.get(robot)
+                self._slots[robot] = None
+                if frame is None:
+                    self._busy.discard(robot)
+                    return
+            body = self._localize(robot, frame)
+            if body is None:  # another replica serves this robot
+                continue
+            self._publish(robot, body)
+            if frame.reply is not None:
+                try:
+                    frame.reply(body)
+                except Exception:  # a failing ROS answer must not stop this robot's frames
+                    log.exception("ROS 2 answer for robot %s failed", robot)
+
+    # ---- request/response ---------------------------------------------------------------
+    def _on_localize(self, query: zenoh.Query) -> None:
+        robot = self._robot(str(query.key_expr))
+        data = query.payload.to_bytes() if query.payload else b""
+        att = query.attachment.to_bytes() if query.attachment else None
+
+        def work() -> None:
+            body: dict[str, Any] | None
+            try:
+                meta = parse_attachment(att)
+                body = self._localize(robot, _Frame(data, meta))
+            except ServiceError as exc:
+                body = error_body(exc, robot) if self._serves(robot) else None
+            if body is None:  # another replica serves this robot: no reply from here
+                query.drop()
+                return
+            answer(query, body)
+
+        pool = self._heavy_pool if self.service.is_heavy(robot) else self._pool
+        try:
+            pool.submit(work)
+        except RuntimeError:  # shutting down
+            answer(query, error_body(ServiceError("the service is shutting down", 503), robot))
+
+    def _on_control(self, query: zenoh.Query) -> None:
+        """Every control query gets an answer: the reply, or an error reply (from the replica
+        that serves the robot; the others stay silent)."""
+        robot = self._robot(str(query.key_expr))
+        if not self._serves(robot):
+            query.drop()
+            return
+        try:
+            raw = query.payload.to_bytes() if query.payload else b""
+            try:
+                body = json.loads(raw) if raw else {"action": "get"}
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise BadRequest(f"control payload is not JSON: {exc}") from None
+            reply: dict[str, Any] = control(self.service, robot, body)
+        except ServiceError as exc:
+            reply = error_body(exc, robot)
+        except Exception as exc:  # never leave a query open
+            log.exception("control query for robot %s failed", robot)
+            reply = error_body(internal_error(exc), robot)
+        answer(query, reply)

@@ -1,0 +1,95 @@
+"""The map lifecycle over Zenoh: the same operations and errors as HTTP.
+
+Keys (``@`` makes a verbatim chunk: the robots' ``{prefix}/*/...`` keys never match it, so a
+robot may even be called "maps"):
+
+- ``{prefix}/@maps``          query: the loaded maps (list of MapSummary JSON)
+- ``{prefix}/@maps/{name}``   query; the attachment is JSON ``{"action": "get" | "put" |
+                              "delete" | "build", "if_match", "if_none_match", "force"}``
+                              (default: ``put`` with a payload, else ``get``); the payload is
+                              the .swmap file (put) or the round archive (build).
+                              Replies: MapSummary (+ ``"created"``), MapDeleted or JobInfo JSON.
+- ``{prefix}/@jobs``          query: every build job; ``{prefix}/@jobs/{id}``: one JobInfo.
+
+Errors are reply_err with ``{"error", "status"}``, the HTTP message and status code.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable
+from concurrent.futures import Executor
+from typing import Any
+
+import zenoh
+
+from service.api.errors import BadRequest, ServiceError
+from service.engine.localization_service import LocalizationService
+from service.engine.map_admin import payload_to_file
+from service.zenoh.replies import answer, error_body, internal_error
+
+log = logging.getLogger("swarmloc.zenoh")
+
+
+def _reply(query: zenoh.Query, fn: Callable[[], Any]) -> None:
+    try:
+        body, ok = fn(), True
+    except ServiceError as exc:
+        body, ok = error_body(exc), False
+    except Exception as exc:  # never let a bad request reach the Zenoh threads
+        log.exception("map query %s failed", query.key_expr)
+        body, ok = error_body(internal_error(exc)), False
+    answer(query, body, ok)
+
+
+def _options(raw: bytes) -> dict[str, Any]:
+    if not raw:
+        return {}
+    try:
+        opts = json.loads(raw)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise BadRequest('attachment must be JSON like {"action": "put"}') from None
+    if not isinstance(opts, dict):
+        raise BadRequest("attachment must be a JSON object")
+    return opts
+
+
+def declare_map_queryables(session: zenoh.Session, prefix: str, service: LocalizationService,
+                           pool: Executor) -> list[Any]:
+    admin = service.admin
+    s = service.settings
+
+    def maps(name: str, data: bytes, opts: dict[str, Any]) -> Any:
+        if not name:
+            return [service.map_summary(n).model_dump(mode="json") for n in sorted(service.maps)]
+        action = opts.get("action") or ("put" if data else "get")
+        match_, none_match = opts.get("if_match"), opts.get("if_none_match")
+        if action == "get":
+            return service.map_summary(name).model_dump(mode="json")
+        if action == "delete":
+            return admin.delete(name, bool(opts.get("force")), match_).model_dump(mode="json")
+        if action == "put":
+            admin.check_preconditions(name, match_, none_match)
+            path = payload_to_file(admin, data, "upload", s.max_map_bytes)
+            summary, created = admin.install_upload(name, path, match_, none_match)
+            return {**summary.model_dump(mode="json"), "created": created}
+        if action == "build":
+            admin.check_preconditions(name, match_, none_match)
+            path = payload_to_file(admin, data, "archive", s.max_archive_bytes)
+            return admin.submit_build(name, path, match_, none_match).model_dump(mode="json")
+        raise BadRequest(f"unknown action '{action}'; use get, put, delete or build")
+
+    def on_maps(query: zenoh.Query) -> None:
+        tail = str(query.key_expr).split("/@maps", 1)[1].strip("/")
+        data = query.payload.to_bytes() if query.payload else b""
+        raw = query.attachment.to_bytes() if query.attachment else b""
+        pool.submit(_reply, query, lambda: maps(tail, data, _options(raw)))
+
+    def on_jobs(query: zenoh.Query) -> None:
+        tail = str(query.key_expr).split("/@jobs", 1)[1].strip("/")
+        _reply(query, lambda: admin.job(tail).model_dump(mode="json") if tail
+               else [j.model_dump(mode="json") for j in admin.jobs()])
+
+    return [session.declare_queryable(f"{prefix}/@maps/**", on_maps),
+            session.declare_queryable(f"{prefix}/@jobs/**", on_jobs)]
