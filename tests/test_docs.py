@@ -71,9 +71,11 @@ def test_relative_links_resolve(page: Path) -> None:
     assert broken == [], broken
 
 
-@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+@pytest.mark.parametrize("page", [p for p in PAGES if p.name != "CHANGELOG.md"],
+                         ids=lambda p: str(p.relative_to(ROOT)))
 def test_named_repository_paths_exist(page: Path) -> None:
-    """`service/...` and the like, named in backticks, are files or folders of this tree."""
+    """`service/...` and the like, named in backticks, are files or folders of this tree
+    (the changelog names old paths on purpose)."""
     missing = [p for p in _PATH.findall(page.read_text())
                if not (ROOT / p.rstrip(".,:;")).exists() and not re.search(r"[*{<]", p)]
     assert missing == [], missing
