@@ -50,7 +50,7 @@ def anchors(path: Path) -> set[str]:
 
 
 def test_slug_follows_github() -> None:
-    assert slug("Reproducing the papers (`swarmloc paper`)") == "reproducing-the-papers-swarmloc-paper"
+    assert slug("The papers (`swarmloc paper`)") == "the-papers-swarmloc-paper"
     assert slug("Fast exact matcher (uint8 descriptors)") == "fast-exact-matcher-uint8-descriptors"
     assert slug("ROS 2 / rosbag2") == "ros-2--rosbag2"
     assert slug("`SWARMLOC_HOST`, flags") == "swarmloc_host-flags"

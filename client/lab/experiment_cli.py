@@ -180,7 +180,7 @@ def sweep(
     warmup: int = 20,
 ) -> None:
     """DPSO mean error, comparisons, share of frames in recovery and kidnap recovery for each
-    value of one parameter (how the choices in the README were made)."""
+    value of one parameter (how the choices in docs/research/papers.md were made)."""
     from client.dataset import read_round
 
     papers = variant == "paper"

@@ -99,7 +99,8 @@ class CaseResult:
 class Settings:
     starts: int = 0  # start images per case for the vectorised methods; 0 = every test image
     product_starts: int = 24  # start images per case for the product's DPSO (one run each:
-    # every test image would cost ~2 h of CPU; docs/paper.md "What the full protocol costs")
+    # every test image would cost ~2 h of CPU; docs/research/papers.md, "What the full
+    # protocol costs")
     warmup: int = 20
     seed: int = 0
     speeds: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0, 4.0)

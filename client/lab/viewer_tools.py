@@ -1,4 +1,5 @@
-"""The fleet viewer driven by headless Chromium: the README screenshot and a load benchmark.
+"""The fleet viewer driven by headless Chromium: the screenshot (docs/reference/viewer.md)
+and a load benchmark.
 
 Both use Debian's ``chromium`` through Playwright (``pip install -e ".[dev]"``; no browser
 download) against a real server on loopback.

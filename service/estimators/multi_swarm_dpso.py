@@ -1,7 +1,7 @@
 """Multi-swarm DPSO: the papers' future work (journal Sec. 8), built for changing light.
 
 The swarm moves as in the papers (Eqs. 4-6, self-adaptive v0, recovery boost), with these
-changes, each measured in README "Localization across lighting":
+changes, each measured in docs/research/lighting.md:
 
 - **Coasting.** A frame whose best match falls below ``coast_ratio`` of the level seen while
   tracking is weak: its estimate does not feed the tracked velocity, and the next frame's

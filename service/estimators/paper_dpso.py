@@ -128,7 +128,8 @@ class DPSO(Estimator):
     def _move(self, p_n: np.ndarray) -> None:
         p, rng = self.params, self.rng
         n = p.n_particles
-        r0 = rng.uniform(-1.0, 1.0, (n, 2))  # symmetric perturbation (see README: r0 range)
+        # symmetric perturbation (docs/reference/estimators.md: r0 range)
+        r0 = rng.uniform(-1.0, 1.0, (n, 2))
         r2 = rng.uniform(0.0, 1.0, (n, 2))
         # Eq. 4
         v = p.omega * self.v + p.phi0 * r0 * self.delta * self.v0 + self.phi2 * r2 * (p_n - self.x)

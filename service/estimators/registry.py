@@ -35,7 +35,7 @@ class EstimatorSpec:
 
 
 DPSO_VARIANT_CLASSES: dict[str, Build] = {
-    "swarmloc": MultiSwarmDPSO,  # the service's default (README "Estimators")
+    "swarmloc": MultiSwarmDPSO,  # the service's default (docs/reference/estimators.md)
     "paper": DPSO,  # the journal's DPSO as published
 }
 
