@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from client.dataset import Round
     from client.transports import Client, HttpClient
     from service.api.models import MapSummary
-    from service.vision.features import SiftParams
+    from service.vision.features import FeatureParams
 
 # plain click help (rich_markup_mode=None): rich's import alone costs more than the 0.3 s
 # that `swarmloc --help` may take
@@ -60,21 +60,25 @@ def _read_round(path: Path) -> Round:
         _fail(str(exc))
 
 
-FEATURE_TYPES = ("clahe-rootsift", "sift")
+FEATURE_TYPES = ("clahe-rootsift", "sift", "xfeat")
 FeaturesOpt = Annotated[str, typer.Option(
-    help="clahe-rootsift (default: contrast-normalised RootSIFT) or sift (the papers')")]
+    help="clahe-rootsift (default: contrast-normalised RootSIFT), sift (the papers') or "
+         "xfeat (learned features that hold at night; ONNX Runtime on the CPU)")]
 PruneOpt = Annotated[bool, typer.Option(
     help="the papers' neighbour pruning (drops the features that survive lighting changes)")]
 
 
-def feature_params(name: str, width: int = 320, height: int = 240) -> SiftParams:
-    """SiftParams of a feature type name (the CLI's --features)."""
+def feature_params(name: str, width: int = 320, height: int = 240) -> FeatureParams:
+    """The feature parameters of a feature type name (the CLI's --features)."""
     from service.vision.features import SiftParams
+    from service.vision.xfeat import XFeatParams
 
     if name not in FEATURE_TYPES:
         _fail(f"unknown feature type {name!r}; choose one of {list(FEATURE_TYPES)}")
     if name == "sift":
         return SiftParams.papers(width, height)
+    if name == "xfeat":
+        return XFeatParams(width=width, height=height)
     return SiftParams(width=width, height=height)
 
 
@@ -139,7 +143,7 @@ def world_eval(
     m = build_map_from_rounds([mr], params=feature_params(features), prune_features=prune)
     hits, n_feat = [], []
     for i in range(0, len(qr), every):
-        f = extract(qr.load_image(i), m.sift_params)
+        f = extract(qr.load_image(i), m.feature_params)
         n_feat.append(len(f))
         best = int(np.argmax(m.similarity(f.codes, range(m.n_images))))
         hits.append(np.linalg.norm(m.positions[best] - qr.reference_xy[i]) <= radius)

@@ -34,7 +34,7 @@ def camera_map(tmp_path_factory: pytest.TempPathFactory, small_world: World,
 
 @pytest.fixture(scope="module")
 def sunny2_features(camera_map: RouteMap, sunny2: Round) -> list[Features]:
-    return [extract(sunny2.load_image(i), camera_map.sift_params) for i in range(len(sunny2))]
+    return [extract(sunny2.load_image(i), camera_map.feature_params) for i in range(len(sunny2))]
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +119,7 @@ def test_dpso_with_geometry_is_more_accurate(camera_map: RouteMap, small_map: Ro
                                              sunny2_table: SimilarityTable) -> None:
     """Same frames, seeds and similarities; the map with the camera gives DPSO the located
     position while tracking, the one without places the robot at map images."""
-    assert small_map.sift_params == camera_map.sift_params  # one extraction serves both
+    assert small_map.feature_params == camera_map.feature_params  # one extraction serves both
     with_cam = sunny2_table
     without = SimilarityTable(small_map, sunny2_features)
     # the two maps hold the same images' codes: one table of similarities serves both

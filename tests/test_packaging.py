@@ -44,7 +44,8 @@ def test_ci_runs_the_readme_test_command() -> None:
 
 
 def test_the_wheel_ships_the_viewer_files(tmp_path: Path) -> None:
-    """`pip install .` must serve /viewer: its static files are package data."""
+    """`pip install .` must serve /viewer and extract XFeat: the viewer's static files, the
+    demo round and the ONNX model with its licence are package data."""
     import sys
     import zipfile
 
@@ -52,7 +53,7 @@ def test_the_wheel_ships_the_viewer_files(tmp_path: Path) -> None:
                           "-w", str(tmp_path)], capture_output=True, text=True, check=False)
     assert res.returncode == 0, res.stdout + res.stderr
     names = set(zipfile.ZipFile(next(tmp_path.glob("swarmloc-*.whl"))).namelist())
-    static = ROOT / "service" / "viewer" / "static"
+    static = ROOT / "service" / "http" / "viewer" / "static"
     files = [p.relative_to(ROOT).as_posix() for p in static.rglob("*") if p.is_file()]
     assert "service/http/viewer/static/index.html" in files and len(files) >= 7
     assert set(files) <= names, sorted(set(files) - names)
@@ -60,3 +61,5 @@ def test_the_wheel_ships_the_viewer_files(tmp_path: Path) -> None:
     assert "service/demo/round/poses.csv" in demo and len(demo) > 50
     assert set(demo) <= names, sorted(set(demo) - names)
     assert "client/lab/world/__init__.py" in names
+    assert {f"service/vision/models/{f}" for f in ("xfeat.onnx", "XFEAT-LICENSE", "NOTICE")
+            } <= names

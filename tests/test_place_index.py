@@ -27,7 +27,7 @@ def test_index_recall_on_a_small_map(small_map, sunny2) -> None:
     frames = range(0, len(sunny2), 4)
     top1 = top10 = 0
     for i in frames:
-        f = extract(sunny2.load_image(i), small_map.sift_params)
+        f = extract(sunny2.load_image(i), small_map.feature_params)
         ids, scores = idx.query(f.codes, 10)
         assert len(ids) == 10 and np.all(np.diff(scores) <= 1e-6)  # best first
         assert sunny2.truth_xy is not None
@@ -49,7 +49,7 @@ def test_index_is_stored_and_reloaded_identically(small_map, tmp_path: Path) -> 
 
 
 def test_seeded_global_start_places_particles_at_candidates(small_map, sunny2) -> None:
-    f = extract(sunny2.load_image(40), small_map.sift_params)
+    f = extract(sunny2.load_image(40), small_map.feature_params)
     loc = Localizer(small_map, "dpso", {"place_candidates": 3}, seed=1)
     assert loc.seeder is not None and loc.estimator.wants_places()
     loc.step(f, 0.0)
@@ -81,7 +81,7 @@ def _error_after(loc: Localizer, feats: list, truth: np.ndarray, t0: int = 0) ->
 
 def test_seeded_start_and_kidnap_recover(small_map, sunny2) -> None:
     assert sunny2.truth_xy is not None
-    feats = [extract(sunny2.load_image(i), small_map.sift_params) for i in range(len(sunny2))]
+    feats = [extract(sunny2.load_image(i), small_map.feature_params) for i in range(len(sunny2))]
     truth = sunny2.truth_xy
     for seed in (0, 1):
         # a fresh start in the middle of the round: back within 5 m in a few frames
@@ -130,7 +130,7 @@ def test_version_2_map_loads_without_index(small_map, sunny2, tmp_path: Path) ->
     assert old.meta["format_version"] == 2 and old.place_index is None
     loc = Localizer(old, "dpso", None, 0)
     assert loc.seeder is None  # random map images, as before the index
-    e = loc.step(extract(sunny2.load_image(3), old.sift_params), 0.0)
+    e = loc.step(extract(sunny2.load_image(3), old.feature_params), 0.0)
     assert e.comparisons > 0
     # saving it again writes the current version (index absent until the map is rebuilt)
     again = load_map(save_map(old, tmp_path / "new"))

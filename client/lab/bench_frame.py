@@ -244,7 +244,7 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
         finally:
             for c in clients.values():
                 c.close()
-    params = route_map.sift_params
+    params = route_map.feature_params
     for frame in data[warmup: warmup + 20]:
         img = cv2.imdecode(np.frombuffer(frame, np.uint8), cv2.IMREAD_GRAYSCALE)
         features.append(len(extract(img, params)))

@@ -58,7 +58,7 @@ def bench_geometry(dataset: Path, map_round: str, query_round: str, frames: int 
                          "calib.txt), nothing to locate with")
     rnd = read_round(dataset / query_round)
     n = min(len(rnd), frames + warmup)
-    feats = [extract(rnd.load_image(i), m.sift_params) for i in range(n)]
+    feats = [extract(rnd.load_image(i), m.feature_params) for i in range(n)]
     truth = rnd.reference_xy
     locs = {"with": Localizer(m, "dpso", {}, seed),
             "without": Localizer(m, "dpso", {"metric_pose": False}, seed)}

@@ -123,7 +123,7 @@ def bench_size(path: Path, track_dir: Path, server_frames: int = 100,
         t0 = time.perf_counter()
         m = load_map(path, verify="lazy")
         opens.append(time.perf_counter() - t0)
-    feats, truth = _features(track_dir, m.sift_params)
+    feats, truth = _features(track_dir, m.feature_params)
     loc = Localizer(m, "dpso", None, seed)
     steps, walls, comps, errs = [], [], [], []
     for k, f in enumerate(feats):
@@ -156,10 +156,10 @@ def bench_relocal(path: Path, route_dir: Path, kidnap_after: int = 40, seed: int
     per_loop = int(json.loads((route_dir / "route.json").read_text())["per_loop"])
     plan = [leg for leg in read_legs(route_dir) if leg.name != "track"
             and (leg.loop + 1) * per_loop <= m.n_images][: legs]
-    track, _ = _features(route_dir / "queries" / "track", m.sift_params)
+    track, _ = _features(route_dir / "queries" / "track", m.feature_params)
     out = []
     for j, leg in enumerate(plan):
-        feats, truth = _features(route_dir / "queries" / leg.name, m.sift_params)
+        feats, truth = _features(route_dir / "queries" / leg.name, m.feature_params)
         for kind in ("fresh", "kidnap"):
             loc = Localizer(m, "dpso", params, seed + j)
             k0 = 0
@@ -189,7 +189,7 @@ def brute_force_ms(path: Path, route_dir: Path, sample: int = 400) -> tuple[floa
     from service.maps.route_map import load_map
 
     m = load_map(path, verify="lazy")
-    feats, _ = _features(route_dir / "queries" / "track", m.sift_params)
+    feats, _ = _features(route_dir / "queries" / "track", m.feature_params)
     ids = np.linspace(0, m.n_images - 1, sample).astype(int)
     m.similarity(feats[0].codes, ids)  # prepare the sampled images once (cached)
     t0 = time.perf_counter()

@@ -32,7 +32,7 @@ class SimilarityTable:
 
     @classmethod
     def from_round(cls, route_map: RouteMap, rnd: Round) -> SimilarityTable:
-        params = route_map.sift_params
+        params = route_map.feature_params
         return cls(route_map, [extract(rnd.load_image(i), params) for i in range(len(rnd))])
 
     def scores(self, q: int, ids: np.ndarray) -> np.ndarray:

@@ -47,7 +47,7 @@ class Localizer:
         self.estimator.reset(near, radius)
 
     def extract(self, image: np.ndarray) -> Features:
-        return extract(image, self.map.sift_params)
+        return extract(image, self.map.feature_params)
 
     def localize(self, image: np.ndarray, t: float | None = None,
                  prior: tuple[float, float, float] | None = None) -> Estimate:

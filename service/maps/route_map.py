@@ -38,7 +38,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -48,13 +48,25 @@ from service.vision.features import (
     DEFAULT_DELTA,
     Features,
     SiftParams,
+    feature_params,
     match_batch,
     unit_descriptors,
 )
 from service.vision.map_geometry import MapGeometry
 from service.vision.matcher import PreparedSet, match_batch_u8, prepare
-from service.vision.metric_pose import Camera
+from service.vision.metric_pose import Camera, match_pairs
 from service.vision.place_index import PlaceIndex, build_place_index
+from service.vision.xfeat import DIMS as XFEAT_DIMS
+from service.vision.xfeat import (
+    FeatureModelError,
+    XFeatParams,
+    check_map_model,
+    mnn_pairs,
+    mnn_scores,
+)
+
+if TYPE_CHECKING:
+    from service.vision.features import FeatureParams
 
 MAGIC = b"SWMAP\x00\r\n"
 # the dtype of every stored array, as save_map writes them (anything else is refused)
@@ -72,8 +84,17 @@ _DTYPES_V3: dict[str, np.dtype] = {
 _OPTIONAL = ("place_words", "place_mean", "place_projection", "place_descriptors")
 _LAZY = ("codes", "keypoints")  # checked per image on first use with verify="lazy"
 _DIGEST = 8  # bytes of each BLAKE2b image digest (codes, then keypoints)
-FORMAT_VERSION = 3
-READABLE_VERSIONS = (2, 3)
+# version 4: version 3 with learned (XFeat) features: int8 codes of 64 dimensions and the
+# model's digest in the metadata. RootSIFT maps are still written as version 3, which older
+# services read.
+FORMAT_VERSION = 4
+READABLE_VERSIONS = (2, 3, 4)
+_CODE_DTYPES = {"sift": np.dtype(np.uint8), "xfeat": np.dtype(np.int8)}
+_CODE_DIMS = {"sift": 128, "xfeat": XFEAT_DIMS}
+
+
+def _version_of(kind: str) -> int:
+    return FORMAT_VERSION if kind == "xfeat" else 3
 Verify = bool | Literal["lazy"]
 SUFFIX = ".swmap"
 _ALIGN = 64
@@ -172,9 +193,9 @@ class RouteMap:
         return float(self.meta["delta"])
 
     @cached_property
-    def sift_params(self) -> SiftParams:
-        p = {k: v for k, v in self.meta["feature"].items() if k != "type"}
-        return SiftParams(**p)
+    def feature_params(self) -> FeatureParams:
+        """The map's feature type and its settings (every frame is extracted with them)."""
+        return feature_params(self.meta["feature"])
 
     @cached_property
     def frame(self) -> LocalFrame | None:
@@ -196,7 +217,7 @@ class RouteMap:
         cam = self.camera
         if cam is None:
             return None
-        return MapGeometry(self, cam, self.sift_params.width, self.sift_params.height)
+        return MapGeometry(self, cam, self.feature_params.width, self.feature_params.height)
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -250,10 +271,25 @@ class RouteMap:
         return cached
 
     def similarity(self, frame_codes: np.ndarray, image_ids: Iterable[int]) -> np.ndarray:
-        """m(frame, map image) for each id: the exact uint8 matcher (service/vision/matcher.py) on
-        the frame's descriptor codes (``Features.codes``)."""
+        """m(frame, map image) for each id on the frame's descriptor codes
+        (``Features.codes``): the exact uint8 matcher (service/vision/matcher.py) for
+        RootSIFT, mutual nearest neighbours for XFeat (service/vision/xfeat.py)."""
+        p = self.feature_params
+        if isinstance(p, XFeatParams):
+            return mnn_scores(unit_descriptors(frame_codes),
+                              [self.features_of(int(i)) for i in image_ids], p.min_cos)
         sets = [self.prepared(int(i)) for i in image_ids]
         return match_batch_u8(frame_codes, sets, self.delta).scores
+
+    def pairs(self, codes: np.ndarray, image_id: int, delta: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Matched feature indices (in ``codes``, in the image) for the two-view geometry:
+        the symmetric ratio test at ``delta`` (RootSIFT) or the map's mutual nearest
+        neighbours (XFeat)."""
+        p = self.feature_params
+        if isinstance(p, XFeatParams):
+            return mnn_pairs(unit_descriptors(codes), self.features_of(image_id), p.min_cos)
+        return match_pairs(codes, self.prepared(image_id), delta)
 
     def codes_of(self, image_id: int) -> np.ndarray:
         """One image's descriptor codes (a memory-mapped view; verified with lazy loading)."""
@@ -284,11 +320,11 @@ def build_map(
     positions: np.ndarray,
     image_names: list[str],
     *,
-    params: SiftParams | None = None,
+    params: FeatureParams | None = None,
     delta: float = DEFAULT_DELTA,
     origin: tuple[float, float] | None = None,
     source: dict | None = None,
-    extract: Callable[[np.ndarray, SiftParams], Features] | None = None,
+    extract: Callable[[np.ndarray, FeatureParams], Features] | None = None,
     prune_features: bool = False,
     layers: np.ndarray | None = None,
     place_index: bool = True,
@@ -332,12 +368,14 @@ def build_map(
         stats = PruneStats(before, after)
     counts = np.array([len(f) for f in kept], np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    kind = "xfeat" if isinstance(params, XFeatParams) else "sift"
+    dtype = _CODE_DTYPES[kind]
     codes = (np.concatenate([f.codes for f in kept]) if offsets[-1]
-             else np.zeros((0, 128), np.uint8)).astype(np.uint8)
+             else np.zeros((0, _CODE_DIMS[kind]), dtype)).astype(dtype)
     kps = (np.concatenate([f.keypoints for f in kept]) if offsets[-1]
            else np.zeros((0, 2), np.float32)).astype(np.float32)
     meta = {
-        "format_version": FORMAT_VERSION,
+        "format_version": _version_of(kind),
         "feature": params.as_dict(),
         "delta": delta,
         "image_size": [params.width, params.height],
@@ -381,7 +419,7 @@ def build_map_from_rounds(
     rounds: Sequence[RoundLike],
     *,
     name: str | None = None,
-    params: SiftParams | None = None,
+    params: FeatureParams | None = None,
     delta: float = DEFAULT_DELTA,
     prune_features: bool = False,
     source: dict[str, Any] | None = None,
@@ -432,7 +470,7 @@ Chunk = tuple[np.ndarray, np.ndarray, np.ndarray]  # (codes, keypoints, counts) 
 
 
 def _image_digest(codes: np.ndarray, keypoints: np.ndarray) -> bytes:
-    return (hashlib.blake2b(_raw(np.ascontiguousarray(codes, np.uint8)),
+    return (hashlib.blake2b(_raw(np.ascontiguousarray(codes).view(np.uint8)),
                             digest_size=_DIGEST).digest()
             + hashlib.blake2b(_raw(np.ascontiguousarray(keypoints, "<f4")),
                               digest_size=_DIGEST).digest())
@@ -508,11 +546,14 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
     n, total = len(counts), int(counts.sum())
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     small = _small_arrays(positions, offsets, list(image_names), layers, place_index)
-    shapes = {**{k: v.shape for k, v in small.items()}, "codes": (total, 128),
+    kind = str(meta.get("feature", {}).get("type", "sift"))
+    code_dtype, dims = _CODE_DTYPES[kind], _CODE_DIMS[kind]
+    dtypes = {**_DTYPES_V3, "codes": code_dtype}
+    shapes = {**{k: v.shape for k, v in small.items()}, "codes": (total, dims),
               "keypoints": (total, 2), "image_digests": (n, 2 * _DIGEST)}
     layout: dict[str, dict[str, Any]] = {}
     offset = 0
-    for key, dtype in _DTYPES_V3.items():
+    for key, dtype in dtypes.items():
         if key not in shapes:
             continue
         nbytes = math.prod(shapes[key]) * dtype.itemsize
@@ -520,7 +561,7 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
                        "nbytes": int(nbytes), "sha256": "0" * 64}
         offset += nbytes + _pad(nbytes)
     header = {k: v for k, v in meta.items() if k not in ("arrays", "checksum", "name")}
-    header.update({"name": name, "format_version": FORMAT_VERSION, "arrays": layout,
+    header.update({"name": name, "format_version": _version_of(kind), "arrays": layout,
                    "place_index": place_index.meta() if place_index is not None else None,
                    "checksum": "0" * 64})
     head_len = len(json.dumps(header).encode())
@@ -543,13 +584,13 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
             digests = np.zeros((n, 2 * _DIGEST), np.uint8)
             img = row = 0
             for codes, kps, cnt in chunks:
-                codes = np.ascontiguousarray(codes, np.uint8)
+                codes = np.ascontiguousarray(codes, code_dtype)
                 kps = np.ascontiguousarray(kps, "<f4")
                 cnt = np.asarray(cnt, np.int64)
                 if not np.array_equal(cnt, counts[img: img + len(cnt)]) or \
                         len(codes) != int(cnt.sum()) or len(kps) != len(codes):
                     raise MapError("map chunks do not add up to the images' feature counts")
-                put("codes", row * 128, codes)
+                put("codes", row * dims, codes)
                 put("keypoints", row * 8, kps)
                 h_codes.update(_raw(codes))
                 h_kps.update(_raw(kps))
@@ -683,7 +724,12 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
         if verify:
             _verify_v2(path, header, arrays)
     else:
-        arrays = _open_arrays(path, header, data_start, _DTYPES_V3, _OPTIONAL)
+        kind = (header.get("feature") or {}).get("type", "sift") if version == 4 else "sift"
+        if kind not in _CODE_DTYPES:
+            raise MapError(f"{path}: unknown feature type '{kind}' (this swarmloc knows "
+                           f"{', '.join(_CODE_DTYPES)}); rebuild it with 'swarmloc map build'")
+        arrays = _open_arrays(path, header, data_start,
+                              {**_DTYPES_V3, "codes": _CODE_DTYPES[kind]}, _OPTIONAL)
         if verify:
             _verify_v3(path, header, arrays, lazy=verify == "lazy")
     positions = np.asarray(arrays["positions"])
@@ -711,12 +757,13 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
         raise MapError(f"{path}: {got} image names for {n} image positions; every image "
                        "needs one name")
     codes, kps = arrays["codes"], arrays["keypoints"]
-    if codes.ndim != 2 or codes.shape[1] != 128 or kps.shape != (len(codes), 2):
+    dims = _CODE_DIMS["xfeat" if codes.dtype == np.int8 else "sift"]
+    if codes.ndim != 2 or codes.shape[1] != dims or kps.shape != (len(codes), 2):
         raise MapError(f"{path}: descriptor codes {codes.shape} / keypoints {kps.shape} do "
-                       "not have the shapes (n, 128) / (n, 2)")
+                       f"not have the shapes (n, {dims}) / (n, 2)")
     place_index = None
-    if version == 3:
-        place_index = _check_place_index(path, arrays, n)
+    if version in (3, 4):
+        place_index = _check_place_index(path, arrays, n, dims)
         if arrays["image_digests"].shape != (n, 2 * _DIGEST):
             raise MapError(f"{path}: image digests {arrays['image_digests'].shape} do not "
                            f"have the shape ({n}, {2 * _DIGEST})")
@@ -725,14 +772,23 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
             not isinstance(feature, dict):
         raise MapError(f"{path}: header lacks valid matching parameters (delta, feature)")
     try:
-        sp = SiftParams(**{k: v for k, v in feature.items() if k != "type"})
+        fp = feature_params(feature)
     except (TypeError, ValueError) as exc:
         raise MapError(f"{path}: feature parameters are invalid ({exc})") from None
-    sizes = (sp.width, sp.height, sp.clahe_tile, sp.n_features)
+    if isinstance(fp, SiftParams) != (version != 4):
+        raise MapError(f"{path}: feature type '{feature.get('type')}' does not fit map format "
+                       f"version {version}")
+    sizes = ((fp.width, fp.height, fp.clahe_tile, fp.n_features) if isinstance(fp, SiftParams)
+             else (fp.width, fp.height, fp.top_k))
     if not all(type(v) is int for v in sizes) or not (
-            8 <= sp.width <= 8192 and 8 <= sp.height <= 8192 and 1 <= sp.clahe_tile <= 64
-            and sp.n_features >= 0):
+            8 <= fp.width <= 8192 and 8 <= fp.height <= 8192 and min(sizes[2:]) >= 0
+            and (not isinstance(fp, SiftParams) or 1 <= fp.clahe_tile <= 64)):
         raise MapError(f"{path}: feature parameters are invalid ({feature})")
+    if isinstance(fp, XFeatParams):
+        try:
+            check_map_model(fp)
+        except FeatureModelError as exc:
+            raise MapError(f"{path}: {exc}") from None
     cam = header.get("camera")
     if cam is not None:
         try:
@@ -742,20 +798,21 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
                            "with a valid --hfov, or without one") from None
     meta = {k: v for k, v in header.items() if k not in ("name",)}
     name = str(header.get("name", path.stem))
-    lazy = (np.asarray(arrays["image_digests"]) if version == 3 and verify == "lazy"
+    lazy = (np.asarray(arrays["image_digests"]) if version in (3, 4) and verify == "lazy"
             else None)
     return RouteMap(name, meta, positions, names, arrays["codes"], offsets,
                     arrays["keypoints"], path, layers, place_index, lazy)
 
 
-def _check_place_index(path: Path, arrays: dict[str, np.ndarray], n: int) -> PlaceIndex | None:
+def _check_place_index(path: Path, arrays: dict[str, np.ndarray], n: int, dims: int
+                       ) -> PlaceIndex | None:
     present = [k for k in _OPTIONAL if k in arrays]
     if not present:
         return None
     if len(present) != len(_OPTIONAL):
         raise MapError(f"{path}: the place index is incomplete (has {present})")
     w, mu, proj, desc = (arrays[k] for k in _OPTIONAL)
-    if w.ndim != 2 or w.shape[1] != 128 or mu.shape != (w.shape[0] * 128,) or \
+    if w.ndim != 2 or w.shape[1] != dims or mu.shape != (w.shape[0] * dims,) or \
             proj.ndim != 2 or proj.shape[0] != len(mu) or desc.shape != (n, proj.shape[1]):
         raise MapError(f"{path}: the place index arrays do not fit together (words "
                        f"{w.shape}, projection {proj.shape}, descriptors {desc.shape})")

@@ -26,9 +26,17 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING, Any, Protocol
 
 import cv2
 import numpy as np
+
+if TYPE_CHECKING:
+    from typing import TypeAlias
+
+    from service.vision.xfeat import XFeatParams
+
+    FeatureParams: TypeAlias = "SiftParams | XFeatParams"  # a map's feature type
 
 DEFAULT_DELTA = 0.6  # ratio threshold delta (journal Sec. 4)
 _PAD_SCORE = -4.0
@@ -62,7 +70,8 @@ class SiftParams:
 
 @dataclass(frozen=True)
 class Features:
-    """Keypoint positions (N, 2) in working-size pixels and descriptor codes (N, D) uint8."""
+    """Keypoint positions (N, 2) in working-size pixels and descriptor codes (N, D): uint8
+    (RootSIFT) or int8 (XFeat)."""
 
     keypoints: np.ndarray
     codes: np.ndarray
@@ -83,7 +92,14 @@ def unit_descriptors(codes: np.ndarray) -> np.ndarray:
     return d / np.maximum(norms, 1e-12)
 
 
-def to_working_size(image: np.ndarray, params: SiftParams) -> np.ndarray:
+class WorkingSize(Protocol):
+    @property
+    def width(self) -> int: ...
+    @property
+    def height(self) -> int: ...
+
+
+def to_working_size(image: np.ndarray, params: WorkingSize) -> np.ndarray:
     """Grayscale uint8 at the map's working size (area interpolation when shrinking)."""
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
@@ -97,10 +113,28 @@ def to_working_size(image: np.ndarray, params: SiftParams) -> np.ndarray:
     return image
 
 
-def extract(image: np.ndarray, params: SiftParams | None = None) -> Features:
-    """SIFT keypoints and L2-normalised descriptors of a frame (resized to the working size)."""
+def feature_params(d: dict[str, Any]) -> FeatureParams:
+    """The feature parameters a map's metadata ``feature`` describes (``type``: sift|xfeat)."""
+    from service.vision.xfeat import XFeatParams
+
+    kind = d.get("type", "sift")
+    rest = {k: v for k, v in d.items() if k != "type"}
+    if kind == "sift":
+        return SiftParams(**rest)
+    if kind == "xfeat":
+        return XFeatParams(**rest)
+    raise ValueError(f"unknown feature type '{kind}' (this swarmloc knows sift and xfeat)")
+
+
+def extract(image: np.ndarray, params: FeatureParams | None = None) -> Features:
+    """Keypoints and descriptor codes of a frame (resized to the working size): CLAHE +
+    RootSIFT (uint8 codes) or XFeat (int8 codes, service/vision/xfeat.py)."""
     params = params or SiftParams()
     gray = to_working_size(image, params)
+    if not isinstance(params, SiftParams):
+        from service.vision.xfeat import extract_xfeat
+
+        return extract_xfeat(gray, params)
     if params.clahe:
         tiles = (params.clahe_tile, params.clahe_tile)
         gray = cv2.createCLAHE(clipLimit=params.clahe_clip, tileGridSize=tiles).apply(gray)

@@ -17,8 +17,7 @@ import cv2
 import numpy as np
 
 from service.vision.features import Features
-from service.vision.matcher import PreparedSet
-from service.vision.metric_pose import Camera, Offset, Structure, locate, match_pairs, triangulate
+from service.vision.metric_pose import Camera, Offset, Structure, locate, triangulate
 
 
 class _Images(Protocol):  # what this module needs of a RouteMap (service/maps/route_map.py)
@@ -29,7 +28,8 @@ class _Images(Protocol):  # what this module needs of a RouteMap (service/maps/r
 
     def keypoints_of(self, image_id: int) -> np.ndarray: ...
 
-    def prepared(self, image_id: int) -> PreparedSet: ...
+    def pairs(self, codes: np.ndarray, image_id: int, delta: float
+              ) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 @dataclass(frozen=True)
@@ -82,8 +82,7 @@ class MapGeometry:
         if j is not None:
             baseline = float(np.linalg.norm(self.images.positions[j]
                                              - self.images.positions[image_id]))
-            pairs = match_pairs(self.images.codes_of(image_id), self.images.prepared(j),
-                                p.delta)
+            pairs = self.images.pairs(self.images.codes_of(image_id), j, p.delta)
             try:
                 st = triangulate(self.images.keypoints_of(image_id),
                                  self.images.keypoints_of(j), pairs, baseline, self.k,
@@ -102,7 +101,7 @@ class MapGeometry:
         st = self.structure(image_id, p)
         if st is None:
             return None
-        pairs = match_pairs(frame.codes, self.images.prepared(image_id), p.delta)
+        pairs = self.images.pairs(frame.codes, image_id, p.delta)
         try:
             return locate(frame.keypoints, pairs, st, self.k, p.min_inliers)
         except cv2.error:  # a degenerate configuration: the frame is not located

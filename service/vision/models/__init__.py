@@ -1,0 +1,1 @@
+"""Model files shipped with the service (XFeat as ONNX): see NOTICE."""

@@ -1,0 +1,144 @@
+"""XFeat learned features (service/vision/xfeat.py): the shipped ONNX model, extraction, maps of
+int8 codes (format version 4), similarity, two-view geometry, the place index, localization,
+and the refusals of a damaged model or a map of another model."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from client.dataset import Round
+from client.lab.world import World
+from service.api.round_format import camera_from_hfov
+from service.engine.localization_service import LocalizationService
+from service.engine.localizer import Localizer
+from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
+from service.settings import Settings
+from service.vision.features import extract
+from service.vision.map_geometry import GeometryParams
+from service.vision.xfeat import (
+    MODEL_PATH,
+    MODEL_SHA256,
+    FeatureModelError,
+    XFeatModel,
+    XFeatParams,
+    file_sha256,
+)
+
+
+@pytest.fixture(scope="module")
+def xfeat_map(tmp_path_factory: pytest.TempPathFactory, small_world: World, sunny1: Round
+              ) -> RouteMap:
+    """The small world's sunny round as an XFeat map with the camera, saved and reloaded."""
+    cam = small_world.camera
+    rnd = replace(sunny1, camera=camera_from_hfov(cam.hfov_deg, cam.width, cam.height))
+    m = build_map_from_rounds([rnd], name="xsmall", params=XFeatParams())
+    return load_map(save_map(m, tmp_path_factory.mktemp("xmaps") / "xsmall"))
+
+
+def test_the_shipped_model_is_the_recorded_one() -> None:
+    assert file_sha256(MODEL_PATH) == MODEL_SHA256
+    assert (MODEL_PATH.parent / "XFEAT-LICENSE").read_text().startswith(" " * 33 + "Apache")
+
+
+def test_extraction_gives_int8_codes_inside_the_frame_repeatably(sunny2: Round) -> None:
+    img = sunny2.load_image(10)
+    a, b = extract(img, XFeatParams(top_k=500)), extract(img, XFeatParams(top_k=500))
+    assert a.codes.dtype == np.int8 and a.codes.shape[1] == 64
+    assert 100 < len(a) <= 500
+    assert (a.keypoints >= 0).all() and (a.keypoints[:, 0] < 320).all() and \
+        (a.keypoints[:, 1] < 240).all()
+    assert np.array_equal(a.codes, b.codes) and np.array_equal(a.keypoints, b.keypoints)
+    norms = np.linalg.norm(a.codes.astype(float), axis=1)  # unit descriptors x 127
+    assert np.all(np.abs(norms - 127) < 3)
+
+
+@pytest.mark.parametrize("damage", ["missing", "flipped"])
+def test_a_missing_or_damaged_model_is_refused_with_its_path(tmp_path: Path, damage: str
+                                                              ) -> None:
+    path = tmp_path / "xfeat.onnx"
+    if damage == "flipped":
+        shutil.copy(MODEL_PATH, path)
+        data = bytearray(path.read_bytes())
+        data[len(data) // 2] ^= 0x40
+        path.write_bytes(bytes(data))
+    with pytest.raises(FeatureModelError, match=f"{path}.*reinstall swarmloc"):
+        XFeatModel(path)
+
+
+def test_the_map_stores_int8_codes_as_format_4(xfeat_map: RouteMap) -> None:
+    assert xfeat_map.meta["format_version"] == 4
+    assert xfeat_map.codes.dtype == np.int8 and xfeat_map.codes.shape[1] == 64
+    assert xfeat_map.feature_params == XFeatParams()
+    assert xfeat_map.place_index is not None  # VLAD over the XFeat descriptors
+    assert xfeat_map.path is not None
+    again = load_map(xfeat_map.path, verify="lazy")
+    assert np.array_equal(again.codes_of(5), xfeat_map.codes_of(5))
+
+
+def test_the_true_place_is_the_best_match_and_the_index_finds_it(xfeat_map: RouteMap,
+                                                                  sunny2: Round) -> None:
+    hits = index_hits = 0
+    frames = range(5, len(sunny2) - 5, 6)
+    for i in frames:
+        f = extract(sunny2.load_image(i), xfeat_map.feature_params)
+        scores = xfeat_map.similarity(f.codes, range(xfeat_map.n_images))
+        truth = np.asarray(sunny2.xy[i])
+        best = xfeat_map.positions[int(np.argmax(scores))]
+        hits += np.linalg.norm(best - truth) <= 3.0
+        assert xfeat_map.place_index is not None
+        ids, _ = xfeat_map.place_index.query(f.codes, 10)
+        index_hits += bool(np.any(np.linalg.norm(xfeat_map.positions[ids] - truth, axis=1)
+                                  <= 3.0))
+    assert hits >= 0.9 * len(frames)
+    assert index_hits >= 0.8 * len(frames)
+
+
+def test_the_geometry_locates_frames_with_xfeat_matches(xfeat_map: RouteMap, sunny2: Round
+                                                        ) -> None:
+    geo = xfeat_map.geometry
+    assert geo is not None
+    located = 0
+    for i in range(10, 40, 3):
+        f = extract(sunny2.load_image(i), xfeat_map.feature_params)
+        nearest, _ = xfeat_map.nearest(np.asarray(sunny2.xy[i])[None, :])
+        located += geo.locate(f, int(nearest[0]), GeometryParams()) is not None
+    assert located >= 5
+
+
+def test_dpso_tracks_a_cloudy_round_on_an_xfeat_map(xfeat_map: RouteMap, cloudy1: Round
+                                                    ) -> None:
+    loc = Localizer(xfeat_map, "dpso", {}, seed=2)
+    errors, tracking = [], 0
+    for i in range(len(cloudy1)):
+        est = loc.localize(cloudy1.load_image(i), t=float(i))
+        if i >= 15:
+            errors.append(np.hypot(est.x - cloudy1.xy[i][0], est.y - cloudy1.xy[i][1]))
+            tracking += est.status == "tracking"
+    assert np.mean(errors) < 2.5
+    assert tracking >= 0.8 * len(errors)
+
+
+def test_a_map_of_another_model_is_refused_and_the_others_serve(xfeat_map: RouteMap,
+                                                                 small_map: RouteMap,
+                                                                 tmp_path: Path) -> None:
+    other = RouteMap("other", {**xfeat_map.meta, "feature": {
+        **xfeat_map.meta["feature"], "model": "ab" * 32}}, xfeat_map.positions,
+        xfeat_map.image_names, xfeat_map.codes, xfeat_map.offsets, xfeat_map.keypoints,
+        layers=xfeat_map.layers, place_index=xfeat_map.place_index)
+    save_map(other, tmp_path / "other")
+    save_map(small_map, tmp_path / "small")
+    with pytest.raises(MapError, match="other.swmap.*XFeat model abababababab.*rebuild the map "
+                                       "with 'swarmloc map build --features xfeat'"):
+        load_map(tmp_path / "other.swmap")
+    svc = LocalizationService(Settings(maps_dir=tmp_path, zenoh_enabled=False))
+    try:
+        assert set(svc.maps) == {"small"}
+        assert "other.swmap" in svc.load_errors
+        assert "--features xfeat" in svc.load_errors["other.swmap"]
+    finally:
+        svc.close()
