@@ -37,7 +37,15 @@ async def viewer(
                         headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"})
 
 
+@viewer_router.get("/favicon.ico", include_in_schema=False)
+async def favicon() -> FileResponse:
+    """The viewer's icon, also for pages that do not link one (browsers ask for it)."""
+    return FileResponse(STATIC / "favicon.svg", media_type="image/svg+xml",
+                        headers={"Cache-Control": "max-age=86400"})
+
+
 def add_viewer(app: FastAPI) -> None:
-    """Serve the page at ``/viewer`` (guarded) and its code at ``/viewer/static``."""
+    """Serve the page at ``/viewer`` (guarded), its code at ``/viewer/static`` and the icon at
+    ``/favicon.ico`` (open, like the code)."""
     app.include_router(viewer_router)
     app.mount("/viewer/static", StaticFiles(directory=STATIC), name="viewer-static")
