@@ -174,3 +174,21 @@ def test_metrics_answer_head_and_have_no_created_samples(server: dict) -> None:
     head = httpx.head(url)
     assert head.status_code == 200 and head.content == b""
     assert head.headers["content-type"] == get.headers["content-type"]
+
+
+def test_octet_stream_is_accepted_wherever_it_is_declared(server: dict, sunny2) -> None:
+    url, octet = server["url"], {"Content-Type": "application/octet-stream"}
+    assert httpx.put(f"{url}/sessions/octet", json={"map": "small"}).status_code == 201
+    try:
+        r = httpx.post(f"{url}/sessions/octet/frames", headers=octet,
+                       content=sunny2.image_path(3).read_bytes())
+        assert r.status_code == 200 and r.json()["frame_id"] == "small"
+    finally:
+        httpx.delete(f"{url}/sessions/octet")
+    r = httpx.put(f"{url}/maps/octet", headers=octet, content=b"not a map")
+    assert r.status_code == 400 and "not a swarmloc map" in r.text, r.text  # read as a map
+    r = httpx.post(f"{url}/maps/octet/build", headers=octet, content=b"not an archive")
+    assert r.status_code in (400, 422) and "archive" in r.text, r.text  # read as an archive
+    r = httpx.post(f"{url}/maps/octet/build", headers={"Content-Type": "text/csv"},
+                   content=b"x")
+    assert r.status_code == 415  # what is not declared is refused
