@@ -17,7 +17,7 @@ from client.lab.bench_frame_cli import register as register_frame_bench
 from client.lab.bench_load_cli import register as register_load_bench
 from client.lab.experiment_cli import experiment, sweep
 from client.lab.scale_map_cli import register as register_scale_map
-from service.cli import serve
+from service.cli import DebugOpt, run_cli, serve
 
 if TYPE_CHECKING:
     import numpy as np
@@ -43,6 +43,14 @@ app.add_typer(bench_app, name="bench")
 register_load_bench(bench_app)  # bench load, bench fuzz (client/lab/bench_load_cli.py)
 register_frame_bench(bench_app)  # bench frame (client/lab/bench_frame_cli.py)
 register_scale_map(world_app, bench_app)  # world long-route, bench scale-map
+
+
+@app.callback()
+def _main(debug: DebugOpt = False) -> None:
+    """swarmloc: visual localization service (SIFT maps + Dynamic PSO).
+
+    Errors print one line saying what to do; --debug (before the command) shows the
+    traceback."""
 
 
 def _fail(msg: str) -> NoReturn:
@@ -269,7 +277,9 @@ def _remote(url: str, token: str | None) -> HttpClient:
 
 
 def _remote_fail(exc: Exception) -> NoReturn:
-    _fail(f"service error {getattr(exc, 'status', '?')}: {getattr(exc, 'message', exc)}")
+    from service.cli import explain
+
+    _fail(explain(exc, "")[0])
 
 
 Url = Annotated[str, typer.Option("--to", help="service URL, e.g. http://127.0.0.1:8080")]
@@ -878,7 +888,7 @@ _register_paper()
 
 
 def main() -> None:
-    app()
+    run_cli(app)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""``swarmloc serve`` (also ``swarmloc-service serve`` and ``python -m service serve``).
+"""``swarmloc serve`` (also ``swarmloc-service serve`` and ``python -m service serve``), and
+``run_cli``: every command's errors as one line that says what to do.
 
 Importing this module is cheap (typer only): the ``swarmloc`` command registers ``serve``
 from here, and the server's modules are imported when it runs.
@@ -6,6 +7,9 @@ from here, and the server's modules are imported when it runs.
 
 from __future__ import annotations
 
+import os
+import sys
+import traceback
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -39,13 +43,8 @@ def serve(
              "[SWARMLOC_ZENOH_CONFIG_FILE]")] = None,
 ) -> None:
     """Run the localization service (HTTP + Zenoh). Flags override SWARMLOC_* variables."""
-    try:
-        from service.server import run
-        from service.settings import Settings
-    except ImportError as exc:
-        typer.echo(f"error: the service needs the 'service' extra: pip install "
-                   f"'swarmloc[service]' ({exc})", err=True)
-        raise typer.Exit(2) from None
+    from service.server import run  # without the [service] extra: run_cli says so
+    from service.settings import Settings
 
     overrides: dict[str, Any] = {k: v for k, v in {
         "host": host, "port": port, "maps_dir": maps_dir, "default_map": default_map,
@@ -53,18 +52,125 @@ def serve(
         "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect,
         "ros2_enabled": ros2, "zenoh_config_file": zenoh_config}.items() if v is not None}
     settings = Settings(**overrides)
+    if settings.zenoh_enabled:
+        from service.zenoh.bridge import check_security
+
+        check_security(settings)  # refuse before the demo map is built
     if demo:
         from service.demo import ensure_demo_map
 
-        path = ensure_demo_map(settings.maps_dir)
+        path = ensure_demo_map(settings.maps_dir, progress=True)
         typer.echo(f"demo map: {path}")
     run(settings)
 
 
+DebugOpt = Annotated[bool, typer.Option(
+    "--debug", help="show the traceback of an error (otherwise: one line saying what to do)")]
+
+
 @app.callback()
-def _main() -> None:
+def _main(debug: DebugOpt = False) -> None:
     """swarmloc service: HTTP + Zenoh localization."""
 
 
 def main() -> None:
-    app()
+    run_cli(app)
+
+
+# ---- one-line errors ----------------------------------------------------------------------
+#: the extra that installs each optional module (pyproject.toml's optional dependencies)
+EXTRA_OF_MODULE = {
+    "cv2": "service", "scipy": "service", "fastapi": "service", "starlette": "service",
+    "uvicorn": "service", "httptools": "service", "uvloop": "service", "numba": "service",
+    "numkong": "service", "prometheus_client": "service", "pydantic_settings": "service",
+    "threadpoolctl": "service", "msgpack": "service", "zenoh": "zenoh", "pyproj": "geo",
+    "redis": "redis", "rosbags": "ros", "matplotlib": "lab", "playwright": "lab"}
+_SETUP, _RUNTIME = 2, 1  # exit codes: fix the install/input/config; the run failed
+
+
+def run_cli(app: typer.Typer, argv: list[str] | None = None) -> None:
+    """Run a typer app; an error ends it with one line on stderr that says what to do (exit
+    2: fix the install, the input or the configuration; 1: the run failed). ``--debug``
+    (before the command) shows the traceback instead."""
+    args = sys.argv[1:] if argv is None else argv
+    try:
+        app(args=args)
+    except KeyboardInterrupt:
+        raise SystemExit(130) from None
+    except Exception as exc:
+        if "--debug" in _global_args(args) or os.environ.get("SWARMLOC_DEBUG") == "1":
+            raise
+        message, code = explain(exc, "swarmloc " + " ".join(_command_words(app, args)))
+        typer.echo(f"error: {message}", err=True)
+        raise SystemExit(code) from None
+
+
+def _global_args(args: list[str]) -> list[str]:
+    """The options before the first command word (where --debug belongs)."""
+    out = []
+    for a in args:
+        if not a.startswith("-"):
+            break
+        out.append(a)
+    return out
+
+
+def _command_words(app: typer.Typer, args: list[str]) -> list[str]:
+    """The command path in ``args`` (``['world', 'render']``)."""
+    cmd: Any = typer.main.get_command(app)
+    words = []
+    for a in args:
+        if a.startswith("-"):
+            continue
+        commands = getattr(cmd, "commands", None)  # a group (typer may vendor click)
+        if not isinstance(commands, dict) or a not in commands:
+            break
+        words.append(a)
+        cmd = commands[a]
+    return words
+
+
+def explain(exc: BaseException, command: str) -> tuple[str, int]:
+    """One line for an error, and the exit code. Errors are recognised by class name, so that
+    this module imports nothing heavy (the error may be that an import failed)."""
+    names = {c.__name__ for c in type(exc).__mro__}
+    if isinstance(exc, ModuleNotFoundError) and exc.name:
+        module = exc.name.split(".")[0]
+        extra = "lab" if _raised_in(exc, f"client{os.sep}lab{os.sep}") else \
+            EXTRA_OF_MODULE.get(module)
+        if extra is not None:
+            return (f"{command.strip()} needs the [{extra}] extra: pip install "
+                    f"'swarmloc[{extra}]' (module '{module}' is not installed)", _SETUP)
+    if "ZenohSecurityError" in names:
+        return (f"{exc}; on the command line: --zenoh-config FILE, or --no-zenoh to serve "
+                "HTTP only", _SETUP)
+    if names & {"MapError", "DatasetError"}:
+        return str(exc), _SETUP
+    if "SwarmlocError" in names:
+        status, message = getattr(exc, "status", 0), getattr(exc, "message", str(exc))
+        if status == 0:
+            hint = " (is the service running, and the URL right?)" \
+                if message.startswith("cannot reach") else ""
+            return message + hint, _RUNTIME
+        return f"the service answered {status}: {message}", _RUNTIME
+    if "ServiceError" in names:
+        return getattr(exc, "message", str(exc)), _SETUP
+    if "ValidationError" in names and hasattr(exc, "errors"):
+        from service.api.errors import describe_errors
+
+        return (f"invalid settings (flags or SWARMLOC_* variables): "
+                f"{describe_errors(exc.errors())}", _SETUP)
+    if "TransportError" in names:  # httpx: connection refused, timeout, ...
+        request = getattr(exc, "_request", None)
+        where = f" {request.url}" if request is not None else ""
+        return (f"cannot reach{where}: {exc or type(exc).__name__} (is the service running, "
+                "and the URL right?)", _RUNTIME)
+    if isinstance(exc, OSError) and exc.filename is not None:
+        return f"{exc.strerror or exc}: {exc.filename}", _SETUP
+    return (f"{type(exc).__name__}: {exc} (run 'swarmloc --debug {command[9:].strip()} ...' "
+            "for the traceback)", _RUNTIME)
+
+
+def _raised_in(exc: BaseException, part: str) -> bool:
+    """Whether a frame of the traceback is in a file whose path contains ``part``."""
+    return any(part in frame.filename for frame in traceback.extract_tb(exc.__traceback__))

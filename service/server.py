@@ -69,11 +69,78 @@ def run(settings: Settings) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     from service.vision.matcher import warm_up
 
+    if settings.zenoh_enabled:
+        check_security(settings)  # before the kernels compile: the refusal comes at once
     limit_native_threads(settings)
     warm_up()  # compile (or load) the matcher's kernels before the first frame
     app = build_app(settings)
-    log.info("maps loaded from %s: %s", settings.maps_dir, sorted(app.state.service.maps))
-    _Server(_uvicorn_config(app, settings, "info"), app.state.service).run()
+    service: LocalizationService = app.state.service
+    print(startup_banner(settings, sorted(service.maps), service.load_errors), flush=True)
+    _Server(_uvicorn_config(app, settings, "info"), service).run()
+
+
+def startup_banner(settings: Settings, maps: list[str], load_errors: dict[str, str]) -> str:
+    """What a new operator needs at start-up: where to point a robot, a browser and a Zenoh
+    peer, and whether the service is open to anyone who reaches it."""
+    from service import __version__
+
+    url = public_url(settings.host, settings.port)
+    wildcard = settings.host in ("0.0.0.0", "::", "")
+    auth = bool(settings.auth_token)
+    if settings.zenoh_enabled:
+        ends = [f"listen {e}" for e in settings.zenoh_listen] + \
+            [f"connect {e}" for e in settings.zenoh_connect]
+        zenoh = f"{', '.join(ends) or 'no endpoints'} (mode {settings.zenoh_mode}, prefix " \
+                f"'{settings.zenoh_prefix}')"
+    else:
+        zenoh = "off"
+    ros2 = f"on ({settings.ros2_key_format} keys)" if settings.zenoh_enabled and \
+        settings.ros2_enabled else "off"
+    loaded = f"{len(maps)} from {settings.maps_dir}/: {', '.join(maps)}" if maps else \
+        f"none in {settings.maps_dir}/ (GET /readyz answers 503 until one is uploaded)"
+    if load_errors:
+        loaded += f"; {len(load_errors)} refused: {', '.join(sorted(load_errors))}"
+    rows = [
+        ("HTTP", url + ("  (all interfaces)" if wildcard else "") + "  API docs: " +
+         f"{url}/docs"),
+        ("viewer", f"{url}/viewer" + ("?token=<SWARMLOC_AUTH_TOKEN>" if auth else "")),
+        ("Zenoh", zenoh),
+        ("ROS 2", ros2),
+        ("auth", "on: bearer token" if auth else
+         "off: anyone who reaches the port can use the API (--token)"),
+        ("maps", loaded),
+        ("sessions", session_store_name(settings)),
+    ]
+    width = max(len(k) for k, _ in rows)
+    return "\n".join([f"swarmloc {__version__}"] +
+                     [f"  {k:<{width}}  {v}" for k, v in rows])
+
+
+def public_url(host: str, port: int) -> str:
+    """The URL to open for a bind address (a wildcard address: this machine's loopback)."""
+    if host in ("0.0.0.0", ""):
+        host = "127.0.0.1"
+    elif host == "::":
+        host = "[::1]"
+    elif ":" in host:
+        host = f"[{host}]"
+    return f"http://{host}:{port}"
+
+
+def session_store_name(settings: Settings) -> str:
+    """The session store, without a password in its URL."""
+    store = settings.session_store
+    if store == "memory":
+        snap = settings.session_snapshot
+        return "in-process" + (f", snapshot {snap}" if snap else " (lost on restart)")
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(store)
+    if parts.password:
+        netloc = f"{parts.username or ''}:***@{parts.hostname}" + \
+            (f":{parts.port}" if parts.port else "")
+        store = parts._replace(netloc=netloc).geturl()
+    return store
 
 
 def free_port(host: str = "127.0.0.1") -> int:

@@ -5,21 +5,26 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from service.demo import demo_round, ensure_demo_map
 from service.engine.localizer import Localizer
 from service.maps.route_map import load_map
 
 
-def test_demo_map_is_built_once_from_the_shipped_round(tmp_path: Path) -> None:
-    path = ensure_demo_map(tmp_path / "maps")
+def test_demo_map_is_built_once_from_the_shipped_round(tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture) -> None:
+    path = ensure_demo_map(tmp_path / "maps", progress=True)
+    assert "building the demo map" in capsys.readouterr().err  # the progress bar
     m = load_map(path)
     rnd = demo_round()
     assert m.name == "demo" and m.n_images == len(rnd) == 67
     np.testing.assert_allclose(m.positions, rnd.xy)
     assert m.meta["source"]["world_seed"] == 0
     stamp = path.stat().st_mtime_ns
-    assert ensure_demo_map(tmp_path / "maps") == path and path.stat().st_mtime_ns == stamp
+    assert ensure_demo_map(tmp_path / "maps", progress=True) == path and \
+        path.stat().st_mtime_ns == stamp
+    assert capsys.readouterr().err == ""  # nothing built, no bar
     # a shipped frame is found where it was taken
     loc = Localizer(m, "dpso", seed=0)
     for _ in range(5):

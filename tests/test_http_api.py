@@ -200,7 +200,7 @@ def test_openapi_spec_is_valid(client: TestClient) -> None:
     validate(spec)
     assert "/sessions/{robot_id}/frames" in spec["paths"]
     body = spec["paths"]["/sessions/{robot_id}/frames"]["post"]["requestBody"]["content"]
-    assert set(body) == {"image/png", "image/jpeg"}
+    assert set(body) == {"image/png", "image/jpeg", "application/octet-stream"}
 
 
 def test_implicit_session_creation_never_replaces_one(maps_dir: Path) -> None:

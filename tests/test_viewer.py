@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 
 import cv2
@@ -16,6 +17,8 @@ from service.settings import Settings
 from tests.browser import ARTIFACTS, browser_page
 
 TOKEN = "viewer-test-token"
+STATUSES = ("initializing", "tracking", "recovering", "lost")
+LEGEND_ITEMS = ("robot", "accuracy", "path", "hypotheses", "particles", "map-images")
 STATUS_COLORS = {"tracking": "#2e9d4f", "lost": "#d62728"}
 
 # the canvas pixel under a robot's marker, as #rrggbb (the marker's centre is its fill)
@@ -52,6 +55,13 @@ def test_viewer_needs_the_token(viewer_server) -> None:
     assert r.status_code == 200 and "viewer/static/js/main.js" in r.text
     js = httpx.get(f"{url}/viewer/static/js/main.js")  # code only, open like /docs
     assert js.status_code == 200 and "javascript" in js.headers["content-type"]
+    # the icon: linked by the page (no /favicon.ico 404 on load) and at /favicon.ico, open
+    icon = re.search(r'<link rel="icon" [^>]*href="([^"]+)"', r.text)
+    assert icon is not None
+    for path in (icon.group(1), "favicon.ico"):
+        got = httpx.get(f"{url}/{path}")
+        assert got.status_code == 200 and got.headers["content-type"] == "image/svg+xml"
+        assert got.text.startswith("<svg")
     # the API itself still takes the token only as a header
     assert httpx.get(f"{url}/maps", params={"token": TOKEN}).status_code == 401
 
@@ -65,9 +75,17 @@ def test_two_robots_live_and_one_gets_lost(viewer_server, sunny2) -> None:
         api.create_session("robot-http", "small", "dpso", seed=1)
         z.create_session("robot-zenoh", "small", "pf-l", seed=2)  # PF-l reports `lost`
         with browser_page() as page:
+            not_found: list[str] = []
+            page.on("response", lambda r: not_found.append(r.url) if r.status >= 400 else None)
             page.goto(f"{url}/viewer?token={TOKEN}")
             page.wait_for_selector('#conn[data-state="live"]')
             assert page.locator("#map-select").input_value() == "small"
+            # a legend for every status and everything drawn; a favicon: no 404 on load
+            for key in [f'[data-status="{s}"]' for s in STATUS_COLORS] + \
+                    [f'[data-item="{i}"]' for i in LEGEND_ITEMS]:
+                assert page.locator(f"#legend {key}").is_visible(), key
+            assert page.locator('link[rel="icon"]').count() == 1
+            assert not_found == []
             for i in range(8):  # two robots stream while the page watches
                 api.localize("robot-http", sunny2.image_path(5 + i).read_bytes(), t=0.5 * i)
                 z.localize("robot-zenoh", sunny2.image_path(60 + i).read_bytes(), t=0.5 * i)
@@ -96,6 +114,7 @@ def test_two_robots_live_and_one_gets_lost(viewer_server, sunny2) -> None:
             z.localize("robot-zenoh", black, t=6.5)
             page.wait_for_function("() => window.swarmloc.fleet.robots.get('robot-zenoh')"
                                    "?.particles?.length > 0")
+            assert not_found == []
             ARTIFACTS.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(ARTIFACTS / "viewer-two-robots.png"))
         assert (ARTIFACTS / "viewer-two-robots.png").stat().st_size > 10_000

@@ -13,6 +13,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from collections.abc import Iterable, Iterator
+
+    import numpy as np
+
     from service.maps.round_archive import UploadedRound
 
 DEMO_ROUND_DIR = Path(__file__).resolve().parent / "round"
@@ -31,12 +35,21 @@ def demo_round(path: Path = DEMO_ROUND_DIR) -> UploadedRound:
                          camera=camera_from_hfov(DEMO_HFOV_DEG, 320, 240))
 
 
-def ensure_demo_map(maps_dir: Path, name: str = "demo") -> Path:
-    """Build ``maps_dir/NAME.swmap`` from the shipped round if it is missing."""
+def ensure_demo_map(maps_dir: Path, name: str = "demo", progress: bool = False) -> Path:
+    """Build ``maps_dir/NAME.swmap`` from the shipped round if it is missing; ``progress``:
+    a progress bar on stderr while the features are extracted (about 10 s)."""
     from service.maps.route_map import build_map_from_rounds, list_maps, save_map
 
     path = maps_dir / f"{name}.swmap"
     if path in list_maps(maps_dir):
         return path
-    m = build_map_from_rounds([demo_round()], name=name, source=dict(DEMO_SOURCE))
+    rnd = demo_round()
+
+    def bar(images: Iterator[np.ndarray]) -> Iterable[np.ndarray]:
+        from tqdm import tqdm
+
+        return tqdm(images, total=len(rnd), desc=f"building the demo map {path}",
+                    unit="image", disable=not progress)
+
+    m = build_map_from_rounds([rnd], name=name, source=dict(DEMO_SOURCE), wrap=bar)
     return save_map(m, path)

@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.metrics_core import Metric
+
+#: the content type of ``Metrics.render``: Prometheus text format 0.0.4
+PROMETHEUS_TEXT = "text/plain; version=0.0.4; charset=utf-8"
 
 
 class Metrics:
@@ -49,4 +55,20 @@ class Metrics:
         self.map_deletes = Counter("swarmloc_map_deletes_total", "Maps deleted", registry=r)
 
     def render(self) -> bytes:
-        return generate_latest(self.registry)
+        """The exposition of this registry, without the ``*_created`` samples (timestamps of
+        each counter's creation: prometheus_client's default, usually turned off). Filtered
+        here rather than by ``disable_created_metrics()``, which is process-wide state."""
+        return generate_latest(_WithoutCreated(self.registry))
+
+
+class _WithoutCreated:
+    """A collector that yields the registry's metrics less their ``*_created`` samples."""
+
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self._registry = registry
+
+    def collect(self) -> Iterator[Metric]:
+        for metric in self._registry.collect():  # fresh Metric objects on every call
+            created = metric.name + "_created"
+            metric.samples = [s for s in metric.samples if s.name != created]
+            yield metric

@@ -5,15 +5,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import weakref
-from collections.abc import AsyncIterator, Callable
-from typing import Annotated, Any
+from collections.abc import AsyncIterator
+from typing import Annotated
 from urllib.parse import urlencode
 
 import anyio
 from fastapi import APIRouter, Depends, FastAPI, Path, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_swagger_ui_html
-from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
+from fastapi.responses import HTMLResponse, JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service import __version__
@@ -30,13 +30,14 @@ from service.api.models import (
     pose_prior,
 )
 from service.engine.localization_service import LocalizationService
-from service.http.auth import bearer_guard
+from service.engine.metrics import PROMETHEUS_TEXT
+from service.http.auth import require_token, require_token_or_query
+from service.http.deps import ServiceDep
 from service.http.events import events_router
 from service.http.maps import map_router
+from service.http.openapi import API_ERRORS, binary_body, operation_id
 from service.http.viewer import add_viewer
 
-_ERRORS: dict[int | str, dict[str, Any]] = {
-    code: {"model": ErrorBody} for code in (400, 401, 404, 409, 413, 415, 422, 503)}
 RobotId = Annotated[str, Path(pattern=r"^[A-Za-z0-9._-]{1,128}$",
                              description="1-128 letters, digits, '-', '_' or '.'")]
 # OpenAPI links: what a client (and the stateful fuzzer) can do with a session it created
@@ -46,13 +47,7 @@ _SESSION_LINKS = {
     for name, path, method in (("GetSession", "", "get"), ("SendFrame", "~1frames", "post"),
                                ("ResetSession", "~1reset", "post"),
                                ("DeleteSession", "", "delete"))}
-_IMAGE_BODY = {
-    "requestBody": {
-        "required": True,
-        "content": {t: {"schema": {"type": "string", "format": "binary"}}
-                    for t in ("image/png", "image/jpeg")},
-    }
-}
+FRAME_TYPES = ("image/png", "image/jpeg", "application/octet-stream")
 
 
 def create_app(service: LocalizationService, *, expire_every_s: float | None = None,
@@ -60,8 +55,8 @@ def create_app(service: LocalizationService, *, expire_every_s: float | None = N
     """The FastAPI application for one service instance.
 
     ``lifespan_hooks`` are async context managers entered at start-up (the Zenoh bridge).
-    Every route but the probes is on a router whose dependency checks the bearer token
-    (``/openapi.json`` and ``/docs`` included), and every error answers ``{"error": ...}``.
+    Every route but the probes depends on the bearer token check (``/openapi.json`` and
+    ``/docs`` included), and every error answers ``{"error": ...}``.
     """
     settings = service.settings
 
@@ -79,21 +74,44 @@ def create_app(service: LocalizationService, *, expire_every_s: float | None = N
 
     app = FastAPI(title="swarmloc", version=__version__, lifespan=lifespan,
                   openapi_url=None, docs_url=None, redoc_url=None,
+                  generate_unique_id_function=operation_id,
                   description="Visual localization of robots against SIFT route maps with "
                               "Dynamic Particle Swarm Optimization (Kronfeld, Weiss, Zell).")
     app.state.service = service
+    app.state.frame_workers = FrameWorkers(settings.frame_workers)
     add_error_handlers(app, service)
-
-    auth = bearer_guard(settings, service.metrics)
-    guarded = [Depends(auth)]
-    browser_auth = bearer_guard(settings, service.metrics, allow_query=True)
-    app.include_router(health_router(service))
-    app.include_router(docs_router(app, browser_auth))
-    app.include_router(events_router(service, browser_auth))
-    add_viewer(app, browser_auth)
-    app.include_router(api_router(service), dependencies=guarded, responses=_ERRORS)
-    app.include_router(map_router(service, guarded))  # upload, build, replace, delete, jobs
+    app.include_router(health_router)
+    app.include_router(docs_router)
+    app.include_router(events_router)
+    add_viewer(app)
+    app.include_router(api_router)
+    app.include_router(map_router)  # upload, build, replace, delete, jobs
     return app
+
+
+class FrameWorkers:
+    """The threads that localize frames. One frame of a robot at a time holds a worker (the
+    others wait without one); sessions over ``heavy_particles`` share a quarter of the
+    workers, so they cannot take the light robots' threads (fair scheduling)."""
+
+    def __init__(self, workers: int) -> None:
+        self.light = anyio.CapacityLimiter(workers)
+        self.heavy = anyio.CapacityLimiter(max(1, workers // 4))
+        self._gates: weakref.WeakValueDictionary[str, asyncio.Lock] = \
+            weakref.WeakValueDictionary()
+
+    def gate(self, robot_id: str) -> asyncio.Lock:
+        lock = self._gates.get(robot_id)
+        if lock is None:
+            lock = self._gates[robot_id] = asyncio.Lock()
+        return lock
+
+
+def get_frame_workers(request: Request) -> FrameWorkers:
+    return request.app.state.frame_workers
+
+
+FrameWorkersDep = Annotated[FrameWorkers, Depends(get_frame_workers)]
 
 
 def add_error_handlers(app: FastAPI, service: LocalizationService) -> None:
@@ -124,131 +142,145 @@ def add_error_handlers(app: FastAPI, service: LocalizationService) -> None:
                             headers=getattr(exc, "headers", None))
 
 
-def health_router(service: LocalizationService) -> APIRouter:
-    """The probes: always open."""
-    router = APIRouter(tags=["health"])
-
-    @router.get("/healthz")
-    async def healthz() -> dict:
-        return {"status": "ok", "version": __version__}
-
-    @router.get("/readyz", responses={503: {"model": ErrorBody}})
-    async def readyz() -> JSONResponse:
-        if service.draining:
-            return JSONResponse({"error": "shutting down"}, 503)
-        if service.ready:
-            return JSONResponse({"status": "ready", "maps": sorted(service.maps)})
-        return JSONResponse({"error": f"no maps loaded from {service.settings.maps_dir}",
-                             "detail": service.load_errors}, 503)
-
-    return router
+# ---- the probes: always open ------------------------------------------------------------
+health_router = APIRouter(tags=["health"])
 
 
-def docs_router(app: FastAPI, guard: Callable[..., Any]) -> APIRouter:
-    """``/openapi.json`` and ``/docs`` behind the token (header, or ``?token=`` so that a
-    browser can open the page; the page passes it on to the schema)."""
-    router = APIRouter(dependencies=[Depends(guard)], include_in_schema=False)
-
-    @router.get("/openapi.json")
-    async def openapi() -> JSONResponse:
-        return JSONResponse(app.openapi())
-
-    @router.get("/docs")
-    async def docs(request: Request) -> HTMLResponse:
-        token = request.query_params.get("token")
-        url = "/openapi.json" + (f"?{urlencode({'token': token})}" if token else "")
-        return get_swagger_ui_html(openapi_url=url, title="swarmloc API")
-
-    return router
+@health_router.get("/healthz")
+async def healthz() -> dict:
+    """Liveness: the process answers."""
+    return {"status": "ok", "version": __version__}
 
 
-def api_router(service: LocalizationService) -> APIRouter:
-    """Metrics, maps and sessions; the caller adds the auth dependency to the router."""
-    settings = service.settings
-    router = APIRouter()
-    limiter = anyio.CapacityLimiter(settings.frame_workers)
-    # sessions over heavy_particles share a quarter of the workers: they cannot take the
-    # light robots' threads (fair scheduling)
-    heavy_limiter = anyio.CapacityLimiter(max(1, settings.frame_workers // 4))
-    gates: weakref.WeakValueDictionary[str, asyncio.Lock] = weakref.WeakValueDictionary()
+@health_router.get("/readyz", responses={503: {"model": ErrorBody,
+                                               "description": "no maps, or shutting down"}})
+async def readyz(service: ServiceDep) -> JSONResponse:
+    """Readiness: maps are loaded and the service is not shutting down."""
+    if service.draining:
+        return JSONResponse({"error": "shutting down"}, 503)
+    if service.ready:
+        return JSONResponse({"status": "ready", "maps": sorted(service.maps)})
+    return JSONResponse({"error": f"no maps loaded from {service.settings.maps_dir}",
+                         "detail": service.load_errors}, 503)
 
-    def gate(robot_id: str) -> asyncio.Lock:
-        """One frame of a robot at a time holds a worker; the others wait without one."""
-        lock = gates.get(robot_id)
-        if lock is None:
-            lock = gates[robot_id] = asyncio.Lock()
-        return lock
 
-    @router.get("/metrics", tags=["health"], response_class=PlainTextResponse)
-    async def metrics() -> PlainTextResponse:
-        """Prometheus text format."""
-        return PlainTextResponse(service.metrics.render(),
-                                 media_type="text/plain; version=0.0.4")
+# ---- /openapi.json and /docs: behind the token (header, or ?token= so that a browser can
+# open the page; the page passes it on to the schema) ----------------------------------
+docs_router = APIRouter(dependencies=[Depends(require_token_or_query)], include_in_schema=False)
 
-    @router.get("/maps", tags=["maps"])
-    async def list_maps() -> list[MapSummary]:
-        return [service.map_summary(n) for n in sorted(service.maps)]
 
-    @router.get("/maps/{map_id}", tags=["maps"])
-    async def get_map(map_id: str, response: Response) -> MapDetail:
-        detail = service.map_detail(map_id)
-        response.headers["ETag"] = f'"{detail.checksum}"'
-        return detail
+@docs_router.get("/openapi.json")
+async def openapi(request: Request) -> JSONResponse:
+    return JSONResponse(request.app.openapi())
 
-    @router.put("/sessions/{robot_id}", tags=["sessions"],
-                responses={201: {"model": SessionInfo, "links": _SESSION_LINKS},
-                           200: {"links": _SESSION_LINKS}})
-    async def put_session(robot_id: RobotId, config: SessionConfig, response: Response
-                          ) -> SessionInfo:
-        info, created = service.put_session(robot_id, config)
-        response.status_code = 201 if created else 200
-        return info
 
-    @router.get("/sessions", tags=["sessions"])
-    async def list_sessions() -> list[SessionInfo]:
-        return service.sessions()
+@docs_router.get("/docs")
+async def docs(request: Request) -> HTMLResponse:
+    token = request.query_params.get("token")
+    url = "/openapi.json" + (f"?{urlencode({'token': token})}" if token else "")
+    return get_swagger_ui_html(openapi_url=url, title="swarmloc API")
 
-    @router.get("/sessions/{robot_id}", tags=["sessions"])
-    async def get_session(robot_id: str) -> SessionInfo:
-        return service.session(robot_id).info()
 
-    @router.delete("/sessions/{robot_id}", tags=["sessions"], status_code=204)
-    async def delete_session(robot_id: str) -> Response:
-        service.delete_session(robot_id)
-        return Response(status_code=204)
+# ---- metrics, maps and sessions -----------------------------------------------------------
+api_router = APIRouter(dependencies=[Depends(require_token)], responses=API_ERRORS)
 
-    @router.post("/sessions/{robot_id}/reset", tags=["sessions"])
-    async def reset_session(robot_id: str, body: ResetRequest | None = None) -> SessionInfo:
-        return service.reset_session(robot_id, body.near() if body is not None else None)
 
-    @router.post("/sessions/{robot_id}/frames", tags=["frames"], openapi_extra=_IMAGE_BODY,
-                 response_model=Estimate)
-    async def post_frame(
-        robot_id: str,
-        request: Request,
-        t: Annotated[float | None, Query(description="frame timestamp, s")] = None,
-        seq: Annotated[int | None, Query(description="robot's frame sequence number",
-                                         ge=-(2**63), lt=2**63)] = None,
-        prior_x: Annotated[float | None, Query(description="pose prior, m east")] = None,
-        prior_y: Annotated[float | None, Query(description="pose prior, m north")] = None,
-        prior_radius: Annotated[float | None, Query(
-            gt=0, le=MAX_PRIOR_RADIUS_M, description="prior radius, m")] = None,
-    ) -> Response:
-        if service.draining:
-            raise Unavailable("the service is shutting down; retry after the restart")
-        session = service.session(robot_id)
-        prior = pose_prior(prior_x, prior_y, prior_radius)
-        body = await _read_body(request, settings.max_body_bytes, service)
-        async with gate(robot_id):
-            lim = heavy_limiter if service.is_heavy(robot_id) else limiter
-            return await anyio.to_thread.run_sync(
-                lambda: Response(estimate_json(service.process_frame(
-                    robot_id, body, content_type=request.headers.get("content-type"), t=t,
-                    prior=prior, transport="http", session=session, input_seq=seq)),
-                    media_type="application/json"),
-                limiter=lim)
+@api_router.get("/metrics", tags=["health"], response_class=Response,  # errors: JSON
+                responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},
+                                 "description": "Prometheus text format 0.0.4"}})
+async def get_metrics(service: ServiceDep) -> Response:
+    """Prometheus text format, without ``*_created`` samples."""
+    return Response(service.metrics.render(), media_type=PROMETHEUS_TEXT)
 
-    return router
+
+@api_router.head("/metrics", include_in_schema=False)
+async def head_metrics(service: ServiceDep) -> Response:
+    """The headers of ``GET /metrics`` (uvicorn sends no body for HEAD)."""
+    return await get_metrics(service)
+
+
+@api_router.get("/maps", tags=["maps"])
+async def list_maps(service: ServiceDep) -> list[MapSummary]:
+    """The maps loaded, by name."""
+    return [service.map_summary(n) for n in sorted(service.maps)]
+
+
+@api_router.get("/maps/{name}", tags=["maps"])
+async def get_map(name: str, response: Response, service: ServiceDep) -> MapDetail:
+    """One map: its images' positions and names, its version as the ETag."""
+    detail = service.map_detail(name)
+    response.headers["ETag"] = f'"{detail.checksum}"'
+    return detail
+
+
+@api_router.put("/sessions/{robot_id}", tags=["sessions"],
+                responses={201: {"model": SessionInfo, "links": _SESSION_LINKS,
+                                 "description": "created"},
+                           200: {"links": _SESSION_LINKS, "description": "replaced"}})
+async def create_session(robot_id: RobotId, config: SessionConfig, response: Response,
+                         service: ServiceDep) -> SessionInfo:
+    """Create (201) or replace (200) the session of a robot."""
+    info, created = service.put_session(robot_id, config)
+    response.status_code = 201 if created else 200
+    return info
+
+
+@api_router.get("/sessions", tags=["sessions"])
+async def list_sessions(service: ServiceDep) -> list[SessionInfo]:
+    """Every open session."""
+    return service.sessions()
+
+
+@api_router.get("/sessions/{robot_id}", tags=["sessions"])
+async def get_session(robot_id: str, service: ServiceDep) -> SessionInfo:
+    """One session, with its last estimate."""
+    return service.session(robot_id).info()
+
+
+@api_router.delete("/sessions/{robot_id}", tags=["sessions"], status_code=204)
+async def delete_session(robot_id: str, service: ServiceDep) -> Response:
+    """End a session."""
+    service.delete_session(robot_id)
+    return Response(status_code=204)
+
+
+@api_router.post("/sessions/{robot_id}/reset", tags=["sessions"])
+async def reset_session(robot_id: str, service: ServiceDep,
+                        body: ResetRequest | None = None) -> SessionInfo:
+    """Re-initialise the swarm: globally (no body) or near a pose."""
+    return service.reset_session(robot_id, body.near() if body is not None else None)
+
+
+@api_router.post("/sessions/{robot_id}/frames", tags=["frames"], response_model=Estimate,
+                 openapi_extra=binary_body(FRAME_TYPES, "a camera frame: PNG or JPEG "
+                                           "(application/octet-stream: sniffed)"))
+async def send_frame(
+    robot_id: str,
+    request: Request,
+    service: ServiceDep,
+    workers: FrameWorkersDep,
+    t: Annotated[float | None, Query(description="frame timestamp, s")] = None,
+    seq: Annotated[int | None, Query(description="robot's frame sequence number",
+                                     ge=-(2**63), lt=2**63)] = None,
+    prior_x: Annotated[float | None, Query(description="pose prior, m east")] = None,
+    prior_y: Annotated[float | None, Query(description="pose prior, m north")] = None,
+    prior_radius: Annotated[float | None, Query(
+        gt=0, le=MAX_PRIOR_RADIUS_M, description="prior radius, m")] = None,
+) -> Response:
+    """Localize one frame of the robot's camera: the estimate."""
+    if service.draining:
+        raise Unavailable("the service is shutting down; retry after the restart")
+    session = service.session(robot_id)
+    prior = pose_prior(prior_x, prior_y, prior_radius)
+    body = await _read_body(request, service.settings.max_body_bytes, service)
+    async with workers.gate(robot_id):
+        lim = workers.heavy if service.is_heavy(robot_id) else workers.light
+        return await anyio.to_thread.run_sync(
+            lambda: Response(estimate_json(service.process_frame(
+                robot_id, body, content_type=request.headers.get("content-type"), t=t,
+                prior=prior, transport="http", session=session, input_seq=seq)),
+                media_type="application/json"),
+            limiter=lim)
 
 
 def estimate_json(est: Estimate) -> bytes:

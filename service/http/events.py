@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import AsyncIterator, Callable, Iterable
-from typing import Annotated, Any
+from collections.abc import AsyncIterator, Iterable
+from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query
 from fastapi.responses import StreamingResponse
 
-from service.api.models import ErrorBody
 from service.engine.events import KEEPALIVE_S, estimate_message
 from service.engine.localization_service import LocalizationService
+from service.http.auth import require_token_or_query
+from service.http.deps import ServiceDep
+from service.http.openapi import API_ERRORS
 
 
 async def sse_stream(service: LocalizationService, map_name: str | None,
@@ -57,28 +59,28 @@ def initial_messages(service: LocalizationService, map_name: str | None) -> list
     return out
 
 
-def events_router(service: LocalizationService, guard: Callable[..., Any]) -> APIRouter:
-    """``GET /events``: the SSE stream (auth: bearer header, or ``?token=`` for browsers)."""
-    router = APIRouter()
+events_router = APIRouter()
 
-    @router.get("/events", tags=["viewer"], dependencies=[Depends(guard)],
-                response_class=StreamingResponse,
-                responses={200: {"content": {"text/event-stream": {}},
-                                 "description": "Server-Sent Events, see the README"},
-                           401: {"model": ErrorBody}, 404: {"model": ErrorBody}})
-    async def events(
-        map: Annotated[str | None, Query(description="only estimates on this map")] = None,
-        particles: Annotated[str, Query(description="robots whose particles to stream, "
-                                        "comma-separated, or '*'")] = "",
-        token: Annotated[str | None, Query(description="bearer token, for browsers' "
-                                           "EventSource (which cannot send headers)")] = None,
-    ) -> StreamingResponse:
-        if map is not None:
-            service.get_map(map)  # 404 with the list of maps
-        robots = [p for p in (s.strip() for s in particles.split(",")) if p]
-        return StreamingResponse(sse_stream(service, map, robots),
-                                 media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-cache",
-                                          "X-Accel-Buffering": "no"})
 
-    return router
+@events_router.get(
+    "/events", tags=["viewer"], dependencies=[Depends(require_token_or_query)],
+    response_class=StreamingResponse,
+    responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"}}},
+                     "description": "Server-Sent Events, see the README"},
+               401: API_ERRORS[401], 404: API_ERRORS[404], 422: API_ERRORS[422]})
+async def stream_events(
+    service: ServiceDep,
+    map: Annotated[str | None, Query(description="only estimates on this map")] = None,
+    particles: Annotated[str, Query(description="robots whose particles to stream, "
+                                    "comma-separated, or '*'")] = "",
+    token: Annotated[str | None, Query(description="bearer token, for browsers' "
+                                       "EventSource (which cannot send headers)")] = None,
+) -> StreamingResponse:
+    """The estimates of every robot as they come (auth: bearer header, or ``?token=`` for
+    browsers)."""
+    if map is not None:
+        service.get_map(map)  # 404 with the list of maps
+    robots = [p for p in (s.strip() for s in particles.split(",")) if p]
+    return StreamingResponse(sse_stream(service, map, robots),
+                             media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

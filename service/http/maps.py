@@ -13,27 +13,25 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import anyio
-from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.responses import StreamingResponse
 
 from service.api.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
 from service.api.models import ErrorBody, JobInfo, MapDeleted, MapSummary
 from service.engine.localization_service import LocalizationService
 from service.engine.map_admin import check_map_name
+from service.http.auth import require_token
+from service.http.deps import ServiceDep
+from service.http.openapi import API_ERRORS, binary_body
 
-_ERRORS: dict[int | str, dict[str, Any]] = {
-    code: {"model": ErrorBody} for code in (400, 401, 404, 409, 412, 413, 415, 422)}
-_MAP_TYPES = ("application/octet-stream", "application/x-swarmloc-map")
-_ARCHIVE_TYPES = ("application/zip", "application/x-zip-compressed", "application/x-tar",
+MAP_ERRORS: dict[int | str, dict[str, Any]] = API_ERRORS | {
+    412: {"model": ErrorBody, "description": "If-Match / If-None-Match not met"}}
+MAP_TYPES = ("application/octet-stream", "application/x-swarmloc-map")
+ARCHIVE_TYPES = ("application/zip", "application/x-zip-compressed", "application/x-tar",
                   "application/gzip", "application/x-gzip", "application/x-compressed-tar",
                   "application/x-bzip2", "application/x-xz", "application/octet-stream")
 IfMatch = Annotated[str | None, Header(description="only if the map is at this version (ETag)")]
 IfNoneMatch = Annotated[str | None, Header(description="'*': only if there is no such map")]
-
-
-def _binary_body(types: tuple[str, ...]) -> dict:
-    return {"requestBody": {"required": True, "content": {
-        t: {"schema": {"type": "string", "format": "binary"}} for t in types}}}
 
 
 def _check_type(request: Request, allowed: tuple[str, ...], what: str) -> None:
@@ -77,79 +75,90 @@ async def _staged(request: Request, service: LocalizationService, kind: str, lim
         path.unlink(missing_ok=True)
 
 
-def map_router(service: LocalizationService, dependencies: list) -> APIRouter:
+map_router = APIRouter(dependencies=[Depends(require_token)], responses=MAP_ERRORS)
+
+
+@map_router.put("/maps/{name}", tags=["maps"],
+                openapi_extra=binary_body(MAP_TYPES, "a .swmap file"),
+                responses={201: {"model": MapSummary, "description": "uploaded"},
+                           200: {"description": "replaced"}})
+async def upload_map(name: str, request: Request, response: Response, service: ServiceDep,
+                     if_match: IfMatch = None, if_none_match: IfNoneMatch = None
+                     ) -> MapSummary:
+    """Upload (201) or replace (200) a map: a .swmap file built by `swarmloc map build`."""
     admin = service.admin
-    settings = service.settings
-    router = APIRouter(dependencies=dependencies, responses=_ERRORS)
+    check_map_name(name)
+    _check_type(request, MAP_TYPES, "a map")
+    admin.check_preconditions(name, if_match, if_none_match)  # fail before the upload
+    async with _staged(request, service, "upload", service.settings.max_map_bytes,
+                       "map") as path:
+        summary, created = await anyio.to_thread.run_sync(
+            admin.install_upload, name, path, if_match, if_none_match)
+    response.status_code = 201 if created else 200
+    response.headers["ETag"] = f'"{summary.checksum}"'
+    response.headers["Location"] = f"/maps/{name}"
+    return summary
 
-    @router.put("/maps/{name}", tags=["maps"], openapi_extra=_binary_body(_MAP_TYPES),
-                responses={201: {"model": MapSummary}})
-    async def put_map(name: str, request: Request, response: Response,
-                      if_match: IfMatch = None, if_none_match: IfNoneMatch = None
-                      ) -> MapSummary:
-        """Upload (201) or replace (200) a map: a .swmap file built by `swarmloc map build`."""
-        check_map_name(name)
-        _check_type(request, _MAP_TYPES, "a map")
-        admin.check_preconditions(name, if_match, if_none_match)  # fail before the upload
-        async with _staged(request, service, "upload", settings.max_map_bytes, "map") as path:
-            summary, created = await anyio.to_thread.run_sync(
-                admin.install_upload, name, path, if_match, if_none_match)
-        response.status_code = 201 if created else 200
-        response.headers["ETag"] = f'"{summary.checksum}"'
-        response.headers["Location"] = f"/maps/{name}"
-        return summary
 
-    @router.get("/maps/{name}/file", tags=["maps"],
-                responses={200: {"content": {"application/octet-stream": {}}}})
-    async def get_map_file(name: str, if_none_match: IfNoneMatch = None) -> Response:
-        """The map's .swmap file (its current version), with its ETag."""
-        fh, etag, size = admin.open_file(name)
-        headers = {"ETag": f'"{etag}"'}
-        if if_none_match is not None and etag in [t.strip().strip('"')
-                                                  for t in if_none_match.split(",")]:
-            fh.close()  # type: ignore[attr-defined]
-            return Response(status_code=304, headers=headers)
+@map_router.get("/maps/{name}/file", tags=["maps"], response_class=Response,
+                responses={200: {"content": {"application/octet-stream": {"schema": {
+                    "type": "string", "format": "binary"}}}, "description": "the .swmap file"},
+                    304: {"description": "the map is at the version of If-None-Match"}})
+async def download_map(name: str, service: ServiceDep, if_none_match: IfNoneMatch = None
+                       ) -> Response:
+    """The map's .swmap file (its current version), with its ETag."""
+    fh, etag, size = service.admin.open_file(name)
+    headers = {"ETag": f'"{etag}"'}
+    if if_none_match is not None and etag in [t.strip().strip('"')
+                                              for t in if_none_match.split(",")]:
+        fh.close()  # type: ignore[attr-defined]
+        return Response(status_code=304, headers=headers)
 
-        def chunks() -> Any:
-            with fh:  # type: ignore[attr-defined]
-                while data := fh.read(1 << 20):  # type: ignore[attr-defined]
-                    yield data
+    def chunks() -> Any:
+        with fh:  # type: ignore[attr-defined]
+            while data := fh.read(1 << 20):  # type: ignore[attr-defined]
+                yield data
 
-        headers["Content-Length"] = str(size)
-        headers["Content-Disposition"] = f'attachment; filename="{name}.swmap"'
-        return StreamingResponse(chunks(), media_type="application/octet-stream",
-                                 headers=headers)
+    headers["Content-Length"] = str(size)
+    headers["Content-Disposition"] = f'attachment; filename="{name}.swmap"'
+    return StreamingResponse(chunks(), media_type="application/octet-stream",
+                             headers=headers)
 
-    @router.delete("/maps/{name}", tags=["maps"])
-    async def delete_map(name: str, force: Annotated[bool, Query(
-            description="end the sessions that use the map")] = False,
-            if_match: IfMatch = None) -> MapDeleted:
-        """Delete a map; 409 names the sessions on it unless ?force=true ends them."""
-        return admin.delete(name, force, if_match)
 
-    @router.post("/maps/{name}/build", tags=["maps"], status_code=202,
-                 openapi_extra=_binary_body(_ARCHIVE_TYPES))
-    async def build_map(name: str, request: Request, response: Response,
-                        if_match: IfMatch = None, if_none_match: IfNoneMatch = None
-                        ) -> JobInfo:
-        """Build a map from a zip/tar(.gz) of a round (poses.csv + images) in the background;
-        follow GET /jobs/{id}. The map appears (or is replaced) when the build is done."""
-        check_map_name(name)
-        _check_type(request, _ARCHIVE_TYPES, "a round archive")
-        admin.check_preconditions(name, if_match, if_none_match)
-        async with _staged(request, service, "archive", settings.max_archive_bytes,
-                           "round archive") as path:
-            job = await anyio.to_thread.run_sync(
-                admin.submit_build, name, path, if_match, if_none_match)
-        response.headers["Location"] = f"/jobs/{job.id}"
-        return job
+@map_router.delete("/maps/{name}", tags=["maps"])
+async def delete_map(name: str, service: ServiceDep, force: Annotated[bool, Query(
+        description="end the sessions that use the map")] = False,
+        if_match: IfMatch = None) -> MapDeleted:
+    """Delete a map; 409 names the sessions on it unless ?force=true ends them."""
+    return service.admin.delete(name, force, if_match)
 
-    @router.get("/jobs", tags=["jobs"])
-    async def list_jobs() -> list[JobInfo]:
-        return admin.jobs()
 
-    @router.get("/jobs/{job_id}", tags=["jobs"])
-    async def get_job(job_id: str) -> JobInfo:
-        return admin.job(job_id)
+@map_router.post("/maps/{name}/build", tags=["maps"], status_code=202,
+                 openapi_extra=binary_body(ARCHIVE_TYPES, "a zip or tar(.gz) of a round"))
+async def build_map(name: str, request: Request, response: Response, service: ServiceDep,
+                    if_match: IfMatch = None, if_none_match: IfNoneMatch = None
+                    ) -> JobInfo:
+    """Build a map from a zip/tar(.gz) of a round (poses.csv + images) in the background;
+    follow GET /jobs/{id}. The map appears (or is replaced) when the build is done."""
+    admin = service.admin
+    check_map_name(name)
+    _check_type(request, ARCHIVE_TYPES, "a round archive")
+    admin.check_preconditions(name, if_match, if_none_match)
+    async with _staged(request, service, "archive", service.settings.max_archive_bytes,
+                       "round archive") as path:
+        job = await anyio.to_thread.run_sync(
+            admin.submit_build, name, path, if_match, if_none_match)
+    response.headers["Location"] = f"/jobs/{job.id}"
+    return job
 
-    return router
+
+@map_router.get("/jobs", tags=["jobs"])
+async def list_jobs(service: ServiceDep) -> list[JobInfo]:
+    """The map builds, running and finished."""
+    return service.admin.jobs()
+
+
+@map_router.get("/jobs/{job_id}", tags=["jobs"])
+async def get_job(job_id: str, service: ServiceDep) -> JobInfo:
+    """One map build: its state and progress."""
+    return service.admin.job(job_id)

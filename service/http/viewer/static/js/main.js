@@ -1,7 +1,7 @@
 // Boot: token, maps, stream; draws in requestAnimationFrame only when something changed.
 
-import { STATUS_COLORS } from "./colors.js";
 import { Fleet } from "./fleet.js";
+import { legendHtml } from "./legend.js";
 import { Panel } from "./panel.js";
 import { Scene } from "./scene.js";
 import { openStream } from "./stream.js";
@@ -85,9 +85,7 @@ function frame() {
 }
 
 async function main() {
-  $("legend").innerHTML = Object.entries(STATUS_COLORS)
-    .map(([s, c]) => `<span data-status="${s}"><i style="background:${c}"></i>${s}</span>`)
-    .join("");
+  $("legend").innerHTML = legendHtml();
   $("fit").addEventListener("click", () => scene.fit());
   $("all-particles").addEventListener("change", (e) => toggleParticles("*", e.target.checked));
   $("scene").addEventListener("pick", (e) => {

@@ -1,7 +1,7 @@
 // Canvas drawing of one map: metric grid and axes, route, scale bar, robots.
 // World coordinates are metres east (x) and north (y) of the map frame.
 
-import { statusColor } from "./colors.js";
+import { LAYER_COLORS, statusColor } from "./colors.js";
 
 const NICE = [1, 2, 5];
 
@@ -167,14 +167,14 @@ export class Scene {
     if (!p || p.length < 2) return;
     const ctx = this.ctx;
     ctx.lineJoin = "round"; ctx.lineCap = "round";
-    ctx.strokeStyle = "#d3d7dd"; ctx.lineWidth = Math.max(4, Math.min(14, 2 * this.view.scale));
+    ctx.strokeStyle = LAYER_COLORS.route; ctx.lineWidth = Math.max(4, Math.min(14, 2 * this.view.scale));
     ctx.beginPath();
     for (let i = 0; i < p.length; i += 2) {
       const [sx, sy] = this.toScreen(p[i], p[i + 1]);
       if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
     }
     ctx.stroke();
-    ctx.fillStyle = "#a9b0b9";
+    ctx.fillStyle = LAYER_COLORS.mapImage;
     const every = Math.max(1, Math.ceil(3 / this.view.scale)); // dots at least ~3 px apart
     for (let i = 0; i < p.length; i += 2 * every) {
       const [sx, sy] = this.toScreen(p[i], p[i + 1]);
@@ -197,7 +197,7 @@ export class Scene {
       ctx.globalAlpha = 1;
     }
     if (r.particles) {
-      ctx.fillStyle = "#3a5fcd"; ctx.globalAlpha = 0.7;
+      ctx.fillStyle = LAYER_COLORS.particle; ctx.globalAlpha = 0.7;
       const p = r.particles;
       for (let i = 0; i < p.length; i += 2) {
         const [sx, sy] = this.toScreen(p[i], p[i + 1]);
@@ -207,7 +207,7 @@ export class Scene {
     }
     for (const [hx, hy, w] of e.hypotheses ?? []) {
       const [sx, sy] = this.toScreen(hx, hy);
-      ctx.strokeStyle = "#7b3fc4"; ctx.lineWidth = 1.5;
+      ctx.strokeStyle = LAYER_COLORS.hypothesis; ctx.lineWidth = 1.5;
       ctx.beginPath(); ctx.arc(sx, sy, 5 + 15 * Math.sqrt(Math.max(0, w)), 0, 2 * Math.PI);
       ctx.stroke();
     }
