@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import weakref
 from collections.abc import AsyncIterator, Callable
 from typing import Annotated, Any
@@ -15,11 +16,14 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from service import __version__
 from service.api.errors import PayloadTooLarge, ServiceError, Unavailable, describe_errors
 from service.api.models import (
     MAX_PRIOR_RADIUS_M,
+    ROBOT_ID_MAX_LENGTH,
+    ROBOT_ID_PATTERN,
     ErrorBody,
     Estimate,
     MapDetail,
@@ -35,10 +39,12 @@ from service.http.events import events_router
 from service.http.maps import map_router
 from service.http.viewer import add_viewer
 
+log = logging.getLogger("swarmloc")
 _ERRORS: dict[int | str, dict[str, Any]] = {
     code: {"model": ErrorBody} for code in (400, 401, 404, 409, 413, 415, 422, 503)}
-RobotId = Annotated[str, Path(pattern=r"^[A-Za-z0-9._-]{1,128}$",
-                             description="1-128 letters, digits, '-', '_' or '.'")]
+RobotId = Annotated[str, Path(pattern=ROBOT_ID_PATTERN, max_length=ROBOT_ID_MAX_LENGTH,
+                             description=f"1-{ROBOT_ID_MAX_LENGTH} ASCII letters, digits, '-', "
+                             "'_' or '.', not dots only")]
 # OpenAPI links: what a client (and the stateful fuzzer) can do with a session it created
 _SESSION_LINKS = {
     name: {"operationRef": f"#/paths/~1sessions~1{{robot_id}}{path}/{method}",
@@ -104,6 +110,16 @@ def add_error_handlers(app: FastAPI, service: LocalizationService) -> None:
     async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
         headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
         return JSONResponse({"error": exc.message}, exc.status, headers=headers)
+
+    @app.exception_handler(ClientDisconnect)
+    async def client_gone(request: Request, _: ClientDisconnect) -> Response:
+        """A client that hung up mid-request (an upload cut off): one warning line; nobody
+        is left to read an answer."""
+        service.metrics.rejected.labels("ClientDisconnect").inc()
+        client = request.client.host if request.client else "a client"
+        log.warning("%s disconnected during %s %s; the request was dropped", client,
+                    request.method, request.url.path)
+        return Response(status_code=400)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
@@ -209,22 +225,22 @@ def api_router(service: LocalizationService) -> APIRouter:
         return service.sessions()
 
     @router.get("/sessions/{robot_id}", tags=["sessions"])
-    async def get_session(robot_id: str) -> SessionInfo:
+    async def get_session(robot_id: RobotId) -> SessionInfo:
         return service.session(robot_id).info()
 
     @router.delete("/sessions/{robot_id}", tags=["sessions"], status_code=204)
-    async def delete_session(robot_id: str) -> Response:
+    async def delete_session(robot_id: RobotId) -> Response:
         service.delete_session(robot_id)
         return Response(status_code=204)
 
     @router.post("/sessions/{robot_id}/reset", tags=["sessions"])
-    async def reset_session(robot_id: str, body: ResetRequest | None = None) -> SessionInfo:
+    async def reset_session(robot_id: RobotId, body: ResetRequest | None = None) -> SessionInfo:
         return service.reset_session(robot_id, body.near() if body is not None else None)
 
     @router.post("/sessions/{robot_id}/frames", tags=["frames"], openapi_extra=_IMAGE_BODY,
                  response_model=Estimate)
     async def post_frame(
-        robot_id: str,
+        robot_id: RobotId,
         request: Request,
         t: Annotated[float | None, Query(description="frame timestamp, s")] = None,
         seq: Annotated[int | None, Query(description="robot's frame sequence number",
