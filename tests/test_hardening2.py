@@ -29,6 +29,7 @@ from service.server import build_app, free_port, running_server
 from service.settings import Settings
 from service.zenoh.bridge import ZenohSecurityError, check_security
 from service.zenoh.config import zenoh_config
+from tests.test_fuzz_parsers import _tar_header
 from tests.test_hardening import _write_map
 
 PNG = {"content-type": "image/png"}
@@ -61,30 +62,16 @@ def _rss_mib() -> float:
     return 0.0
 
 
-# ---- tar headers made by hand (tarfile would not write these) -----------------------------
-def _header(name: bytes, size: int, kind: bytes) -> bytes:
-    h = bytearray(512)
-    h[0:len(name)] = name
-    h[100:108] = b"0000644\x00"
-    h[108:124] = b"0000000\x000000000\x00"
-    h[124:136] = (b"%011o\x00" % size) if size < 8**11 else b"\x80" + size.to_bytes(11, "big")
-    h[136:148] = b"00000000000\x00"
-    h[156:157] = kind
-    h[257:265] = b"ustar\x0000"
-    h[148:156] = b" " * 8
-    h[148:156] = b"%06o\x00 " % sum(h)
-    return bytes(h)
-
-
+# ---- tar records made by hand (tarfile would not write these) -----------------------------
 def _meta_tar(kind: bytes, size: int, fill: bytes = b"1") -> Iterator[bytes]:
     """A tar (in chunks) with one ``kind`` record of ``size`` bytes of ``fill``, one file."""
-    yield _header(b"././@LongLink", size, kind)
+    yield _tar_header(b"././@LongLink", size, kind)
     left = size
     while left:
         n = min(left, 1 << 20)
         yield fill * n
         left -= n
-    yield b"\x00" * (-size % 512) + _header(b"a.txt", 0, b"0") + b"\x00" * 1024
+    yield b"\x00" * (-size % 512) + _tar_header(b"a.txt", 0, b"0") + b"\x00" * 1024
 
 
 def _tgz(chunks: Iterator[bytes]) -> bytes:
