@@ -15,6 +15,7 @@ from fastapi import FastAPI
 
 from service.engine.localization_service import LocalizationService
 from service.http.app import create_app
+from service.http.limits import limited_protocol
 from service.settings import Settings
 from service.zenoh.bridge import ZenohBridge, check_security
 
@@ -41,7 +42,9 @@ class _Server(uvicorn.Server):
 
 def _uvicorn_config(app: FastAPI, settings: Settings, log_level: str) -> uvicorn.Config:
     return uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level,
-                          timeout_graceful_shutdown=math.ceil(settings.shutdown_deadline_s))
+                          timeout_graceful_shutdown=math.ceil(settings.shutdown_deadline_s),
+                          http=limited_protocol(settings.http_max_header_bytes,
+                                                settings.http_read_timeout_s))
 
 
 def build_app(settings: Settings) -> FastAPI:

@@ -59,6 +59,11 @@ class Settings(BaseSettings):
                                  "poses must lie within the map's extent plus this margin (m)")
     min_frame_side: int = Field(16, ge=1, description="smallest accepted frame width/height "
                                 "(px): smaller frames cannot carry features")
+    http_max_header_bytes: int = Field(8192, ge=1024, description="longest HTTP request "
+                                       "line plus headers (bytes); longer: 431")
+    http_read_timeout_s: float = Field(30.0, gt=0, description="an HTTP request's head must "
+                                       "arrive, and its body may pause, at most this long "
+                                       "(s); then the connection is closed (slowloris)")
     shutdown_deadline_s: float = Field(10.0, gt=0, description="at shutdown, frames in "
                                        "flight get this long to finish; new frames get 503")
     # ---- Zenoh (service/zenoh/config.py builds the config; a file is the way to configure

@@ -4,6 +4,7 @@ returns a valid value or raises the module's own error with a message; nothing e
 
 from __future__ import annotations
 
+import gzip
 import hashlib
 import json
 import os
@@ -14,18 +15,20 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from client.dataset import read_round
 from service.api.errors import ServiceError
 from service.api.round_format import DatasetError
 from service.engine.localization_service import LocalizationService
+from service.maps.round_archive import ArchiveLimits, extract_round
 from service.maps.route_map import MAGIC, MapError, _canonical, _pad, load_map, save_map
 from service.settings import Settings
 from service.vision.imaging import decode_frame, encode_jpeg, encode_png
 from service.zenoh.bridge import _frame_args, control, parse_attachment
 from service.zenoh.maps import _options
+from service.zenoh.replies import parse_json
 
 # `swarmloc bench fuzz --minutes N` raises the number of examples and draws fresh ones; the
 # suite's own run (no SWARMLOC_FUZZ_SCALE) uses fixed examples, so a CI run is reproducible
@@ -221,6 +224,32 @@ def test_attachment_parsers(raw: bytes) -> None:
     assert prior is None or np.isfinite([prior.x, prior.y, prior.radius]).all()
 
 
+# the reproducers of issue 30: nested 100 000 deep, a 5 000-digit number, a non-string option
+hostile_json = st.one_of(
+    st.integers(1, 120_000).map(lambda n: b"[" * n),
+    st.integers(1, 6000).map(lambda n: b'{"seq": ' + b"7" * n + b"}"),
+    st.fixed_dictionaries({}, optional={k: json_values for k in (
+        "action", "if_match", "if_none_match", "force", "t", "seq")}).map(
+        lambda d: json.dumps(d).encode()))
+
+
+@FUZZ
+@given(raw=hostile_json)
+@example(raw=b"[" * 100_000)
+@example(raw=b'{"seq": ' + b"1" * 5000 + b"}")
+@example(raw=b'{"if_match": 5}')
+def test_zenoh_json_parsers_answer_400_or_a_value(raw: bytes) -> None:
+    for parse in (parse_attachment, _options, lambda r: parse_json(r, "payload")):
+        try:
+            parse(raw)
+        except ServiceError as exc:
+            assert exc.status == 400 and len(exc.message) < 300
+    try:
+        _frame_args(parse_attachment(raw))
+    except ServiceError as exc:
+        assert exc.status in (400, 422)
+
+
 frame_meta = st.fixed_dictionaries({}, optional={
     "t": json_values, "seq": json_values,
     "prior": st.fixed_dictionaries({}, optional={"x": json_values, "y": json_values,
@@ -285,3 +314,57 @@ def test_a_stray_layer_id_is_refused_not_allocated(tiny_map_file: Path, layer_id
         path.write_bytes(_resign(header, blob))  # a valid checksum over the bad ids
         with pytest.raises(MapError, match=r"layer ids are not 0\.\.L-1"):
             load_map(path)
+
+
+# ---- round archives: tar headers of any shape -----------------------------------------------
+def _tar_header(name: bytes, size: int, kind: bytes) -> bytes:
+    h = bytearray(512)
+    h[0:len(name)] = name[:100]
+    h[100:124] = b"0000644\x000000000\x000000000\x00"
+    h[124:136] = (b"%011o\x00" % size) if size < 8**11 else b"\x80" + size.to_bytes(11, "big")
+    h[136:148] = b"00000000000\x00"
+    h[156:157] = kind
+    h[257:265] = b"ustar\x0000"
+    h[148:156] = b" " * 8
+    h[148:156] = b"%06o\x00 " % sum(h)
+    return bytes(h)
+
+
+tar_records = st.lists(st.tuples(
+    st.sampled_from([b"0", b"5", b"x", b"g", b"L", b"K", b"S", b"2", b"V", b"\x00"]),
+    st.sampled_from([b"a.txt", b"r/poses.csv", b"../x", b"/abs", b"d/"]),
+    st.one_of(st.binary(max_size=64), st.sampled_from([b"1" * 9000, b"30 path=" + b"9" * 80,
+                                                       b"20 size=99999999\n", b"x" * 600])),
+    st.one_of(st.none(), st.integers(0, 1 << 40))),  # the declared size (None: the true one)
+    max_size=5)
+
+
+def _tar(records: list[tuple[bytes, bytes, bytes, int | None]], compress: bool) -> bytes:
+    out = b""
+    for kind, name, data, declared in records:
+        out += _tar_header(name, len(data) if declared is None else declared, kind)
+        out += data + b"\x00" * (-len(data) % 512)
+    out += b"\x00" * 1024
+    return gzip.compress(out) if compress else out
+
+
+@FUZZ
+@given(records=tar_records, compress=st.booleans(), cut=st.none() | st.integers(0, 3000))
+@example(records=[(b"x", b"p", b"1" * 150_000, None), (b"0", b"a.txt", b"", None)],
+         compress=True, cut=None)
+@example(records=[(b"L", b"l", b"a" * 100, 1 << 30), (b"0", b"a.txt", b"", None)],
+         compress=True, cut=None)
+def test_round_archive_reader_accepts_or_refuses_with_a_4xx(records: list, compress: bool,
+                                                            cut: int | None) -> None:
+    data = _tar(records, compress)
+    data = data[:cut] if cut is not None else data
+    with tempfile.TemporaryDirectory() as tmp:
+        archive = Path(tmp) / "round.tgz"
+        archive.write_bytes(data)
+        try:
+            extract_round(archive, Path(tmp) / "out", ArchiveLimits(max_members=20,
+                                                                     max_unpacked_bytes=1 << 22))
+        except ServiceError as exc:
+            assert 400 <= exc.status < 500 and len(exc.message) < 1000, exc.message[:200]
+            return
+        raise AssertionError("no round (poses.csv with images) is ever in these archives")

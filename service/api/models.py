@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import re
 from typing import Any, Literal, Self, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -14,6 +16,16 @@ from service.api.params import DPSOParams, PFParams
 MAX_PRIOR_RADIUS_M = 10_000.0
 # |x|, |y| of any pose at most (m); the service also checks the map's extent plus a margin
 COORD_LIMIT_M = 1e7
+
+#: the one robot-id rule of every transport (HTTP paths, Zenoh keys, ROS 2 namespaces):
+#: 1-128 ASCII letters, digits, '-', '_' or '.', and not dots only ('.', '..' are paths)
+ROBOT_ID_MAX_LENGTH = 128
+ROBOT_ID_PATTERN = r"^[A-Za-z0-9._-]*[A-Za-z0-9_-][A-Za-z0-9._-]*$"
+_ROBOT_ID = re.compile(ROBOT_ID_PATTERN, re.ASCII)
+#: a frame's timestamp t (s): |t| below this, and at most MAX_T_STEP_S after the robot's
+#: previous frame (a stamp of 1e300 or 2^31-1 s would otherwise lock the robot out)
+MAX_ABS_T_S = 1e10
+MAX_T_STEP_S = 86_400.0
 
 M = TypeVar("M", bound=BaseModel)
 StatusName = Literal["initializing", "tracking", "recovering", "lost"]
@@ -78,7 +90,7 @@ class PosePrior(BaseModel):
     """A known position with an uncertainty radius (like AMCL's initial pose). Finite, and
     within the map's extent plus ``SWARMLOC_POSE_MARGIN_M`` (checked against the map)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
     x: float = Field(description="metres east in the map frame", ge=-COORD_LIMIT_M,
                      le=COORD_LIMIT_M)
@@ -86,6 +98,27 @@ class PosePrior(BaseModel):
                      le=COORD_LIMIT_M)
     radius: float = Field(DEFAULT_PRIOR_RADIUS_M, description="search radius, m", gt=0,
                                  le=MAX_PRIOR_RADIUS_M)
+
+
+def check_robot_id(robot_id: str) -> str:
+    """``robot_id`` if it follows the robot-id rule, else InvalidParameters (422)."""
+    if len(robot_id) > ROBOT_ID_MAX_LENGTH or not _ROBOT_ID.fullmatch(robot_id):
+        raise InvalidParameters(
+            f"robot id {robot_id[:40]!r}{'...' if len(robot_id) > 40 else ''} must be 1-"
+            f"{ROBOT_ID_MAX_LENGTH} ASCII letters, digits, '-', '_' or '.', not dots only")
+    return robot_id
+
+
+def check_timestamp(t: float, last_t: float | None) -> None:
+    """A frame's t: finite, |t| < MAX_ABS_T_S, at most MAX_T_STEP_S after ``last_t``;
+    else InvalidParameters (422)."""
+    if not (math.isfinite(t) and abs(t) < MAX_ABS_T_S):
+        raise InvalidParameters(f"timestamp t={t:g} must be a finite number of seconds below "
+                                f"{MAX_ABS_T_S:g} in magnitude")
+    if last_t is not None and t > last_t + MAX_T_STEP_S:
+        raise InvalidParameters(f"timestamp t={t:g} is more than {MAX_T_STEP_S:g} s after the "
+                                f"robot's previous frame ({last_t:g}); reset the session to "
+                                "start a new clock")
 
 
 def validated(model: type[M], data: Any, what: str) -> M:
@@ -113,7 +146,7 @@ _PARAMS_SCHEMA: JsonDict = {"anyOf": [DPSOParams.model_json_schema(), PFParams.m
 
 
 class SessionConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
     map: str | None = Field(None, max_length=128,
                             description="map name; default: the service's default map")
@@ -131,7 +164,7 @@ class ResetRequest(BaseModel):
     """``POST /sessions/{id}/reset`` and Zenoh ``{"action": "reset"}``: no pose (global
     re-initialisation) or x and y (and optionally radius) near a pose."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
     x: float | None = Field(None, description="metres east in the map frame",
                             ge=-COORD_LIMIT_M, le=COORD_LIMIT_M)
@@ -159,7 +192,7 @@ class ResetRequest(BaseModel):
 class FrameMeta(BaseModel):
     """A Zenoh frame's attachment ``{"t", "seq", "prior"}``: the HTTP frame query."""
 
-    model_config = ConfigDict(allow_inf_nan=False)
+    model_config = ConfigDict(allow_inf_nan=False, strict=True)
 
     t: float | None = Field(None, description="frame timestamp, s")
     seq: int | None = Field(None, ge=-(2**63), lt=2**63,

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from service.api.geo import LocalFrame
+from service.api.models import COORD_LIMIT_M
 
 POSES_FILE = "poses.csv"
 TRUTH_FILE = "truth.csv"
@@ -109,8 +110,20 @@ def parse_positions(
         if origin is None:
             origin = (float(lat[0]), float(lon[0]))
         xy = LocalFrame(*origin).to_local(lat, lon)
+        _check_extent(csv_path, xy)
         return names, xy, times, origin
+    _check_extent(csv_path, values)
     return names, values, times, None
+
+
+def _check_extent(csv_path: Path, xy: np.ndarray) -> None:
+    """Positions a map can be built on: |x|, |y| within the bound of every pose."""
+    far = np.abs(xy).max(axis=1) > COORD_LIMIT_M
+    if far.any():
+        k = int(np.argmax(far))
+        raise DatasetError(f"{csv_path}, line {k + 2}: position ({xy[k, 0]:g}, {xy[k, 1]:g}) m "
+                           f"is beyond +-{COORD_LIMIT_M:g} m; give local coordinates (metres "
+                           "from a nearby origin) or lat,lon")
 
 
 def dataset_origin(round_dir: Path) -> tuple[float, float] | None:

@@ -9,7 +9,6 @@ rejected frame never changes the session.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -32,6 +31,8 @@ from service.api.models import (
     PosePrior,
     SessionConfig,
     SessionInfo,
+    check_robot_id,
+    check_timestamp,
 )
 from service.api.params import ParamError
 from service.engine.events import EventHub
@@ -210,7 +211,7 @@ class LocalizationService:
         Without ``replace`` an existing session is kept: two transports creating the same
         robot's session at once end with one session, not one silently replacing the other.
         """
-        _check_robot_id(robot_id)
+        check_robot_id(robot_id)
         map_name = config.map or self.default_map
         route_map = self.get_map(map_name)
         estimator = config.estimator or self.settings.default_estimator
@@ -359,8 +360,8 @@ class LocalizationService:
             image = data if isinstance(data, np.ndarray) else decode_frame(
                 data, content_type, self.settings.max_body_bytes, self.settings.max_pixels,
                 self.settings.min_frame_side)
-            if t is not None and not math.isfinite(t):
-                raise InvalidParameters("timestamp t must be a finite number of seconds")
+            if t is not None:
+                check_timestamp(t, None)
             if s is None:
                 s = self.ensure_session(robot_id)
             if prior is not None:
@@ -381,6 +382,8 @@ class LocalizationService:
                 if t is not None and s.last_t is not None and t < s.last_t:
                     raise Conflict(f"frame timestamp {t} is older than the last processed "
                                    f"frame ({s.last_t}); send frames in time order")
+                if t is not None:
+                    check_timestamp(t, s.last_t)
                 try:
                     est = s.localizer.step(features, t,
                                            (prior.x, prior.y, prior.radius) if prior else None)
@@ -418,8 +421,3 @@ def open_store(settings: Settings,
     raise ValueError(f"SWARMLOC_SESSION_STORE={url!r}: use 'memory' or redis://host:port/db")
 
 
-def _check_robot_id(robot_id: str) -> None:
-    ok = robot_id and len(robot_id) <= 128 and all(c.isalnum() or c in "-_." for c in robot_id)
-    if not ok:
-        raise InvalidParameters(f"robot id '{robot_id}' must be 1-128 characters of letters, "
-                                "digits, '-', '_' or '.'")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import weakref
 from collections.abc import AsyncIterator
 from typing import Annotated
@@ -15,11 +16,14 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from service import __version__
 from service.api.errors import PayloadTooLarge, ServiceError, Unavailable, describe_errors
 from service.api.models import (
     MAX_PRIOR_RADIUS_M,
+    ROBOT_ID_MAX_LENGTH,
+    ROBOT_ID_PATTERN,
     ErrorBody,
     Estimate,
     MapDetail,
@@ -38,8 +42,10 @@ from service.http.maps import map_router
 from service.http.openapi import API_ERRORS, binary_body, operation_id
 from service.http.viewer import add_viewer
 
-RobotId = Annotated[str, Path(pattern=r"^[A-Za-z0-9._-]{1,128}$",
-                             description="1-128 letters, digits, '-', '_' or '.'")]
+log = logging.getLogger("swarmloc")
+RobotId = Annotated[str, Path(pattern=ROBOT_ID_PATTERN, max_length=ROBOT_ID_MAX_LENGTH,
+                             description=f"1-{ROBOT_ID_MAX_LENGTH} ASCII letters, digits, '-', "
+                             "'_' or '.', not dots only")]
 # OpenAPI links: what a client (and the stateful fuzzer) can do with a session it created
 _SESSION_LINKS = {
     name: {"operationRef": f"#/paths/~1sessions~1{{robot_id}}{path}/{method}",
@@ -122,6 +128,16 @@ def add_error_handlers(app: FastAPI, service: LocalizationService) -> None:
     async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
         headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
         return JSONResponse({"error": exc.message}, exc.status, headers=headers)
+
+    @app.exception_handler(ClientDisconnect)
+    async def client_gone(request: Request, _: ClientDisconnect) -> Response:
+        """A client that hung up mid-request (an upload cut off): one warning line; nobody
+        is left to read an answer."""
+        service.metrics.rejected.labels("ClientDisconnect").inc()
+        client = request.client.host if request.client else "a client"
+        log.warning("%s disconnected during %s %s; the request was dropped", client,
+                    request.method, request.url.path)
+        return Response(status_code=400)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
@@ -232,20 +248,20 @@ async def list_sessions(service: ServiceDep) -> list[SessionInfo]:
 
 
 @api_router.get("/sessions/{robot_id}", tags=["sessions"])
-async def get_session(robot_id: str, service: ServiceDep) -> SessionInfo:
+async def get_session(robot_id: RobotId, service: ServiceDep) -> SessionInfo:
     """One session, with its last estimate."""
     return service.session(robot_id).info()
 
 
 @api_router.delete("/sessions/{robot_id}", tags=["sessions"], status_code=204)
-async def delete_session(robot_id: str, service: ServiceDep) -> Response:
+async def delete_session(robot_id: RobotId, service: ServiceDep) -> Response:
     """End a session."""
     service.delete_session(robot_id)
     return Response(status_code=204)
 
 
 @api_router.post("/sessions/{robot_id}/reset", tags=["sessions"])
-async def reset_session(robot_id: str, service: ServiceDep,
+async def reset_session(robot_id: RobotId, service: ServiceDep,
                         body: ResetRequest | None = None) -> SessionInfo:
     """Re-initialise the swarm: globally (no body) or near a pose."""
     return service.reset_session(robot_id, body.near() if body is not None else None)
@@ -255,7 +271,7 @@ async def reset_session(robot_id: str, service: ServiceDep,
                  openapi_extra=binary_body(FRAME_TYPES, "a camera frame: PNG or JPEG "
                                            "(application/octet-stream: sniffed)"))
 async def send_frame(
-    robot_id: str,
+    robot_id: RobotId,
     request: Request,
     service: ServiceDep,
     workers: FrameWorkersDep,

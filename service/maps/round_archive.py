@@ -7,7 +7,12 @@ Extraction refuses, with a clear error and nothing left behind (the caller remov
 - more than ``max_members`` members, more than ``max_unpacked_bytes`` unpacked, or a
   compression ratio over ``max_ratio`` (a member's declared ratio in a zip, the bytes actually
   written against the archive's size for both formats): zip bombs;
-- encrypted zip members.
+- encrypted zip members;
+- tar meta headers that could stall or swell the parser (Python's ``tarfile`` before 3.11.10
+  has a quadratic pax regex, CVE-2024-6232, and reads a pax or GNU long-name header whole):
+  ``_TarHeaderGuard`` reads every 512-byte header block before ``tarfile`` does and refuses
+  pax / GNU long-name records over ``MAX_META_BYTES``, digit runs whose regex cost would add up
+  past a budget, sparse members and pax ``size`` overrides (rounds never need them).
 
 The round is the shallowest directory holding ``poses.csv`` (at the top or one folder down);
 an optional ``dataset.json`` next to that folder gives the geodetic origin. Every image
@@ -17,11 +22,16 @@ limit; nothing outside ``dest`` is ever read.
 
 from __future__ import annotations
 
+import bz2
 import dataclasses
+import gzip
+import lzma
+import re
 import shutil
 import stat
 import tarfile
 import zipfile
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -44,6 +54,18 @@ from service.vision.imaging import decode_frame
 
 _CHUNK = 1 << 20
 _RATIO_FLOOR = 1 << 20  # members smaller than this may compress well (blank images, CSV)
+_BLOCK = 512
+#: largest pax ('x', 'g') or GNU long-name ('L', 'K') record a tar may hold (bytes)
+MAX_META_BYTES = 8192
+_MAX_DIGIT_RUN = 64  # no pax value needs more digits in a row (a 64-bit mtime has 20)
+# sum over every pax record of (digit run length)^2: what the quadratic regex costs (about
+# 9 ns a unit, some 0.15 s in all); an ordinary pax header (a long path, an mtime with a
+# fraction) costs about 200, so this budget takes some 80 000 of them
+_DIGIT_COST_BUDGET = 1 << 24
+_META_TYPES = (b"x", b"g", b"L", b"K")
+_NO_DATA_TYPES = (b"1", b"2", b"3", b"4", b"5", b"6")  # links, devices, folders, FIFOs
+_SHOWN = 120  # characters of a member name an error message shows
+_DIGITS = re.compile(rb"\d+")
 
 
 @dataclass(frozen=True)
@@ -75,17 +97,142 @@ class UploadedRound:
         return decode_frame(data, None, len(data) + 1, self.max_pixels)
 
 
+def shown(name: str) -> str:
+    """A member name as an error message shows it: at most ``_SHOWN`` characters."""
+    return name if len(name) <= _SHOWN else f"{name[:_SHOWN]}... ({len(name)} characters)"
+
+
 def _member_path(name: str) -> PurePosixPath:
     if "\x00" in name or "\\" in name:
-        raise BadRequest(f"archive member '{name!r}' has a NUL byte or a backslash in its name")
+        raise BadRequest(f"archive member {shown(name)!r} has a NUL byte or a backslash in its "
+                         "name")
     p = PurePosixPath(name)
     if p.is_absolute() or (len(name) > 1 and name[1] == ":"):
-        raise BadRequest(f"archive member '{name}' has an absolute path; paths must be relative "
-                         "to the round")
+        raise BadRequest(f"archive member '{shown(name)}' has an absolute path; paths must be "
+                         "relative to the round")
     if ".." in p.parts:
-        raise BadRequest(f"archive member '{name}' contains '..'; paths must stay inside the "
-                         "round")
+        raise BadRequest(f"archive member '{shown(name)}' contains '..'; paths must stay "
+                         "inside the round")
     return p
+
+
+def _number(field: bytes) -> int | None:
+    """A tar header number (octal, or GNU base-256); None when it is neither."""
+    if field[:1] in (b"\x80", b"\xff"):
+        n = int.from_bytes(field[1:], "big")
+        return n - 256 ** (len(field) - 1) if field[:1] == b"\xff" else n
+    text = field.split(b"\x00", 1)[0].strip()
+    try:
+        return int(text or b"0", 8)
+    except ValueError:
+        return None
+
+
+def _checksum_ok(block: bytes) -> bool:
+    stored = _number(block[148:156])
+    unsigned = sum(block[:148]) + 256 + sum(block[156:])
+    signed = sum(b - 256 if b > 127 else b for b in block[:148] + block[156:]) + 256
+    return stored in (unsigned, signed)
+
+
+class _TarHeaderGuard:
+    """A plain tar stream as ``tarfile`` reads it (mode ``r|``), its headers checked first.
+
+    Every byte passes through ``read`` in order, so each 512-byte header block is seen (and a
+    pax or GNU long-name record refused) before ``tarfile`` parses it. The checks stop where
+    ``tarfile`` stops (an empty or invalid block) or at a member it refuses anyway.
+    """
+
+    def __init__(self, raw: IO[bytes]) -> None:
+        self.raw = raw
+        self.pos = 0  # stream offset of the next byte read
+        self.next_header = 0  # stream offset of the next header block
+        self.block = bytearray()
+        self.meta: bytearray | None = None  # the record being collected (pax or long name)
+        self.meta_size = 0
+        self.meta_kind = b""
+        self.digit_cost = 0
+        self.done = False
+
+    def read(self, n: int = -1) -> bytes:
+        data = self.raw.read(n if n is not None and n >= 0 else _CHUNK)
+        at = 0
+        while not self.done and at < len(data):
+            at = self._take(data, at)
+        self.pos += len(data)
+        return data
+
+    def _take(self, data: bytes, at: int) -> int:
+        here = self.pos + at
+        if self.meta is not None:
+            take = min(self.meta_size - len(self.meta), len(data) - at)
+            self.meta += data[at: at + take]
+            if len(self.meta) == self.meta_size:
+                self._check_meta(bytes(self.meta))
+                self.meta = None
+            return at + take
+        if here < self.next_header:
+            return at + min(self.next_header - here, len(data) - at)
+        take = min(_BLOCK - len(self.block), len(data) - at)
+        self.block += data[at: at + take]
+        if len(self.block) == _BLOCK:
+            self._header(bytes(self.block), here + take)
+            self.block.clear()
+        return at + take
+
+    def _header(self, block: bytes, data_start: int) -> None:
+        size = _number(block[124:136])
+        if block.count(0) == _BLOCK or size is None or size < 0 or not _checksum_ok(block):
+            self.done = True  # the end, or a block tarfile refuses itself
+            return
+        kind = block[156:157]
+        padded = -(-size // _BLOCK) * _BLOCK
+        if kind in _META_TYPES:
+            if size > MAX_META_BYTES:
+                what = "pax" if kind in (b"x", b"g") else "GNU long-name"
+                raise PayloadTooLarge(f"archive has a {what} header of {size} bytes; the limit "
+                                      f"is {MAX_META_BYTES} bytes")
+            self.meta, self.meta_size, self.meta_kind = bytearray(), size, kind
+            self.next_header = data_start + padded
+            if size == 0:
+                self.meta = None
+        elif kind == b"S":
+            raise BadRequest("archive has a sparse file; rounds hold only plain files")
+        elif kind in _NO_DATA_TYPES:
+            self.next_header = data_start
+        else:  # regular files, and the types tarfile skips (refused as special files)
+            self.next_header = data_start + padded
+
+    def _check_meta(self, record: bytes) -> None:
+        if self.meta_kind not in (b"x", b"g"):
+            return
+        runs = [m.end() - m.start() for m in _DIGITS.finditer(record)]
+        if runs and max(runs) > _MAX_DIGIT_RUN:
+            raise BadRequest(f"archive has a pax header with {max(runs)} digits in a row; no "
+                             f"pax value needs more than {_MAX_DIGIT_RUN}")
+        self.digit_cost += sum(n * n for n in runs)
+        if self.digit_cost > _DIGIT_COST_BUDGET:
+            raise PayloadTooLarge("archive has too many numbers in its pax headers to parse "
+                                  "safely; write it without pax headers (tar --format=gnu)")
+        for line in record.split(b"\n"):
+            keyword = line.partition(b" ")[2].partition(b"=")[0]
+            if keyword == b"size" or keyword.startswith(b"GNU.sparse"):
+                raise BadRequest(f"archive has a pax '{keyword.decode('latin-1')}' record "
+                                 "(a member over 8 GiB or a sparse file); rounds hold only "
+                                 "plain files")
+
+
+def _decompressed(archive: Path) -> IO[bytes]:
+    """The archive's bytes, gunzipped / bunzipped / unxz-ed as its magic number says."""
+    with archive.open("rb") as fh:
+        magic = fh.read(6)
+    if magic.startswith(b"\x1f\x8b"):
+        return gzip.open(archive, "rb")  # type: ignore[return-value]
+    if magic.startswith(b"BZh"):
+        return bz2.open(archive, "rb")
+    if magic.startswith(b"\xfd7zXZ\x00"):
+        return lzma.open(archive, "rb")
+    return archive.open("rb")
 
 
 class _Budget:
@@ -125,14 +272,14 @@ def _zip_members(zf: zipfile.ZipFile, limits: ArchiveLimits) -> Iterator[zipfile
     for info in zf.infolist():
         mode = info.external_attr >> 16
         if mode and stat.S_ISLNK(mode):
-            raise BadRequest(f"archive member '{info.filename}' is a symbolic link; only files "
-                             "and folders are accepted")
+            raise BadRequest(f"archive member '{shown(info.filename)}' is a symbolic link; "
+                             "only files and folders are accepted")
         if info.flag_bits & 0x1:
-            raise BadRequest(f"archive member '{info.filename}' is encrypted")
+            raise BadRequest(f"archive member '{shown(info.filename)}' is encrypted")
         if (info.file_size > _RATIO_FLOOR
                 and info.file_size > limits.max_ratio * max(info.compress_size, 1)):
             raise PayloadTooLarge(
-                f"archive member '{info.filename}' expands {info.compress_size} bytes to "
+                f"archive member '{shown(info.filename)}' expands {info.compress_size} bytes to "
                 f"{info.file_size} (over {limits.max_ratio:g}x): refused as a zip bomb")
         yield info
 
@@ -159,8 +306,20 @@ def _extract(archive: Path, dest: Path, limits: ArchiveLimits) -> None:
             raise BadRequest(f"corrupted zip archive: {exc}") from None
         return
     try:
-        tf = tarfile.open(archive, "r:*")
-    except (tarfile.TarError, OSError, EOFError):
+        raw = _decompressed(archive)
+    except OSError as exc:
+        raise BadRequest(f"cannot read the archive: {exc}") from None
+    try:
+        with raw:
+            _extract_tar(_TarHeaderGuard(raw), dest, budget)
+    except (EOFError, OSError, lzma.LZMAError, zlib.error) as exc:
+        raise BadRequest(f"corrupted tar archive: {exc}") from None
+
+
+def _extract_tar(stream: _TarHeaderGuard, dest: Path, budget: _Budget) -> None:
+    try:
+        tf = tarfile.open(fileobj=stream, mode="r|")  # type: ignore[call-overload]
+    except tarfile.TarError:
         raise BadRequest("body is neither a zip nor a tar archive (plain, .gz, .bz2 or .xz) "
                          "of a round directory") from None
     try:
@@ -173,14 +332,14 @@ def _extract(archive: Path, dest: Path, limits: ArchiveLimits) -> None:
                     continue
                 if not member.isfile():
                     kind = "link" if member.issym() or member.islnk() else "special file"
-                    raise BadRequest(f"archive member '{member.name}' is a {kind}; only files "
-                                     "and folders are accepted")
+                    raise BadRequest(f"archive member '{shown(member.name)}' is a {kind}; only "
+                                     "files and folders are accepted")
                 member_src = tf.extractfile(member)
                 if member_src is None:
-                    raise BadRequest(f"archive member '{member.name}' cannot be read")
+                    raise BadRequest(f"archive member '{shown(member.name)}' cannot be read")
                 _copy(member_src, target, budget)
-    except (tarfile.TarError, EOFError, OSError, zipfile.BadZipFile) as exc:
-        raise BadRequest(f"corrupted tar archive: {exc}") from None
+    except tarfile.TarError as exc:
+        raise BadRequest(f"corrupted tar archive: {str(exc)[:_SHOWN]}") from None
 
 
 def _round_dir(dest: Path) -> Path:

@@ -44,6 +44,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.api.geo import LocalFrame
+from service.api.models import COORD_LIMIT_M
 from service.vision.features import (
     DEFAULT_DELTA,
     Features,
@@ -314,6 +315,15 @@ class RouteMap:
         }
 
 
+def position_problem(positions: np.ndarray) -> str | None:
+    """What makes map positions unusable (NaN, inf, beyond the pose bound), or None."""
+    if not np.isfinite(positions).all():
+        return "are not all finite numbers (NaN or inf)"
+    if positions.size and float(np.abs(positions).max()) > COORD_LIMIT_M:
+        return f"lie beyond +-{COORD_LIMIT_M:g} m (the bound of every pose)"
+    return None
+
+
 def build_map(
     name: str,
     images: Iterable[np.ndarray],
@@ -346,6 +356,8 @@ def build_map(
     extract = extract or sift_extract
     feats = [extract(img, params) for img in images]
     positions = np.asarray(positions, float)
+    if problem := position_problem(positions):
+        raise MapError(f"image positions {problem}")
     if len(feats) != len(positions) or len(feats) != len(image_names):
         raise MapError("images, positions and names must have the same length")
     if len(feats) == 0:
@@ -681,6 +693,18 @@ def _open_arrays(path: Path, header: dict, data_start: int, dtypes: dict[str, np
     return arrays
 
 
+def _check_no_trailing_bytes(path: Path, header: dict, data_start: int,
+                             arrays: dict[str, np.ndarray]) -> None:
+    """A version 3 file ends with its last (padded) array: anything after it was appended."""
+    layout = header["arrays"]
+    end = data_start + max((int(layout[k]["offset"]) + int(layout[k]["nbytes"]) +
+                            _pad(int(layout[k]["nbytes"])) for k in arrays), default=0)
+    size = path.stat().st_size
+    if size > end:
+        raise MapError(f"{path}: {size - end} bytes follow the map's last array (something was "
+                       "appended to the file); rebuild or download the map again")
+
+
 def _verify_v2(path: Path, header: dict, arrays: dict[str, np.ndarray]) -> None:
     digest = hashlib.sha256(_canonical(header))
     for arr in arrays.values():
@@ -730,6 +754,7 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
                            f"{', '.join(_CODE_DTYPES)}); rebuild it with 'swarmloc map build'")
         arrays = _open_arrays(path, header, data_start,
                               {**_DTYPES_V3, "codes": _CODE_DTYPES[kind]}, _OPTIONAL)
+        _check_no_trailing_bytes(path, header, data_start, arrays)
         if verify:
             _verify_v3(path, header, arrays, lazy=verify == "lazy")
     positions = np.asarray(arrays["positions"])
@@ -740,8 +765,8 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
             offsets[-1] != len(arrays["codes"]) or np.any(np.diff(offsets) < 0) or \
             len(layers) != n or (n and layers.min() < 0):
         raise MapError(f"{path}: inconsistent arrays (positions/offsets/codes/layers)")
-    if not np.isfinite(positions).all():
-        raise MapError(f"{path}: image positions are not all finite numbers (NaN or inf)")
+    if problem := position_problem(positions):
+        raise MapError(f"{path}: image positions {problem}; the estimators cannot use them")
     if n and len(np.unique(layers)) != int(layers.max()) + 1:
         # traversal ids are 0 .. L-1, each with images (a stray huge id would otherwise
         # make a per-layer index of that many entries)

@@ -50,6 +50,15 @@ def header_size(data: bytes, fmt: str) -> tuple[int, int]:
     raise BadRequest("JPEG has no frame header (SOF); the file is truncated or corrupted")
 
 
+def check_size(w: int, h: int, max_pixels: int, min_side: int) -> None:
+    """The size limits of every frame, encoded or raw (ROS 2 sensor_msgs/Image)."""
+    if w < min_side or h < min_side:
+        raise BadRequest(f"image is {w}x{h} pixels; frames need at least {min_side}x{min_side} "
+                         "pixels to carry features")
+    if w * h > max_pixels:
+        raise PayloadTooLarge(f"image is {w}x{h} = {w * h} pixels; the limit is {max_pixels}")
+
+
 def decode_frame(data: bytes, content_type: str | None, max_bytes: int, max_pixels: int,
                  min_side: int = 1) -> np.ndarray:
     """Validated 8-bit grayscale image, or a ServiceError saying what is wrong.
@@ -70,11 +79,7 @@ def decode_frame(data: bytes, content_type: str | None, max_bytes: int, max_pixe
     if ctype in MEDIA_TYPES and MEDIA_TYPES[ctype] != fmt:
         raise BadRequest(f"content type says {ctype} but the body is a {fmt.upper()} image")
     w, h = header_size(data, fmt)
-    if w < min_side or h < min_side:
-        raise BadRequest(f"image is {w}x{h} pixels; frames need at least {min_side}x{min_side} "
-                         "pixels to carry features")
-    if w * h > max_pixels:
-        raise PayloadTooLarge(f"image is {w}x{h} = {w * h} pixels; the limit is {max_pixels}")
+    check_size(w, h, max_pixels, min_side)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise BadRequest(f"the {fmt.upper()} image could not be decoded (corrupted data)")

@@ -19,7 +19,9 @@ With ``ros2_enabled`` the same session also speaks ROS 2 (CDR messages on the ke
 A session is created on the first frame with the default map if no control message made one.
 Frames that arrive while the robot's previous frame is still being processed wait in a
 one-frame slot: a newer frame replaces the waiting one (counted as dropped), so a robot always
-gets the estimate of its newest frame and never a growing backlog.
+gets the estimate of its newest frame and never a growing backlog. ``localize`` queries share
+the slot: a replaced query is answered at once with 429 (a newer frame of the robot came).
+At most ``max_sessions`` robots have a frame waiting; beyond, a frame is refused with 503.
 """
 
 from __future__ import annotations
@@ -36,30 +38,28 @@ import numpy as np
 import zenoh
 
 from service.api.errors import BadRequest, ServiceError
-from service.api.models import FrameMeta, PosePrior, ResetRequest, SessionConfig, validated
+from service.api.models import (
+    FrameMeta,
+    PosePrior,
+    ResetRequest,
+    SessionConfig,
+    check_robot_id,
+    validated,
+)
 from service.engine.localization_service import LocalizationService
 from service.settings import Settings
-from service.zenoh.config import service_zenoh_config
+from service.zenoh.config import ZenohSecurityError, check_security, service_zenoh_config
 from service.zenoh.maps import declare_map_queryables
-from service.zenoh.replies import answer, error_body, internal_error
+from service.zenoh.replies import (
+    answer,
+    error_body,
+    internal_error,
+    parse_json,
+    parse_json_object,
+)
 
 log = logging.getLogger("swarmloc")
-
-
-class ZenohSecurityError(RuntimeError):
-    """Zenoh would bypass the HTTP token: refused at start-up."""
-
-
-def check_security(settings: Settings) -> None:
-    """With a bearer token on HTTP, Zenoh must be secured too (a config file with TLS/mTLS,
-    user/password or access control), or the operator must accept it explicitly."""
-    if settings.auth_token and not settings.zenoh_config_file and \
-            not settings.zenoh_unauthenticated:
-        raise ZenohSecurityError(
-            "HTTP needs a bearer token but Zenoh has no authentication: give a Zenoh config "
-            "file with TLS/mTLS, user/password or access control (SWARMLOC_ZENOH_CONFIG_FILE, "
-            "README 'Hardening'), turn Zenoh off (SWARMLOC_ZENOH_ENABLED=false), or accept "
-            "an open Zenoh with SWARMLOC_ZENOH_UNAUTHENTICATED=true")
+__all__ = ["ZenohBridge", "ZenohSecurityError", "check_security", "control", "parse_attachment"]
 
 
 @dataclass
@@ -67,19 +67,18 @@ class _Frame:
     data: bytes | np.ndarray  # encoded image, or grayscale pixels (ROS 2 sensor_msgs/Image)
     meta: dict[str, Any]
     content_type: str | None = None
-    reply: Callable[[dict[str, Any]], None] | None = None  # also answer here (ROS 2)
+    reply: Callable[[dict[str, Any]], None] | None = None  # also answer here (ROS 2, query)
+    publish: bool = True  # publish the answer on {robot}/estimate (not for queries)
+
+
+def _superseded(robot: str, frame: _Frame) -> dict[str, Any]:
+    return error_body(ServiceError("a newer frame of this robot arrived before this one was "
+                                   "processed; only the newest waiting frame is localized",
+                                   429), robot, _seq_of(frame.meta))
 
 
 def parse_attachment(raw: bytes | None) -> dict[str, Any]:
-    if not raw:
-        return {}
-    try:
-        meta = json.loads(raw)
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        raise BadRequest("attachment must be JSON like {\"t\": 12.5, \"seq\": 3}") from None
-    if not isinstance(meta, dict):
-        raise BadRequest("attachment must be a JSON object")
-    return meta
+    return parse_json_object(raw, "attachment", '{"t": 12.5, "seq": 3}')
 
 
 def _frame_args(meta: dict[str, Any]) -> tuple[float | None, int | None, PosePrior | None]:
@@ -97,6 +96,7 @@ def _seq_of(meta: dict[str, Any]) -> int | None:
 def control(service: LocalizationService, robot: str, body: Any) -> dict[str, Any]:
     """One control message (``{robot}/control``): the same validation and answers as the
     HTTP session routes. Raises ServiceError."""
+    check_robot_id(robot)
     if not isinstance(body, dict):
         raise BadRequest("control payload must be a JSON object")
     body = dict(body)
@@ -131,7 +131,7 @@ class ZenohBridge:
         self._heavy_pool = ThreadPoolExecutor(
             max_workers=max(1, self.settings.frame_workers // 4),
             thread_name_prefix="zenoh-heavy")
-        self._slots: dict[str, _Frame | None] = {}
+        self._slots: dict[str, _Frame] = {}  # the frame waiting per robot
         self._busy: set[str] = set()
         self._lock = threading.Lock()
 
@@ -199,6 +199,7 @@ class ZenohBridge:
             return None
         seq = _seq_of(frame.meta)
         try:
+            check_robot_id(robot)
             t, seq, prior = _frame_args(frame.meta)
             est = self.service.process_frame(
                 robot, frame.data, content_type=frame.content_type, t=t, prior=prior,
@@ -224,64 +225,90 @@ class ZenohBridge:
 
     def submit_frame(self, robot: str, data: bytes | np.ndarray, meta: dict[str, Any],
                      content_type: str | None = None,
-                     reply: Callable[[dict[str, Any]], None] | None = None) -> None:
-        """Queue a frame in the robot's one-frame slot (newest wins) and process it."""
+                     reply: Callable[[dict[str, Any]], None] | None = None,
+                     publish: bool = True) -> None:
+        """Queue a frame in the robot's one-frame slot (newest wins) and process it; a
+        replaced frame's ``reply`` is told so (429)."""
+        frame = _Frame(data, meta, content_type, reply, publish)
+        refused = start = False
         with self._lock:
-            if self._slots.get(robot) is not None:
-                self.service.metrics.dropped.inc()  # a newer frame replaces the waiting one
-            self._slots[robot] = _Frame(data, meta, content_type, reply)
-            if robot in self._busy:
-                return
-            self._busy.add(robot)
+            replaced = self._slots.get(robot)
+            if replaced is None and len(self._slots) >= self.settings.max_sessions:
+                refused = True
+            else:
+                if replaced is not None:
+                    self.service.metrics.dropped.inc()  # a newer frame replaces the waiting one
+                self._slots[robot] = frame
+                start = robot not in self._busy
+                self._busy.add(robot)
+        if refused:
+            self.service.metrics.rejected.labels("Unavailable").inc()
+            self._answer(robot, frame, error_body(ServiceError(
+                f"{self.settings.max_sessions} robots have a frame waiting; retry later", 503),
+                robot, _seq_of(meta)))
+            return
+        if replaced is not None and replaced.reply is not None and not replaced.publish:
+            self._answer(robot, replaced, _superseded(robot, replaced))
+        if not start:
+            return
         pool = self._heavy_pool if self.service.is_heavy(robot) else self._pool
         try:
             pool.submit(self._drain, robot)
         except RuntimeError:  # shutting down: the pool takes no more work
             with self._lock:
                 self._busy.discard(robot)
-                self._slots[robot] = None
+                waiting = self._slots.pop(robot, None)
+            if waiting is not None:
+                self._answer(robot, waiting, error_body(
+                    ServiceError("the service is shutting down", 503), robot))
+
+    def _answer(self, robot: str, frame: _Frame, body: dict[str, Any]) -> None:
+        if frame.publish:
+            self._publish(robot, body)
+        if frame.reply is not None:
+            try:
+                frame.reply(body)
+            except Exception:  # a failing answer must not stop this robot's frames
+                log.exception("the answer to robot %s failed", robot)
 
     def _drain(self, robot: str) -> None:
         while True:
             with self._lock:
-                frame = self._slots.get(robot)
-                self._slots[robot] = None
+                frame = self._slots.pop(robot, None)
                 if frame is None:
                     self._busy.discard(robot)
                     return
             body = self._localize(robot, frame)
             if body is None:  # another replica serves this robot
+                if frame.reply is not None and not frame.publish:
+                    frame.reply({})  # a query: finish it without an answer
                 continue
-            self._publish(robot, body)
-            if frame.reply is not None:
-                try:
-                    frame.reply(body)
-                except Exception:  # a failing ROS answer must not stop this robot's frames
-                    log.exception("ROS 2 answer for robot %s failed", robot)
+            self._answer(robot, frame, body)
 
     # ---- request/response ---------------------------------------------------------------
     def _on_localize(self, query: zenoh.Query) -> None:
+        """A frame as a query: it waits in the robot's slot like a published frame (newest
+        wins), and is answered with the estimate or an error."""
         robot = self._robot(str(query.key_expr))
         data = query.payload.to_bytes() if query.payload else b""
         att = query.attachment.to_bytes() if query.attachment else None
-
-        def work() -> None:
-            body: dict[str, Any] | None
-            try:
-                meta = parse_attachment(att)
-                body = self._localize(robot, _Frame(data, meta))
-            except ServiceError as exc:
-                body = error_body(exc, robot) if self._serves(robot) else None
-            if body is None:  # another replica serves this robot: no reply from here
-                query.drop()
-                return
-            answer(query, body)
-
-        pool = self._heavy_pool if self.service.is_heavy(robot) else self._pool
         try:
-            pool.submit(work)
-        except RuntimeError:  # shutting down
-            answer(query, error_body(ServiceError("the service is shutting down", 503), robot))
+            meta = parse_attachment(att)
+        except ServiceError as exc:
+            if self._serves(robot):
+                self.service.metrics.rejected.labels(type(exc).__name__).inc()
+                answer(query, error_body(exc, robot))
+            else:
+                query.drop()
+            return
+
+        def reply(body: dict[str, Any]) -> None:
+            if body:
+                answer(query, body)
+            else:  # another replica serves this robot: no reply from here
+                query.drop()
+
+        self.submit_frame(robot, data, meta, reply=reply, publish=False)
 
     def _on_control(self, query: zenoh.Query) -> None:
         """Every control query gets an answer: the reply, or an error reply (from the replica
@@ -292,10 +319,7 @@ class ZenohBridge:
             return
         try:
             raw = query.payload.to_bytes() if query.payload else b""
-            try:
-                body = json.loads(raw) if raw else {"action": "get"}
-            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise BadRequest(f"control payload is not JSON: {exc}") from None
+            body = parse_json(raw, "control payload") if raw else {"action": "get"}
             reply: dict[str, Any] = control(self.service, robot, body)
         except ServiceError as exc:
             reply = error_body(exc, robot)

@@ -23,6 +23,20 @@ class ZenohConfigError(ValueError):
     """The Zenoh config file or a value could not be used."""
 
 
+class ZenohSecurityError(RuntimeError):
+    """Zenoh would bypass the HTTP token: refused at start-up. The message is one line that
+    says what to do (the CLI prints it as it is)."""
+
+
+_SECURE_ZENOH = (
+    "set up one of transport.auth.usrpwd.dictionary_file (user/password), "
+    "transport.link.tls.enable_mtls with only tls/ or quic/ endpoints (mTLS), or "
+    "access_control {enabled: true, default_permission: \"deny\"} in a Zenoh config file "
+    "(--zenoh-config, SWARMLOC_ZENOH_CONFIG_FILE; README 'Hardening'), or turn Zenoh off "
+    "(--no-zenoh, SWARMLOC_ZENOH_ENABLED=false), or accept an open Zenoh "
+    "(SWARMLOC_ZENOH_UNAUTHENTICATED=true)")
+
+
 def zenoh_config(*, config_file: str | Path | None = None, mode: str | None = None,
                  connect: Sequence[str] | None = None, listen: Sequence[str] | None = None,
                  multicast_scouting: bool | None = None,
@@ -75,3 +89,52 @@ def service_zenoh_config(settings: Any) -> zenoh.Config:
     return zenoh_config(config_file=settings.zenoh_config_file, mode=pick("zenoh_mode"),
                         connect=pick("zenoh_connect"), listen=pick("zenoh_listen"),
                         multicast_scouting=pick("zenoh_multicast_scouting"))
+
+
+def _get(cfg: zenoh.Config, key: str) -> Any:
+    try:
+        return json.loads(cfg.get_json(key))
+    except Exception:  # a key this zenoh version does not know: not set
+        return None
+
+
+def _endpoints(cfg: zenoh.Config, key: str) -> list[str]:
+    """A config's endpoints (a list, or per mode as in Zenoh's defaults)."""
+    value = _get(cfg, key)
+    if isinstance(value, dict):
+        value = value.get(str(_get(cfg, "mode") or "peer"), [])
+    return [str(e) for e in value] if isinstance(value, list) else []
+
+
+def secured_by(cfg: zenoh.Config) -> str | None:
+    """How a Zenoh config keeps anonymous peers out (user/password, mTLS on every link, or
+    access control denying by default), or None when it does not."""
+    usrpwd = _get(cfg, "transport/auth/usrpwd")
+    if isinstance(usrpwd, dict) and usrpwd.get("dictionary_file"):
+        return "user/password"
+    tls = _get(cfg, "transport/link/tls")
+    links = _endpoints(cfg, "listen/endpoints") + _endpoints(cfg, "connect/endpoints")
+    if isinstance(tls, dict) and tls.get("enable_mtls") is True and links and \
+            all(e.startswith(("tls/", "quic/")) for e in links):
+        return "mTLS"
+    acl = _get(cfg, "access_control")
+    if isinstance(acl, dict) and acl.get("enabled") is True and \
+            acl.get("default_permission") == "deny":
+        return "access control"
+    return None
+
+
+def check_security(settings: Any) -> None:
+    """With a bearer token on HTTP, Zenoh must keep anonymous peers out too (see
+    ``secured_by``), or the operator must accept an open Zenoh explicitly; else
+    ZenohSecurityError (or ZenohConfigError for a config file that cannot be read)."""
+    if not settings.auth_token or settings.zenoh_unauthenticated:
+        return
+    if not settings.zenoh_config_file:
+        raise ZenohSecurityError("HTTP needs a bearer token but Zenoh has no config file, so "
+                                 "anyone could use Zenoh instead: " + _SECURE_ZENOH)
+    if secured_by(service_zenoh_config(settings)) is None:
+        raise ZenohSecurityError(
+            f"HTTP needs a bearer token but the Zenoh config file {settings.zenoh_config_file} "
+            "sets up no authentication or access control, so anyone could use Zenoh "
+            "instead: " + _SECURE_ZENOH)

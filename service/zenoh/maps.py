@@ -16,7 +16,6 @@ Errors are reply_err with ``{"error", "status"}``, the HTTP message and status c
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Callable
 from concurrent.futures import Executor
@@ -27,7 +26,7 @@ import zenoh
 from service.api.errors import BadRequest, ServiceError
 from service.engine.localization_service import LocalizationService
 from service.engine.map_admin import payload_to_file
-from service.zenoh.replies import answer, error_body, internal_error
+from service.zenoh.replies import answer, error_body, internal_error, parse_json_object
 
 log = logging.getLogger("swarmloc.zenoh")
 
@@ -43,15 +42,22 @@ def _reply(query: zenoh.Query, fn: Callable[[], Any]) -> None:
     answer(query, body, ok)
 
 
+_OPTION_TYPES: dict[str, type] = {"action": str, "if_match": str, "if_none_match": str,
+                                   "force": bool}
+
+
 def _options(raw: bytes) -> dict[str, Any]:
-    if not raw:
-        return {}
-    try:
-        opts = json.loads(raw)
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        raise BadRequest('attachment must be JSON like {"action": "put"}') from None
-    if not isinstance(opts, dict):
-        raise BadRequest("attachment must be a JSON object")
+    """The attachment of a map query: a JSON object of the options above (each a string,
+    ``force`` a boolean, any of them null or left out), else 400 as HTTP's header errors."""
+    opts = parse_json_object(raw, "attachment", '{"action": "put"}')
+    for key, value in opts.items():
+        want = _OPTION_TYPES.get(key)
+        if want is None:
+            raise BadRequest(f"attachment has an unknown option '{str(key)[:40]}'; use "
+                             f"{', '.join(_OPTION_TYPES)}")
+        if value is not None and type(value) is not want:
+            raise BadRequest(f"attachment option '{key}' must be "
+                             f"{'true or false' if want is bool else 'a string'}")
     return opts
 
 

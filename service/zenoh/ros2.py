@@ -42,8 +42,9 @@ except ImportError as _exc:  # the service imports this module only when ROS 2 i
                       ) from _exc
 
 from service.api.errors import BadRequest, InvalidParameters, PayloadTooLarge, UnsupportedMediaType
-from service.api.models import Estimate, PosePrior, validated
+from service.api.models import Estimate, PosePrior, check_robot_id, validated
 from service.settings import Settings
+from service.vision.imaging import check_size
 
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMAGE = "sensor_msgs/msg/Image"
@@ -135,8 +136,8 @@ class Codec:
         return str(self.store.hash_rihs01(typename))
 
     # ---- frames in ----------------------------------------------------------------------
-    def frame(self, payload: bytes, typename: str, max_bytes: int, max_pixels: int
-              ) -> RosFrame:
+    def frame(self, payload: bytes, typename: str, max_bytes: int, max_pixels: int,
+              min_side: int = 1) -> RosFrame:
         if len(payload) > max_bytes:
             raise PayloadTooLarge(f"frame message is {len(payload)} bytes; the limit is "
                                   f"{max_bytes} bytes")
@@ -145,7 +146,8 @@ class Codec:
         if typename == COMPRESSED_IMAGE:
             return RosFrame(msg.data.tobytes(), compressed_content_type(msg.format), stamp,
                             msg.header.frame_id)
-        return RosFrame(raw_image(msg, max_pixels), None, stamp, msg.header.frame_id)
+        return RosFrame(raw_image(msg, max_pixels, min_side), None, stamp,
+                        msg.header.frame_id)
 
     # ---- estimates out ------------------------------------------------------------------
     def _header(self, stamp: Stamp, frame_id: str) -> Any:
@@ -221,17 +223,14 @@ def compressed_content_type(fmt: str) -> str | None:
                                "send jpeg or png")
 
 
-def raw_image(msg: Any, max_pixels: int) -> np.ndarray:
+def raw_image(msg: Any, max_pixels: int, min_side: int = 1) -> np.ndarray:
     """8-bit grayscale pixels of a sensor_msgs/Image after checking its geometry."""
     enc = str(msg.encoding).strip().lower()
     if enc not in _CHANNELS:
         raise UnsupportedMediaType(f"Image encoding '{msg.encoding}' is not supported; "
                                    f"send one of {sorted(_CHANNELS)} or a CompressedImage")
     w, h, step, ch = int(msg.width), int(msg.height), int(msg.step), _CHANNELS[enc]
-    if w == 0 or h == 0:
-        raise BadRequest(f"Image is {w}x{h} pixels")
-    if w * h > max_pixels:
-        raise PayloadTooLarge(f"image is {w}x{h} = {w * h} pixels; the limit is {max_pixels}")
+    check_size(w, h, max_pixels, max(min_side, 1))
     if step < w * ch:
         raise BadRequest(f"Image step {step} is smaller than width x channels = {w * ch} "
                          f"for {enc}")
@@ -409,7 +408,8 @@ class Ros2Endpoints:
             try:
                 frame = self.codec.frame(sample.payload.to_bytes(), topic.typename,
                                          self.settings.max_body_bytes,
-                                         self.settings.max_pixels)
+                                         self.settings.max_pixels,
+                                         self.settings.min_frame_side)
             except ServiceError as exc:
                 self._reject(robot, exc, seq)
                 return
@@ -425,6 +425,7 @@ class Ros2Endpoints:
         assert self.initialpose is not None
         robot = self.initialpose.robot(str(sample.key_expr))
         try:
+            check_robot_id(robot)
             prior, frame_id = self.codec.initial_pose(sample.payload.to_bytes())
             session = (self.service.ensure_session(robot)
                        if self.settings.zenoh_creates_sessions
