@@ -56,7 +56,8 @@ def bench_store_overhead(maps_dir: str, round_dir: str, redis_url: str, frames: 
     from service.settings import Settings
 
     rnd = read_round(round_dir)
-    mem = LocalizationService(Settings(maps_dir=Path(maps_dir), zenoh_enabled=False))
+    mem = LocalizationService(Settings(maps_dir=Path(maps_dir), zenoh_enabled=False,
+                                       session_store="memory"))
     maps = mem.maps
     a, b = (LocalizationService(Settings(maps_dir=Path(maps_dir), zenoh_enabled=False,
                                          session_store=redis_url, replica_id=n), maps=maps)
