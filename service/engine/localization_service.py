@@ -418,7 +418,10 @@ def open_store(settings: Settings,
                     "(the %s store keeps every session itself)", url.partition(":")[0])
     if url == "sqlite" or url.startswith("sqlite:"):
         path, synchronous = sqlite_location(url, settings.maps_dir)
-        return SqliteStore(path, resolve, synchronous)
+        store = SqliteStore(path, resolve, synchronous)
+        log.info("sessions kept in %s (SQLite, WAL, synchronous=%s): %d stored", path,
+                 synchronous, len(store))
+        return store
     if url.startswith(("redis://", "rediss://", "unix://")):
         return RedisStore(url, resolve, RedisOptions(
             idle_s=settings.session_idle_s, lock_lease_s=settings.session_lock_lease_s,
