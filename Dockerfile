@@ -1,5 +1,9 @@
 # swarmloc: the localization service only (no client/, no lab), with the demo map (built on
-# first start into /app/maps from the round shipped in service/demo).
+# first start into /app/maps from the round shipped in service/demo). A container must be
+# reachable from outside it, so HTTP and Zenoh bind 0.0.0.0 here explicitly (`swarmloc serve`
+# alone binds loopback); publish the ports only where robots need them. Sessions are kept in
+# /app/maps/sessions.sqlite (the default SQLite store, in the maps volume): a restart, even
+# after a kill, resumes every robot.
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -7,6 +11,7 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
     SWARMLOC_MAPS_DIR=/app/maps \
+    SWARMLOC_HOST=0.0.0.0 \
     SWARMLOC_ZENOH_LISTEN='["tcp/0.0.0.0:7447"]'
 
 RUN useradd --create-home --uid 10001 swarmloc

@@ -793,6 +793,33 @@ def bench_scale_cmd(
             srv.stop()  # type: ignore[attr-defined]
 
 
+@bench_app.command("store")
+def bench_store_cmd(
+    round_dir: Annotated[Path, typer.Argument(help="round whose frames are stepped")],
+    maps_dir: Annotated[Path, typer.Option(help="maps to load")] = Path("maps"),
+    frames: Annotated[int, typer.Option(help="frames per store")] = 200,
+    estimator: Annotated[str, typer.Option(help="dpso | pf-g | pf-l | ...")] = "dpso",
+) -> None:
+    """Per-frame cost of the durable default session store (SQLite, WAL) next to the
+    in-process memory store: medians of the same frames, round-robin in one run."""
+    import os
+    import statistics
+
+    from client.lab.bench_store import bench_session_store
+
+    typer.echo(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs; "
+               f"{frames} frames per store, {estimator}")
+    rows = bench_session_store(str(maps_dir), str(round_dir), frames, estimator)
+    base = rows[0]
+    step = statistics.median(r.step_ms for r in rows)  # the same work in every store
+    for r in rows:
+        extra = r.store_ms - base.store_ms
+        typer.echo(f"{r.store:24s} frame p50 {r.frame_ms:7.3f} ms, x{r.ratio:.3f} of "
+                   f"{base.store} (paired) | store p50 {r.store_ms:6.3f} ms ({extra:+.3f} ms "
+                   f"= {100 * extra / step:+.2f} % of the step p50) | step p50 "
+                   f"{r.step_ms:7.3f} ms | state {r.state_bytes} B")
+
+
 @bench_app.command("events")
 def bench_events_cmd(
     round_dir: Annotated[Path, typer.Argument(help="round whose frames are sent")],

@@ -374,7 +374,10 @@ class LocalClient:
         from service.settings import Settings
 
         if service is None:
-            settings = Settings(maps_dir=Path(maps_dir or "maps"), zenoh_enabled=False)
+            # in memory: an in-process client is one run's; it must not take the maps
+            # directory's session file from a `swarmloc serve` on the same maps
+            settings = Settings(maps_dir=Path(maps_dir or "maps"), zenoh_enabled=False,
+                                session_store="memory")
             service = LocalizationService(settings)
         self.service = service
 

@@ -21,7 +21,9 @@ app = typer.Typer(help="swarmloc service: HTTP + Zenoh localization.", no_args_i
 
 @app.command("serve")
 def serve(
-    host: Annotated[str | None, typer.Option(help="bind address [SWARMLOC_HOST]")] = None,
+    host: Annotated[str | None, typer.Option(
+        help="bind address [SWARMLOC_HOST] (default: 127.0.0.1, loopback only; 0.0.0.0 "
+             "when a token is set)")] = None,
     port: Annotated[int | None, typer.Option(help="HTTP port [SWARMLOC_PORT]")] = None,
     maps_dir: Annotated[Path | None, typer.Option(help="maps directory [SWARMLOC_MAPS_DIR]")]
     = None,
@@ -41,6 +43,10 @@ def serve(
     zenoh_config: Annotated[Path | None, typer.Option(
         help="Zenoh JSON5 config file: TLS, user/password, ACL "
              "[SWARMLOC_ZENOH_CONFIG_FILE]")] = None,
+    session_store: Annotated[str | None, typer.Option(
+        help="sqlite (default: MAPS_DIR/sessions.sqlite, kept across a kill), "
+             "sqlite:////path/file.sqlite, memory, or redis://host:port/db "
+             "[SWARMLOC_SESSION_STORE]")] = None,
 ) -> None:
     """Run the localization service (HTTP + Zenoh). Flags override SWARMLOC_* variables."""
     from service.server import run  # without the [service] extra: run_cli says so
@@ -50,7 +56,8 @@ def serve(
         "host": host, "port": port, "maps_dir": maps_dir, "default_map": default_map,
         "default_estimator": default_estimator, "auth_token": token, "zenoh_enabled": zenoh,
         "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect,
-        "ros2_enabled": ros2, "zenoh_config_file": zenoh_config}.items() if v is not None}
+        "ros2_enabled": ros2, "zenoh_config_file": zenoh_config,
+        "session_store": session_store}.items() if v is not None}
     settings = Settings(**overrides)
     if settings.zenoh_enabled:
         from service.zenoh.bridge import check_security
@@ -61,7 +68,13 @@ def serve(
 
         path = ensure_demo_map(settings.maps_dir, progress=True)
         typer.echo(f"demo map: {path}")
-    run(settings)
+    from service.engine.sqlite_store import SessionStoreError
+
+    try:
+        run(settings)
+    except SessionStoreError as exc:  # a reason to give in one line, not a traceback
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
 
 
 DebugOpt = Annotated[bool, typer.Option(

@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.api.models import EstimatorName
@@ -15,7 +15,8 @@ from service.api.models import EstimatorName
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="SWARMLOC_", env_nested_delimiter="__")
 
-    host: str = Field("0.0.0.0", description="HTTP bind address")
+    host: str = Field("127.0.0.1", description="HTTP bind address (default: loopback only, "
+                      "or 0.0.0.0 when auth_token is set; give it to serve other hosts)")
     port: int = Field(8080, description="HTTP port")
     maps_dir: Path = Field(Path("maps"), description="directory of *.swmap files to load")
     default_map: str | None = Field(None, description="map for sessions that name none "
@@ -23,10 +24,14 @@ class Settings(BaseSettings):
     default_estimator: EstimatorName = "dpso"
     max_sessions: int = Field(256, description="most concurrent robot sessions")
     session_idle_s: float = Field(600.0, description="idle sessions expire after this")
-    # where sessions live (service/engine/store.py): in this process, or Redis shared by replicas
-    session_store: str = Field("memory", description="'memory' (in-process) or "
-                               "redis://host:port/db (shared by several replicas)")
-    session_snapshot: Path | None = Field(None, description="in-process store: write the "
+    # where sessions live (service/engine/store.py): a SQLite file (durable), this process's
+    # memory, or Redis shared by replicas
+    session_store: str = Field(
+        "sqlite", description="'sqlite' (default: MAPS_DIR/sessions.sqlite, every applied "
+        "frame kept across a crash or kill -9), sqlite:///relative/path or "
+        "sqlite:////absolute/path (?synchronous=full: also across power loss), 'memory' "
+        "(in-process, lost on a crash) or redis://host:port/db (shared by several replicas)")
+    session_snapshot: Path | None = Field(None, description="'memory' store: write the "
                                           "sessions here on SIGTERM, read them at start")
     session_lock_lease_s: float = Field(10.0, gt=0, description="Redis: a robot's lock "
                                         "expires this long after a crashed holder took it")
@@ -113,6 +118,14 @@ class Settings(BaseSettings):
     ros2_speed_sigma_mps: float = Field(
         0.3, gt=0, description="speed uncertainty behind the reported yaw variance: "
         "atan(sigma / speed)^2, uniform (pi^2/3) below sigma")
+
+    @model_validator(mode="after")
+    def _bind_address(self) -> Settings:
+        """Safe by default: loopback unless the host is given or a token guards the HTTP API
+        (Zenoh listens on loopback unless its endpoints or a config file say otherwise)."""
+        if "host" not in self.model_fields_set and self.auth_token:
+            self.host = "0.0.0.0"
+        return self
 
     @property
     def frame_workers(self) -> int:

@@ -5,6 +5,7 @@ Everything is rendered here, into pytest's temporary directories; nothing from .
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -19,6 +20,12 @@ from service.server import free_port, running_server
 from service.settings import Settings
 
 SMALL_LENGTH_M = 90.0
+
+# The default store is a SQLite file in the maps directory, held by one process at a time;
+# the many services a test run builds (several on one maps directory, in one process) keep
+# their sessions in memory unless a test names a store. tests/test_durable_store.py runs the
+# default itself (its servers drop this variable).
+os.environ.setdefault("SWARMLOC_SESSION_STORE", "memory")
 
 
 @pytest.fixture(scope="session")

@@ -120,7 +120,7 @@ def test_a_replaced_map_version_asks_for_a_reset(redis_srv: RedisServer, rdb, sm
 
 def test_in_process_snapshot_round_trip(small_map, frames, tmp_path: Path) -> None:
     snap = tmp_path / "sessions.snap"
-    a = _replica(small_map, session_snapshot=snap)
+    a = _replica(small_map, session_store="memory", session_snapshot=snap)
     ref = _replica(small_map)
     for svc in (a, ref):
         svc.put_session("snap", _config())
@@ -128,7 +128,7 @@ def test_in_process_snapshot_round_trip(small_map, frames, tmp_path: Path) -> No
         assert _frame(a, "snap", frames[k], k) == _frame(ref, "snap", frames[k], k)
     a.close()
     assert snap.exists()
-    b = _replica(small_map, session_snapshot=snap)
+    b = _replica(small_map, session_store="memory", session_snapshot=snap)
     assert not snap.exists()  # read once: a later crash cannot roll sessions back to it
     for k in range(3, 6):
         assert _frame(b, "snap", frames[k], k) == _frame(ref, "snap", frames[k], k)
@@ -136,13 +136,13 @@ def test_in_process_snapshot_round_trip(small_map, frames, tmp_path: Path) -> No
 
 def test_a_corrupt_snapshot_is_set_aside(small_map, frames, tmp_path: Path) -> None:
     snap = tmp_path / "sessions.snap"
-    a = _replica(small_map, session_snapshot=snap)
+    a = _replica(small_map, session_store="memory", session_snapshot=snap)
     a.put_session("c", _config())
     a.close()
     data = bytearray(snap.read_bytes())
     data[-3] ^= 0xFF
     snap.write_bytes(bytes(data))
-    b = _replica(small_map, session_snapshot=snap)
+    b = _replica(small_map, session_store="memory", session_snapshot=snap)
     assert b.sessions() == []
     assert not snap.exists() and snap.with_name("sessions.snap.corrupt").exists()
 
@@ -154,7 +154,7 @@ def test_sigterm_writes_the_snapshot_the_next_start_reads(tmp_path: Path, small_
     save_map(small_map, maps / "small")
     snap = tmp_path / "state" / "sessions.snap"
     env = {"SWARMLOC_MAPS_DIR": str(maps), "SWARMLOC_ZENOH_ENABLED": "false",
-           "SWARMLOC_SESSION_SNAPSHOT": str(snap)}
+           "SWARMLOC_SESSION_STORE": "memory", "SWARMLOC_SESSION_SNAPSHOT": str(snap)}
     ref = _replica(small_map)
     ref.put_session("t", _config())
     proc = ServiceProcess("snapshot", env, tmp_path).start().wait_ready()

@@ -84,7 +84,8 @@ def bench_latency(maps_dir: str, round_dir: str, frames: int = 200, seed: int = 
     data = [rnd.image_path(i % len(rnd)).read_bytes() for i in range(frames)]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     settings = Settings(maps_dir=Path(maps_dir), host="127.0.0.1", port=free_port(),
-                        zenoh_listen=[endpoint], zenoh_multicast_scouting=False)
+                        zenoh_listen=[endpoint], zenoh_multicast_scouting=False,
+                        session_store="memory")  # as the in-process client's
     with running_server(LocalizationService(settings)) as url:
         clients: dict[str, Client] = {
                    "in-process": LocalClient(maps_dir), "http": HttpClient(url),
@@ -225,7 +226,7 @@ def bench_events(maps_dir: str, round_dir: str, frames: int = 150, block: int = 
     rnd = read_round(round_dir)
     data = [rnd.image_path(i % len(rnd)).read_bytes() for i in range(frames)]
     settings = Settings(maps_dir=Path(maps_dir), host="127.0.0.1", port=free_port(),
-                        zenoh_enabled=False)
+                        zenoh_enabled=False, session_store="memory")
     service = LocalizationService(settings)
     hub = service.events
     conditions = {"no viewer": None, "one viewer": {},
@@ -318,7 +319,7 @@ def bench_build_latency(maps_dir: str, round_dir: str, frames: int = 150, fps: f
             shutil.copy(f, maps / f.name)
         archive = zip_round(round_dir, Path(tmp) / "round.zip")
         settings = Settings(maps_dir=maps, host="127.0.0.1", port=free_port(),
-                            zenoh_enabled=False, build_duty=duty)
+                            zenoh_enabled=False, build_duty=duty, session_store="memory")
         with running_server(LocalizationService(settings), zenoh=False) as url:
             client = HttpClient(url)
             try:

@@ -188,7 +188,8 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     settings = Settings(maps_dir=Path(maps_dir), host="127.0.0.1", port=free_port(),
                         zenoh_enabled="zenoh" in transports, zenoh_listen=[endpoint],
-                        zenoh_multicast_scouting=False, workers=workers)
+                        zenoh_multicast_scouting=False, workers=workers,
+                        session_store="memory")  # the transports' cost, not the store's
     limit_native_threads(settings)  # as ``swarmloc serve`` does
     warm_up()
     service = LocalizationService(settings)

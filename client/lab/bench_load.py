@@ -87,12 +87,15 @@ def rss_mib(pid: int) -> float:
 def service_process(maps_dir: Path, **env: str) -> Iterator[tuple[str, str, int]]:
     """``swarmloc serve`` on loopback; yields (http url, zenoh endpoint, pid)."""
     from client.lab.processes import ServiceProcess
+    from service.engine.sqlite_store import sqlite_url
 
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     with tempfile.TemporaryDirectory() as logs:
         svc = ServiceProcess("bench-load", {
             "SWARMLOC_MAPS_DIR": str(maps_dir), "SWARMLOC_ZENOH_LISTEN": f'["{endpoint}"]',
-            "SWARMLOC_SESSION_IDLE_S": "3600", **env}, Path(logs))
+            "SWARMLOC_SESSION_IDLE_S": "3600",  # the durable default store, in a file of its own
+            "SWARMLOC_SESSION_STORE": sqlite_url(Path(logs) / "sessions.sqlite"), **env},
+            Path(logs))
         try:
             svc.start().wait_ready(120.0)
             assert svc.proc is not None
@@ -179,16 +182,23 @@ def local_service(maps_dir: Path) -> Iterator[Callable[[], Client]]:
     """The in-process baseline: a ``LocalizationService`` in this process, set up as
     ``swarmloc serve`` sets up its own (native thread limits, matcher warmed up)."""
     from service.engine.localization_service import LocalizationService
+    from service.engine.sqlite_store import sqlite_url
     from service.server import limit_native_threads
     from service.settings import Settings
     from service.vision.matcher import warm_up
 
-    settings = Settings(maps_dir=maps_dir, zenoh_enabled=False, session_idle_s=3600)
-    limit_native_threads(settings)
-    warm_up()
-    service = LocalizationService(settings)
-    with ThreadPoolExecutor(settings.frame_workers, thread_name_prefix="local-frames") as pool:
-        yield lambda: _PooledLocal(service, pool)
+    with tempfile.TemporaryDirectory() as tmp:  # the default store, as the service process's
+        settings = Settings(maps_dir=maps_dir, zenoh_enabled=False, session_idle_s=3600,
+                            session_store=sqlite_url(Path(tmp) / "sessions.sqlite"))
+        limit_native_threads(settings)
+        warm_up()
+        service = LocalizationService(settings)
+        try:
+            with ThreadPoolExecutor(settings.frame_workers,
+                                    thread_name_prefix="local-frames") as pool:
+                yield lambda: _PooledLocal(service, pool)
+        finally:
+            service.close()
 
 
 def bench_load(maps_dir: Path, round_dir: Path, robots: list[int], per_robot: int,

@@ -8,10 +8,13 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import cast
+from typing import TYPE_CHECKING, Any, cast
 
 import httpx
 import numpy as np
+
+if TYPE_CHECKING:
+    from service.engine.localization_service import LocalizationService
 
 
 @dataclass(frozen=True)
@@ -44,6 +47,23 @@ def _pct(x: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(x) * 1e3, q))
 
 
+def timed_frame(svc: LocalizationService, robot: str, features: Any, k: int,
+                step: bool = True) -> tuple[float, float, float]:
+    """Frame ``k`` of ``robot`` through the store as ``process_frame`` takes it (look-up,
+    lock and load, the estimator step, store back and unlock): (load, step, store) seconds."""
+    t0 = time.perf_counter()
+    svc.session(robot)  # what a transport does first (404 for an unknown robot)
+    cm = svc.store.locked(robot)
+    s = cm.__enter__()
+    t1 = time.perf_counter()
+    if step:
+        s.localizer.step(features, float(k))
+    s.last_t, s.last_used = float(k), time.time()
+    t2 = time.perf_counter()
+    cm.__exit__(None, None, None)
+    return t1 - t0, t2 - t1, time.perf_counter() - t2
+
+
 def bench_store_overhead(maps_dir: str, round_dir: str, redis_url: str, frames: int = 200,
                          estimator: str = "dpso", seed: int = 0) -> list[StoreOverhead]:
     """Per-frame cost of the store around the estimator step, for the in-process store, Redis
@@ -56,7 +76,8 @@ def bench_store_overhead(maps_dir: str, round_dir: str, redis_url: str, frames: 
     from service.settings import Settings
 
     rnd = read_round(round_dir)
-    mem = LocalizationService(Settings(maps_dir=Path(maps_dir), zenoh_enabled=False))
+    mem = LocalizationService(Settings(maps_dir=Path(maps_dir), zenoh_enabled=False,
+                                       session_store="memory"))
     maps = mem.maps
     a, b = (LocalizationService(Settings(maps_dir=Path(maps_dir), zenoh_enabled=False,
                                          session_store=redis_url, replica_id=n), maps=maps)
@@ -75,22 +96,11 @@ def bench_store_overhead(maps_dir: str, round_dir: str, redis_url: str, frames: 
             size = 0
             for k in range(frames):
                 svc = replicas[k % len(replicas)]
-                t0 = time.perf_counter()
-                svc.session(robot)  # what a transport does first (404 for an unknown robot)
-                cm = svc.store.locked(robot)
-                s = cm.__enter__()
-                t1 = time.perf_counter()
-                if with_step or k < 5:
-                    s.localizer.step(feats[k % len(feats)], float(k))
-                s.last_t, s.last_used = float(k), time.time()
-                t2 = time.perf_counter()
-                cm.__exit__(None, None, None)
-                t3 = time.perf_counter()
-                load.append(t1 - t0)
-                step.append(t2 - t1)
-                store.append(t3 - t2)
-                if k == frames - 1:
-                    size = len(encode_session(s))
+                times = timed_frame(svc, robot, feats[k % len(feats)], k, with_step or k < 5)
+                load.append(times[0])
+                step.append(times[1])
+                store.append(times[2])
+            size = len(encode_session(replicas[0].session(robot)))
             out.append(StoreOverhead(name, frames, _pct(load, 50), _pct(load, 99),
                                      _pct(store, 50), _pct(store, 99), _pct(step, 50), size,
                                      with_step))

@@ -80,11 +80,13 @@ def _features(round_dir: Path, params: object) -> tuple[list, np.ndarray]:
 def _service(maps_dir: Path) -> Iterator[tuple[str, int, float]]:
     """``swarmloc serve`` (HTTP only) on loopback: (url, pid, start-up seconds)."""
     from client.lab.processes import ServiceProcess
+    from service.engine.sqlite_store import sqlite_url
 
     with tempfile.TemporaryDirectory() as logs:
         t0 = time.perf_counter()
-        svc = ServiceProcess("scale-map", {"SWARMLOC_MAPS_DIR": str(maps_dir),
-                                           "SWARMLOC_ZENOH_ENABLED": "false"}, Path(logs))
+        svc = ServiceProcess("scale-map", {
+            "SWARMLOC_MAPS_DIR": str(maps_dir), "SWARMLOC_ZENOH_ENABLED": "false",
+            "SWARMLOC_SESSION_STORE": sqlite_url(Path(logs) / "sessions.sqlite")}, Path(logs))
         try:
             svc.start().wait_ready(180.0)
             startup = time.perf_counter() - t0

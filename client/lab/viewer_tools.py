@@ -62,7 +62,7 @@ def screenshot(maps_dir: Path, round_dir: Path, out: Path, map_name: str | None 
 
     rnd = read_round(round_dir)
     settings = Settings(maps_dir=maps_dir, host="127.0.0.1", port=free_port(),
-                        zenoh_enabled=False, workers=2)
+                        zenoh_enabled=False, workers=2, session_store="memory")
     service = LocalizationService(settings)
     name = map_name or service.default_map
     ids = [f"robot-{i + 1}" for i in range(robots)]
@@ -189,7 +189,7 @@ def bench_viewer(maps_dir: Path, map_name: str | None = None, robots: int = 64,
     from service.settings import Settings
 
     settings = Settings(maps_dir=maps_dir, host="127.0.0.1", port=free_port(),
-                        zenoh_enabled=False)
+                        zenoh_enabled=False, session_store="memory")
     service = LocalizationService(settings)
     name = map_name or service.default_map
     route = service.get_map(name).positions

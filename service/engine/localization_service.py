@@ -39,6 +39,7 @@ from service.engine.events import EventHub
 from service.engine.localizer import Localizer
 from service.engine.map_admin import MapAdmin
 from service.engine.metrics import Metrics
+from service.engine.sqlite_store import SqliteStore, sqlite_location
 from service.engine.state_codec import StateError
 from service.engine.store import (
     InProcessStore,
@@ -88,11 +89,12 @@ class LocalizationService:
         self._update_gauge()
 
     def close(self) -> None:
-        """At shutdown: the in-process store writes its snapshot (if configured)."""
+        """At shutdown: the in-process store writes its snapshot (if configured), the SQLite
+        store checkpoints and releases its file."""
         self.store.close()
 
     def _update_gauge(self) -> None:
-        if isinstance(self.store, InProcessStore):
+        if not self.store.shared:  # Redis: each replica would count the fleet's sessions
             self.metrics.sessions.set(len(self.store))
 
     # ---- maps ---------------------------------------------------------------------------
@@ -409,15 +411,26 @@ class LocalizationService:
 
 def open_store(settings: Settings,
                resolve: Callable[[str, str | None, bool], RouteMap]) -> SessionStore:
-    """The store ``SWARMLOC_SESSION_STORE`` names: ``memory`` or ``redis://host:port/db``."""
+    """The store ``SWARMLOC_SESSION_STORE`` names: ``sqlite`` (the default file),
+    ``sqlite:///PATH``, ``memory`` or ``redis://host:port/db``."""
     url = settings.session_store
     if url == "memory":
         return InProcessStore(settings.session_snapshot)
+    if settings.session_snapshot is not None:
+        log.warning("SWARMLOC_SESSION_SNAPSHOT is ignored: only the 'memory' store uses it "
+                    "(the %s store keeps every session itself)", url.partition(":")[0])
+    if url == "sqlite" or url.startswith("sqlite:"):
+        path, synchronous = sqlite_location(url, settings.maps_dir)
+        store = SqliteStore(path, resolve, synchronous)
+        log.info("sessions kept in %s (SQLite, WAL, synchronous=%s): %d stored", path,
+                 synchronous, len(store))
+        return store
     if url.startswith(("redis://", "rediss://", "unix://")):
         return RedisStore(url, resolve, RedisOptions(
             idle_s=settings.session_idle_s, lock_lease_s=settings.session_lock_lease_s,
             lock_wait_s=settings.session_lock_wait_s,
             claim_lease_s=settings.zenoh_claim_lease_s, replica_id=settings.replica_id or ""))
-    raise ValueError(f"SWARMLOC_SESSION_STORE={url!r}: use 'memory' or redis://host:port/db")
+    raise ValueError(f"SWARMLOC_SESSION_STORE={url!r}: use 'sqlite' (the default), "
+                     "sqlite:///PATH, 'memory' or redis://host:port/db")
 
 

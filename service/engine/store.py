@@ -1,11 +1,25 @@
 """Session stores: where robot sessions live between frames.
 
-- ``InProcessStore`` (default, ``SWARMLOC_SESSION_STORE=memory``): live objects in this
-  process. With ``SWARMLOC_SESSION_SNAPSHOT=PATH`` a clean shutdown writes every session to
-  PATH (atomically: temp file, fsync, rename) and the next start reads it back (checksum
-  verified) and deletes it, so a later crash cannot roll sessions back to an old snapshot.
+Protocol: a frame holds its robot's lock (``locked``) while the estimator steps; the state
+the block leaves is stored when it ends without an error, before the answer goes out. The
+stores that keep a copy (SQLite, Redis) drop a failed block's half-changed object and read
+the stored state back next time; they cache the live Session objects and decode a stored
+blob (service/engine/state_codec.py) only on a miss, and a write is a compare-and-set on the
+version it loaded, so a frame on a session replaced or deleted meanwhile is refused (409).
+
+- ``SqliteStore`` (default, ``SWARMLOC_SESSION_STORE=sqlite`` or ``sqlite:///PATH``;
+  service/engine/sqlite_store.py): one row per robot ``(robot_id, version, map, last_used,
+  state)`` in a SQLite file in WAL mode held by this one process. Each applied frame,
+  create, reset and delete is one committed statement (a frame: one encode, one UPDATE).
+  With ``synchronous=NORMAL`` a commit survives a crash of the process (kill -9), so a
+  restart resumes every robot at its last applied frame.
+- ``InProcessStore`` (``SWARMLOC_SESSION_STORE=memory``): live objects in this process only
+  (lost on a crash). With ``SWARMLOC_SESSION_SNAPSHOT=PATH`` a clean shutdown writes every
+  session to PATH (atomically: temp file, fsync, rename) and the next start reads it back
+  (checksum verified) and deletes it, so a later crash cannot roll sessions back to an old
+  snapshot.
 - ``RedisStore`` (``SWARMLOC_SESSION_STORE=redis://host:port/db``): every session is a Redis
-  hash ``{v: version, st: state blob, map: name}`` (service/engine/state_codec.py) shared by any
+  hash ``{v: version, st: state blob, map: name}`` shared by any
   number of replicas. A frame takes the robot's lock (a lease: ``SET NX PX`` with a random
   token), loads the state, steps it and writes it back only if the version is still the one
   it loaded (compare-and-set in one Lua script that also releases the lock). So two frames of
@@ -87,6 +101,10 @@ class SessionStore(ABC):
         """Remove the session; False if there was none."""
 
     @abstractmethod
+    def __len__(self) -> int:
+        """The number of live sessions."""
+
+    @abstractmethod
     def ids(self) -> list[str]:
         """Robot ids of the live sessions."""
 
@@ -117,6 +135,37 @@ class SessionStore(ABC):
 
     def close(self) -> None:  # noqa: B027 (optional for a store)
         """Release resources (and write a snapshot where configured)."""
+
+
+def encode_stored(s: Session) -> bytes:
+    """The session's state blob, or a 500 naming what cannot be stored."""
+    try:
+        return encode_session(s)
+    except StateError as exc:
+        raise ServiceError(f"cannot store the session of robot '{s.robot_id}': {exc}"
+                           ) from None
+
+
+def decode_stored(robot_id: str, version: str, blob: bytes, resolve: MapResolver,
+                  strict: bool) -> Session:
+    """A stored session back as a Session. With ``strict`` its map must be the loaded version
+    (else the resolver's 409 asks for a reset); without, a session on an older version is
+    returned with ``map_changed`` set. A blob that cannot be continued: UnreadableSession."""
+    changed = False
+
+    def resolve_map(name: str, checksum: str | None) -> RouteMap:
+        nonlocal changed
+        m = resolve(name, checksum, strict)
+        changed = checksum != m.meta.get("checksum")
+        return m
+
+    try:
+        st = decode_session(blob, resolve_map)
+    except StateError as exc:
+        raise UnreadableSession(
+            f"stored state of robot '{robot_id}' cannot be continued ({exc}); start it "
+            f"over with PUT /sessions/{robot_id} or delete it") from None
+    return Session(**vars(st), version=version, map_changed=changed)
 
 
 # ---- in-process ---------------------------------------------------------------------------
@@ -355,21 +404,7 @@ class RedisStore(SessionStore):
             self._local.pop(robot_id, None)
 
     def _decode(self, robot_id: str, version: bytes, blob: bytes, strict: bool) -> Session:
-        changed = False
-
-        def resolve(name: str, checksum: str | None) -> RouteMap:
-            nonlocal changed
-            m = self._resolve(name, checksum, strict)
-            changed = checksum != m.meta.get("checksum")
-            return m
-
-        try:
-            st = decode_session(blob, resolve)
-        except StateError as exc:
-            raise UnreadableSession(
-                f"stored state of robot '{robot_id}' cannot be continued ({exc}); start it "
-                f"over with PUT /sessions/{robot_id} or delete it") from None
-        return Session(**vars(st), version=version.decode(), map_changed=changed)
+        return decode_stored(robot_id, version.decode(), blob, self._resolve, strict)
 
     def _materialize(self, robot_id: str, res: list[Any], strict: bool) -> Session | None:
         """A Session from a load script's answer [v] (cached) or [v, blob]. Only sessions on
@@ -385,13 +420,6 @@ class RedisStore(SessionStore):
         if not s.map_changed:
             self._cache[robot_id] = s
         return s
-
-    def _blob(self, s: Session) -> bytes:
-        try:
-            return encode_session(s)
-        except StateError as exc:
-            raise ServiceError(f"cannot store the session of robot '{s.robot_id}': {exc}"
-                               ) from None
 
     # ---- the interface ----------------------------------------------------------------
     def peek(self, robot_id: str) -> Session | None:
@@ -409,7 +437,7 @@ class RedisStore(SessionStore):
                ) -> tuple[Session, bool]:
         rid = session.robot_id
         version = secrets.token_hex(8)
-        blob = self._blob(session)
+        blob = encode_stored(session)
         now = time.time()
         with self._io():
             res = self._create(
@@ -469,7 +497,7 @@ class RedisStore(SessionStore):
                 loaded = s.version
                 yield s
                 version = secrets.token_hex(8)
-                blob = self._blob(s)
+                blob = encode_stored(s)
                 with self._io():
                     ok = self._save_release(
                         keys=[lock_key, key, self._index],
