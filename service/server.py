@@ -136,6 +136,11 @@ def session_store_name(settings: Settings) -> str:
     if store == "memory":
         snap = settings.session_snapshot
         return "in-process" + (f", snapshot {snap}" if snap else " (lost on restart)")
+    if store == "sqlite" or store.startswith("sqlite:"):
+        from service.engine.sqlite_store import sqlite_location
+
+        path, _ = sqlite_location(store, settings.maps_dir)
+        return f"SQLite {path} (durable)"
     from urllib.parse import urlsplit
 
     parts = urlsplit(store)
