@@ -134,7 +134,7 @@ def extract(image: np.ndarray, params: FeatureParams | None = None) -> Features:
     if not isinstance(params, SiftParams):
         from service.vision.xfeat import extract_xfeat
 
-        return extract_xfeat(gray, params)
+        return Features(*extract_xfeat(gray, params))
     if params.clahe:
         tiles = (params.clahe_tile, params.clahe_tile)
         gray = cv2.createCLAHE(clipLimit=params.clahe_clip, tileGridSize=tiles).apply(gray)
@@ -161,9 +161,13 @@ def _angles(dots: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(dots, -1.0, 1.0))
 
 
+_TIE = 2e-7  # float32 dots of two identical rows may differ by rounding (GEMM kernels)
+
+
 def _ratio_pass(best: np.ndarray, second: np.ndarray, delta: float) -> np.ndarray:
-    """angle(best) / angle(second) < delta, written without a division (0/0 never passes)."""
-    return _angles(best) < delta * _angles(second)
+    """angle(best) / angle(second) < delta, written without a division (0/0 never passes);
+    a tie (the second as close as the best, up to float32 rounding) never passes."""
+    return (_angles(best) < delta * _angles(second)) & (best - second > _TIE)
 
 
 @dataclass(frozen=True)

@@ -26,13 +26,10 @@ import hashlib
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
-
-if TYPE_CHECKING:
-    from service.vision.features import Features
 
 MODEL_PATH = Path(__file__).resolve().parent / "models" / "xfeat.onnx"
 MODEL_SHA256 = "e2b108fff66bcc6e56ef55ac4fd98efc1eee5cb15d3811a4e85df793844f7e80"
@@ -185,16 +182,15 @@ def check_map_model(params: XFeatParams) -> None:
             "rebuild the map with 'swarmloc map build --features xfeat'")
 
 
-def extract_xfeat(gray: np.ndarray, params: XFeatParams) -> Features:
-    """XFeat keypoints and int8 descriptor codes of a grayscale frame at the working size."""
-    from service.vision.features import Features
-
+def extract_xfeat(gray: np.ndarray, params: XFeatParams) -> tuple[np.ndarray, np.ndarray]:
+    """XFeat keypoints (N, 2) and int8 descriptor codes (N, 64) of a grayscale frame at the
+    working size (``service.vision.features.extract`` makes them ``Features``)."""
     check_map_model(params)
     kpts, _, desc = model().detect_and_compute(gray, params.top_k,
                                                params.detection_threshold)
     codes = np.clip(np.rint(desc * CODE_SCALE), -127, 127).astype(np.int8)
     keep = codes.any(axis=1)
-    return Features(kpts[keep], codes[keep])
+    return kpts[keep], codes[keep]
 
 
 def mnn_pairs(a: np.ndarray, b: np.ndarray, min_cos: float) -> tuple[np.ndarray, np.ndarray]:
