@@ -26,8 +26,13 @@ from service.engine.localization_service import LocalizationService
 from service.engine.sqlite_store import SessionStoreError, sqlite_location, sqlite_url
 from service.maps.route_map import RouteMap, load_map, save_map
 from service.settings import Settings
+from tests.test_store import _frame
 
 SEED = 5
+
+
+def _config() -> SessionConfig:
+    return SessionConfig(map="small", seed=SEED)
 ROBOTS = ("k1", "k2")
 
 
@@ -42,13 +47,6 @@ def _svc(small_map: RouteMap, db: Path | None, **settings: Any) -> LocalizationS
                                maps={small_map.name: small_map})
 
 
-def _config() -> SessionConfig:
-    return SessionConfig(map="small", seed=SEED)
-
-
-def _frame(svc: LocalizationService, robot: str, data: bytes, k: int) -> dict[str, Any]:
-    return svc.process_frame(robot, data, content_type="image/png",
-                             t=float(k), input_seq=k).model_dump()
 
 
 def _rows(db: Path) -> dict[str, int]:

@@ -11,19 +11,11 @@ from typing import Any
 
 import numpy as np
 
+from client.lab.stats import median_ms, percentile
 from client.lab.world import Pose, World
 from client.transports import Client
 from service.maps.route_map import prune
 from service.vision.features import BatchMatch, extract, match_batch, similarity_bfmatcher
-
-
-def _median_ms(fn: Callable[[], object], repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
 
 
 @dataclass
@@ -47,14 +39,14 @@ def bench_similarity(seed: int = 0, k: int = 20, repeats: int = 7) -> Similarity
     poses, t, _ = world.round_trajectory(0)
     frames = [world.render(Pose(*poses[i]), "sunny", t=float(t[i]), noise_seed=i)
               for i in range(0, 2 * (k + 2), 2)]
-    extract_ms = float(np.median([_median_ms(partial(extract, f), 1) for f in frames]))
+    extract_ms = float(np.median([median_ms(partial(extract, f), 1) for f in frames]))
     feats = [extract(f) for f in frames]
     pruned, _ = prune(feats)
     query = extract(world.render(Pose(*poses[1]), "cloudy", t=float(t[1]), noise_seed=99))
     sets = [p.descriptors for p in pruned[:k]]
     a = query.descriptors
-    batched = _median_ms(lambda: match_batch(a, sets), repeats) / k
-    bf = _median_ms(lambda: [similarity_bfmatcher(a, b) for b in sets], max(3, repeats // 2)) / k
+    batched = median_ms(lambda: match_batch(a, sets), repeats) / k
+    bf = median_ms(lambda: [similarity_bfmatcher(a, b) for b in sets], max(3, repeats // 2)) / k
     counts = match_batch(a, sets).counts.tolist()
     ref = [similarity_bfmatcher(a, b)[0] for b in sets]
     return SimilarityBench(extract_ms, batched, bf, bf / batched, k, float(len(a)),
@@ -106,8 +98,8 @@ def _time_frames(name: str, client: Client, data: list[bytes], seed: int) -> Lat
         times.append(1e3 * (time.perf_counter() - t0))
     client.delete_session("bench")
     warm = np.array(times[10:])  # the first frames pay for global convergence
-    return LatencyBench(name, len(warm), float(np.percentile(warm, 50)),
-                        float(np.percentile(warm, 99)), float(warm.mean()))
+    return LatencyBench(name, len(warm), percentile(warm, 50),
+                        percentile(warm, 99), float(warm.mean()))
 
 
 @dataclass
@@ -156,12 +148,12 @@ def bench_ros2(seed: int = 0, repeats: int = 200) -> Ros2Bench:
     body = est.model_dump(mode="json")
     return Ros2Bench(
         len(jpeg),
-        _median_ms(lambda: codec.frame(comp, COMPRESSED_IMAGE, big, big), repeats),
-        _median_ms(lambda: codec.frame(mono, IMAGE, big, big), repeats),
-        _median_ms(lambda: codec.frame(bgr, IMAGE, big, big), repeats),
-        _median_ms(lambda: codec.pose(est, Stamp(1, 0), "map", 0.3), repeats),
-        _median_ms(lambda: codec.status("robot1", body), repeats),
-        _median_ms(lambda: extract(img), 15))
+        median_ms(lambda: codec.frame(comp, COMPRESSED_IMAGE, big, big), repeats),
+        median_ms(lambda: codec.frame(mono, IMAGE, big, big), repeats),
+        median_ms(lambda: codec.frame(bgr, IMAGE, big, big), repeats),
+        median_ms(lambda: codec.pose(est, Stamp(1, 0), "map", 0.3), repeats),
+        median_ms(lambda: codec.status("robot1", body), repeats),
+        median_ms(lambda: extract(img), 15))
 # ---- event stream -----------------------------------------------------------------------
 @dataclass
 class EventsBench:
@@ -353,7 +345,7 @@ def bench_build_latency(maps_dir: str, round_dir: str, frames: int = 150, fps: f
 
 def _stats(name: str, times: list[float]) -> LatencyBench:
     a = np.array(times)
-    return LatencyBench(name, len(a), float(np.percentile(a, 50)), float(np.percentile(a, 99)),
+    return LatencyBench(name, len(a), percentile(a, 50), percentile(a, 99),
                         float(a.mean()))
 
 
@@ -443,23 +435,11 @@ def _photo_matcher_sets(photos: str, k: int, places: int) -> tuple[list, list]:
     return queries, sets
 
 
-def _median_cpu_ms(fn: Callable[[], object], repeats: int) -> float:
-    """Median CPU time of the calling thread (robust to other users' load on a shared machine;
-    only for single-threaded work: BLAS worker threads would not be counted)."""
-    times = []
-    for _ in range(repeats):
-        t0 = time.thread_time()
-        fn()
-        times.append(time.thread_time() - t0)
-    return 1e3 * float(np.median(times))
-
-
 def _per_comparison_ms(fn: Callable[[int], object], queries: int, k: int, repeats: int,
                        cpu: bool = True) -> float:
     """Median over queries of the median time of one query against its K sets, per set:
     CPU time of the thread (single-threaded work) or wall time."""
-    timer = _median_cpu_ms if cpu else _median_ms
-    return float(np.median([timer(partial(fn, q), repeats) for q in range(queries)])) / k
+    return percentile([median_ms(partial(fn, q), repeats, cpu) for q in range(queries)], 50) / k
 
 
 def _two_threads_ms(fn: Callable[[int], object], queries: int, k: int, repeats: int) -> float:

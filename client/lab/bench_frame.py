@@ -41,6 +41,8 @@ from typing import Any
 
 import numpy as np
 
+from client.lab.stats import percentile
+
 STAGES = ("decode", "extract", "step", "prepare", "glue", "serialise", "transport", "request",
           "response")
 
@@ -56,7 +58,7 @@ class PathTimes:
 
     def p(self, stage: str, q: float) -> float:
         values = self.total if stage == "total" else self.stages[stage]
-        return float(np.percentile(values, q)) if values else float("nan")
+        return percentile(values, q)
 
 
 @dataclass

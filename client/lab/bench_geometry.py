@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from client.lab.stats import percentile
+
 
 @dataclass(frozen=True)
 class GeometryBench:
@@ -112,8 +114,7 @@ def bench_geometry(dataset: Path, map_round: str, query_round: str, frames: int 
         MapGeometry.locate = timed_locate  # type: ignore[method-assign]
 
     def pct(x: list[float]) -> tuple[float, float]:
-        return ((float(np.percentile(x, 50)), float(np.percentile(x, 99))) if x
-                else (float("nan"), float("nan")))
+        return percentile(x, 50), percentile(x, 99)
 
     return GeometryBench(
         frames=n - warmup, step_ms={k: pct(v) for k, v in steps.items()},

@@ -18,6 +18,7 @@ from typing import Any
 import httpx
 import numpy as np
 
+from client.lab.stats import percentile
 from client.transports import Client, HttpClient, LocalClient, SwarmlocError, ZenohClient
 from service.api.models import Estimate, PosePrior
 
@@ -151,8 +152,8 @@ def _run_robots(name: str, make: Callable[[], Client], robots: int, frames: list
         for c in clients:
             c.close()
     arr = np.array(times) if times else np.array([np.nan])
-    return LoadResult(name, robots, len(times), len(errors), float(np.percentile(arr, 50)),
-                      float(np.percentile(arr, 99)), len(times) / wall, rss_mib(pid),
+    return LoadResult(name, robots, len(times), len(errors), percentile(arr, 50),
+                      percentile(arr, 99), len(times) / wall, rss_mib(pid),
                       errors[:3], cpu, drops)
 
 

@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 import httpx
-import numpy as np
+
+from client.lab.stats import percentile
 
 if TYPE_CHECKING:
     from service.engine.localization_service import LocalizationService
@@ -41,10 +42,6 @@ class Throughput:
     @property
     def fps(self) -> float:
         return self.frames / self.seconds
-
-
-def _pct(x: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(x) * 1e3, q))
 
 
 def timed_frame(svc: LocalizationService, robot: str, features: Any, k: int,
@@ -101,9 +98,8 @@ def bench_store_overhead(maps_dir: str, round_dir: str, redis_url: str, frames: 
                 step.append(times[1])
                 store.append(times[2])
             size = len(encode_session(replicas[0].session(robot)))
-            out.append(StoreOverhead(name, frames, _pct(load, 50), _pct(load, 99),
-                                     _pct(store, 50), _pct(store, 99), _pct(step, 50), size,
-                                     with_step))
+            ms = [(percentile(x, 50, 1e3), percentile(x, 99, 1e3)) for x in (load, store, step)]
+            out.append(StoreOverhead(name, frames, *ms[0], *ms[1], ms[2][0], size, with_step))
     return out
 
 

@@ -38,6 +38,7 @@ from service.engine.store import (
     SessionStore,
     decode_stored,
     encode_stored,
+    robot_lock,
 )
 
 APPLICATION_ID = 0x53574C53  # b"SWLS": PRAGMA application_id of a swarmloc session store
@@ -168,11 +169,7 @@ class SqliteStore(SessionStore):
         return self._version
 
     def _local_lock(self, robot_id: str) -> threading.Lock:
-        with self._guard:
-            lock = self._local.get(robot_id)
-            if lock is None:
-                lock = self._local[robot_id] = threading.Lock()
-            return lock
+        return robot_lock(self._local, self._guard, robot_id)
 
     def _load(self, db: sqlite3.Connection, robot_id: str, strict: bool) -> Session | None:
         """The cached session, or its row decoded (cached when on the loaded map version);

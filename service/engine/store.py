@@ -77,6 +77,17 @@ class Session(SessionState):
                            last_estimate=loc.last, map_checksum=loc.map.meta.get("checksum"))
 
 
+def robot_lock(locks: dict[str, threading.Lock], guard: threading.Lock, robot_id: str
+               ) -> threading.Lock:
+    """The robot's lock in ``locks`` (made on first use, under ``guard``): this process's
+    frames of one robot queue on it before they go to a shared store."""
+    with guard:
+        lock = locks.get(robot_id)
+        if lock is None:
+            lock = locks[robot_id] = threading.Lock()
+        return lock
+
+
 class SessionLimit(Exception):
     """The store holds its limit of sessions."""
 
@@ -392,11 +403,7 @@ class RedisStore(SessionStore):
         return max(1, round(self.opt.idle_s * 1000))
 
     def _local_lock(self, robot_id: str) -> threading.Lock:
-        with self._guard:
-            lock = self._local.get(robot_id)
-            if lock is None:
-                lock = self._local[robot_id] = threading.Lock()
-            return lock
+        return robot_lock(self._local, self._guard, robot_id)
 
     def _forget(self, robot_id: str) -> None:
         with self._guard:
