@@ -658,24 +658,32 @@ def eval_pair_cmd(
     height: int = 360,
     passes: Annotated[int, typer.Option(min=1, help="replays along the route and back")] = 4,
     estimator: str = "dpso",
-    seeds: Annotated[int, typer.Option(min=1)] = 3,
+    seeds: Annotated[int, typer.Option(min=1, help="replays (one seed each)")] = 3,
+    features: FeaturesOpt = "clahe-rootsift",
 ) -> None:
     """Two traversals known only by frame correspondence (poses.csv: filename,index), such as
-    the Gardens Point day/night pair: how often the best match is the frame's own place, and
-    whether the estimator admits (lost / recovering) the frames it gets wrong by > 10 m."""
+    the Gardens Point day/night pair: how often the best match is the frame's own place
+    (exactly, within +-1 frame), how often the estimator reports tracking within +-1 frame, and
+    whether it admits (lost / recovering) the frames it gets wrong by > 10 m."""
     from client.dataset import DatasetError
     from client.lab.eval_pair import eval_pair
 
+    params = feature_params(features, width, height)
     try:
-        r = eval_pair(map_dir, query_dir, spacing=spacing, width=width, height=height,
-                      passes=passes, estimator=estimator, seeds=seeds)
+        r = eval_pair(map_dir, query_dir, spacing=spacing, passes=passes, estimator=estimator,
+                      seeds=seeds, params=params)
     except DatasetError as exc:
         _fail(str(exc))
-    typer.echo(f"{query_dir.name} against a map of {map_dir.name}: the best match is the "
-               f"frame's own place for {r.best_is_true}/{r.frames} frames (median similarity "
-               f"there {r.true_similarity_median:.4f})")
+    typer.echo(f"{query_dir.name} against a map of {map_dir.name} ({features}, {width}x"
+               f"{height}): the best match is the frame's own place for {r.best_is_true}/"
+               f"{r.frames} frames, within +-1 frame for {r.best_within_one}/{r.frames} "
+               f"(median similarity at the own place {r.true_similarity_median:.4f})")
     counts = ", ".join(f"{k} {v}" for k, v in sorted(r.status.items()))
     typer.echo(f"{estimator}, {r.replayed} frames replayed ({seeds} seeds): {counts}")
+    typer.echo(f"reported tracking within +-1 frame: {r.tracking_within_one}/{r.replayed} "
+               f"replayed frames ({100 * r.tracking_within_one / r.replayed:.0f} %); query "
+               f"frames tracked within +-1 frame in at least half their visits: "
+               f"{r.frames_tracked}/{r.frames}")
     honest = "n/a" if r.honest is None else f"{100 * r.honest:.0f} %"
     typer.echo(f"frames > 10 m off: {r.wrong}, reported lost or recovering: {honest}; "
                f"reported tracking while > 10 m off: {r.tracking_wrong}")
