@@ -17,7 +17,7 @@ import csv
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -78,10 +78,12 @@ class PairResult:
 
 def eval_pair(map_dir: Path, query_dir: Path, *, spacing: float = 2.5, width: int = 640,
               height: int = 360, passes: int = 4, estimator: str = "dpso",
-              seeds: int = 3, params: FeatureParams | None = None) -> PairResult:
+              seeds: int = 3, params: FeatureParams | None = None,
+              estimator_params: dict[str, Any] | None = None) -> PairResult:
     """Map from ``map_dir``, ``query_dir`` replayed there and back ``passes`` times, once per
     seed. ``params``: the map's feature type (default CLAHE + RootSIFT at ``width`` x
-    ``height``; when given, its own working size counts)."""
+    ``height``; when given, its own working size counts); ``estimator_params``: the
+    estimator's parameters beyond its defaults."""
     params = params or SiftParams(width=width, height=height)
     map_round = read_indexed_frames(map_dir, spacing)
     query = read_indexed_frames(query_dir, spacing)
@@ -105,7 +107,7 @@ def eval_pair(map_dir: Path, query_dir: Path, *, spacing: float = 2.5, width: in
     admitted = 0
     near_visits = np.zeros(n, np.int64)  # per query frame: visits tracked within +-1 frame
     for seed in range(seeds):
-        res = run(m, sub, replay, estimator, None, seed=seed)
+        res = run(m, sub, replay, estimator, estimator_params, seed=seed)
         st = np.asarray(res.status)
         big = res.errors > WRONG_M
         status.update(st.tolist())
