@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import typer
 
+from client.lab.bench_features_cli import register as register_feature_benches
 from client.lab.bench_frame_cli import register as register_frame_bench
 from client.lab.bench_load_cli import register as register_load_bench
 from client.lab.experiment_cli import experiment, sweep
@@ -42,6 +43,8 @@ app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
 register_load_bench(bench_app)  # bench load, bench fuzz (client/lab/bench_load_cli.py)
 register_frame_bench(bench_app)  # bench frame (client/lab/bench_frame_cli.py)
+# bench webcam-night, bench extract (client/lab/bench_features_cli.py)
+register_feature_benches(bench_app)
 register_scale_map(world_app, bench_app)  # world long-route, bench scale-map
 
 
@@ -68,7 +71,6 @@ def _read_round(path: Path) -> Round:
         _fail(str(exc))
 
 
-FEATURE_TYPES = ("clahe-rootsift", "sift", "xfeat")
 FeaturesOpt = Annotated[str, typer.Option(
     help="clahe-rootsift (default: contrast-normalised RootSIFT), sift (the papers') or "
          "xfeat (learned features that hold at night; ONNX Runtime on the CPU)")]
@@ -78,16 +80,12 @@ PruneOpt = Annotated[bool, typer.Option(
 
 def feature_params(name: str, width: int = 320, height: int = 240) -> FeatureParams:
     """The feature parameters of a feature type name (the CLI's --features)."""
-    from service.vision.features import SiftParams
-    from service.vision.xfeat import XFeatParams
+    from service.vision.features import named_params
 
-    if name not in FEATURE_TYPES:
-        _fail(f"unknown feature type {name!r}; choose one of {list(FEATURE_TYPES)}")
-    if name == "sift":
-        return SiftParams.papers(width, height)
-    if name == "xfeat":
-        return XFeatParams(width=width, height=height)
-    return SiftParams(width=width, height=height)
+    try:
+        return named_params(name, width, height)
+    except ValueError as exc:
+        _fail(str(exc))
 
 
 # ---- world ------------------------------------------------------------------------------
@@ -668,24 +666,34 @@ def eval_pair_cmd(
     height: int = 360,
     passes: Annotated[int, typer.Option(min=1, help="replays along the route and back")] = 4,
     estimator: str = "dpso",
-    seeds: Annotated[int, typer.Option(min=1)] = 3,
+    seeds: Annotated[int, typer.Option(min=1, help="replays (one seed each)")] = 3,
+    features: FeaturesOpt = "clahe-rootsift",
+    param: Annotated[list[str] | None, typer.Option(
+        help="estimator parameter KEY=VALUE (repeatable), e.g. v0=0.05")] = None,
 ) -> None:
     """Two traversals known only by frame correspondence (poses.csv: filename,index), such as
-    the Gardens Point day/night pair: how often the best match is the frame's own place, and
-    whether the estimator admits (lost / recovering) the frames it gets wrong by > 10 m."""
+    the Gardens Point day/night pair: how often the best match is the frame's own place
+    (exactly, within +-1 frame), how often the estimator reports tracking within +-1 frame, and
+    whether it admits (lost / recovering) the frames it gets wrong by > 10 m."""
     from client.dataset import DatasetError
     from client.lab.eval_pair import eval_pair
 
+    params = feature_params(features, width, height)
     try:
-        r = eval_pair(map_dir, query_dir, spacing=spacing, width=width, height=height,
-                      passes=passes, estimator=estimator, seeds=seeds)
-    except DatasetError as exc:
+        r = eval_pair(map_dir, query_dir, spacing=spacing, passes=passes, estimator=estimator,
+                      seeds=seeds, params=params, estimator_params=_parse_params(param))
+    except (DatasetError, ValueError) as exc:
         _fail(str(exc))
-    typer.echo(f"{query_dir.name} against a map of {map_dir.name}: the best match is the "
-               f"frame's own place for {r.best_is_true}/{r.frames} frames (median similarity "
-               f"there {r.true_similarity_median:.4f})")
+    typer.echo(f"{query_dir.name} against a map of {map_dir.name} ({features}, {width}x"
+               f"{height}): the best match is the frame's own place for {r.best_is_true}/"
+               f"{r.frames} frames, within +-1 frame for {r.best_within_one}/{r.frames} "
+               f"(median similarity at the own place {r.true_similarity_median:.4f})")
     counts = ", ".join(f"{k} {v}" for k, v in sorted(r.status.items()))
     typer.echo(f"{estimator}, {r.replayed} frames replayed ({seeds} seeds): {counts}")
+    typer.echo(f"reported tracking within +-1 frame: {r.tracking_within_one}/{r.replayed} "
+               f"replayed frames ({100 * r.tracking_within_one / r.replayed:.0f} %); query "
+               f"frames tracked within +-1 frame in at least half their visits: "
+               f"{r.frames_tracked}/{r.frames}")
     honest = "n/a" if r.honest is None else f"{100 * r.honest:.0f} %"
     typer.echo(f"frames > 10 m off: {r.wrong}, reported lost or recovering: {honest}; "
                f"reported tracking while > 10 m off: {r.tracking_wrong}")

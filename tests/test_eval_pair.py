@@ -77,12 +77,15 @@ def test_the_same_traversal_is_tracked(day: Path) -> None:
     r = eval_pair(day, day, width=320, height=240, passes=2, seeds=2)
     assert r.best_is_true == FRAMES and r.true_similarity_median > 0.5
     assert r.status.get("tracking", 0) > 0.8 * r.replayed and r.tracking_wrong == 0
+    assert r.best_within_one == FRAMES and r.frames_tracked == FRAMES
+    assert 0.8 * r.replayed < r.tracking_within_one <= r.status["tracking"]
 
 
 def test_frames_that_cannot_match_are_never_tracked(day: Path, blank: Path) -> None:
     r = eval_pair(day, blank, width=320, height=240, passes=2, seeds=2)
     assert r.true_similarity_median == 0.0
     assert r.status.get("tracking", 0) == 0 and r.tracking_wrong == 0
+    assert r.tracking_within_one == 0 and r.frames_tracked == 0
     assert r.replayed == 2 * 2 * (2 * FRAMES - 2)
 
 
@@ -95,3 +98,21 @@ def test_cli_reports_the_pair_and_refuses_a_folder_without_poses(
     assert f"own place for {FRAMES}/{FRAMES} frames" in out.output
     bad = runner.invoke(app, ["eval-pair", str(day), str(tmp_path)])
     assert bad.exit_code != 0 and "no poses.csv" in bad.output
+
+
+def test_cli_judges_the_pair_with_xfeat_and_takes_estimator_parameters(day: Path) -> None:
+    runner = CliRunner()
+    out = runner.invoke(app, ["eval-pair", str(day), str(day), "--features", "xfeat",
+                              "--width", "320", "--height", "240", "--passes", "2",
+                              "--seeds", "1", "--param", "v0=0.05"])
+    assert out.exit_code == 0, out.output
+    assert "(xfeat, 320x240)" in out.output
+    assert f"own place for {FRAMES}/{FRAMES} frames, within +-1 frame for {FRAMES}/{FRAMES}" \
+        in out.output
+    line = next(x for x in out.output.splitlines() if x.startswith("reported tracking within"))
+    within, replayed = (int(v) for v in line.split(": ")[1].split(" ")[0].split("/"))
+    assert replayed == 2 * (2 * FRAMES - 2) and within > 0.75 * replayed  # after initializing
+    bad = runner.invoke(app, ["eval-pair", str(day), str(day), "--param", "v0=5"])
+    assert bad.exit_code != 0 and "v0" in bad.output
+    unknown = runner.invoke(app, ["eval-pair", str(day), str(day), "--features", "orb"])
+    assert unknown.exit_code != 0 and "unknown feature type 'orb'" in unknown.output

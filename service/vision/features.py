@@ -126,6 +126,23 @@ def feature_params(d: dict[str, Any]) -> FeatureParams:
     raise ValueError(f"unknown feature type '{kind}' (this swarmloc knows sift and xfeat)")
 
 
+FEATURE_TYPES = ("clahe-rootsift", "sift", "xfeat")  # the names the CLI and the lab use
+
+
+def named_params(name: str, width: int = 320, height: int = 240) -> FeatureParams:
+    """The feature parameters of a feature type name at a working size: ``clahe-rootsift``
+    (CLAHE + RootSIFT, the default), ``sift`` (the papers') or ``xfeat``."""
+    from service.vision.xfeat import XFeatParams
+
+    if name == "clahe-rootsift":
+        return SiftParams(width=width, height=height)
+    if name == "sift":
+        return SiftParams.papers(width, height)
+    if name == "xfeat":
+        return XFeatParams(width=width, height=height)
+    raise ValueError(f"unknown feature type {name!r}; choose one of {list(FEATURE_TYPES)}")
+
+
 def extract(image: np.ndarray, params: FeatureParams | None = None) -> Features:
     """Keypoints and descriptor codes of a frame (resized to the working size): CLAHE +
     RootSIFT (uint8 codes) or XFeat (int8 codes, service/vision/xfeat.py)."""

@@ -1,0 +1,133 @@
+"""``swarmloc bench extract``: what each feature type costs per frame, on one CPU thread.
+
+For each feature type (CLAHE + RootSIFT, XFeat) and working size, two numbers measured in one
+run, with OpenCV on one thread (``cv2.setNumThreads(1)``), ONNX Runtime on one thread (the
+service's default session) and BLAS on one thread (as ``swarmloc serve`` runs it):
+
+- ``extract``: the median ms of ``service.vision.features.extract`` on a frame already at the
+  working size (one image, resized to each size: a real photo such as a KITTI frame, or a
+  frame of the query round);
+- ``step``: the median ms of ``Localizer.step`` on a map of that feature type at that size,
+  over the query frames the localizer reports ``tracking`` after a warm-up (DPSO, the
+  service's defaults, the two-view geometry where the dataset has the camera). The map is the
+  ``map`` round; when the query round is the map round, the map takes its even frames and the
+  query its odd frames (KITTI's protocol).
+
+The ratio XFeat / RootSIFT of each is printed beside them.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from client.dataset import Round, read_round
+from service.engine.localizer import Localizer
+from service.maps.route_map import build_map_from_rounds
+from service.vision.features import extract, named_params
+
+if TYPE_CHECKING:
+    from service.vision.features import FeatureParams
+
+SIZES = ((320, 240), (640, 480), (1226, 370))
+KINDS = ("clahe-rootsift", "xfeat")
+
+
+@dataclass(frozen=True)
+class ExtractRow:
+    kind: str
+    size: tuple[int, int]
+    features: float  # median features per frame
+    extract_ms: float  # median
+    step_ms: float | None  # median of the tracked frames; None: not measured
+    tracked: int  # frames whose step was timed
+
+
+def time_extract(image: np.ndarray, params: FeatureParams, repeats: int) -> tuple[float, int]:
+    """(median ms, features) of extracting ``image`` at ``params``' size (one warm-up)."""
+    frame = cv2.resize(image, (params.width, params.height), interpolation=cv2.INTER_AREA)
+    n = len(extract(frame, params))  # warm-up (the ONNX session is made on first use)
+    ms = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        extract(frame, params)
+        ms.append(1e3 * (time.perf_counter() - t0))
+    return float(np.median(ms)), n
+
+
+def split_rounds(dataset: Path, map_round: str, query_round: str) -> tuple[Round, Round]:
+    """The map's round and the query round (even / odd frames of one round when equal)."""
+    m = read_round(dataset / map_round)
+    if query_round == map_round:
+        return m.subset(list(range(0, len(m), 2))), m.subset(list(range(1, len(m), 2)))
+    return m, read_round(dataset / query_round)
+
+
+def time_steps(map_rnd: Round, query: Round, params: FeatureParams, frames: int, warmup: int,
+               seed: int) -> list[float]:
+    """ms of ``Localizer.step`` for the frames after ``warmup`` that the localizer reports
+    tracking (at most ``frames`` of them)."""
+    m = build_map_from_rounds([map_rnd], params=params)
+    loc = Localizer(m, "dpso", {}, seed)
+    n = min(len(query), frames + warmup)
+    feats = [extract(query.load_image(i), params) for i in range(n)]
+    dt = 1.0
+    ms: list[float] = []
+    for i, f in enumerate(feats):
+        t0 = time.perf_counter()
+        est = loc.step(f, i * dt)
+        took = 1e3 * (time.perf_counter() - t0)
+        if i >= warmup and est.status == "tracking":
+            ms.append(took)
+    return ms
+
+
+def bench_extract(image: np.ndarray, sizes: Sequence[tuple[int, int]] = SIZES,
+                  kinds: Sequence[str] = KINDS, repeats: int = 15,
+                  rounds: tuple[Round, Round] | None = None, frames: int = 60,
+                  warmup: int = 20, seed: int = 0) -> list[ExtractRow]:
+    """Extraction (and, given the map and query ``rounds``, the localizer step) per feature
+    type and size; OpenCV, ONNX Runtime and BLAS on one thread."""
+    from threadpoolctl import threadpool_limits
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    rows = []
+    try:
+        with threadpool_limits(1, "blas"):
+            for size in sizes:
+                for kind in kinds:
+                    params = named_params(kind, *size)
+                    ms, n = time_extract(image, params, repeats)
+                    steps = time_steps(*rounds, params, frames, warmup, seed) if rounds else []
+                    rows.append(ExtractRow(kind, size, n, ms, float(np.median(steps))
+                                           if steps else None, len(steps)))
+    finally:
+        cv2.setNumThreads(threads)
+    return rows
+
+
+def report(rows: Sequence[ExtractRow], say: Callable[[str], object] = print) -> None:
+    """One line per feature type and size, then the ratio XFeat / RootSIFT per size."""
+    say("| features | size | features/frame | extract ms (median) | step ms (median, "
+        "tracking) | tracked frames |")
+    say("|---|---|---|---|---|---|")
+    for r in rows:
+        step = "n/a" if r.step_ms is None else f"{r.step_ms:.1f}"
+        say(f"| {r.kind} | {r.size[0]}x{r.size[1]} | {r.features:.0f} | {r.extract_ms:.1f} | "
+            f"{step} | {r.tracked} |")
+    by = {(r.kind, r.size): r for r in rows}
+    for size in dict.fromkeys(r.size for r in rows):
+        a, b = by.get(("clahe-rootsift", size)), by.get(("xfeat", size))
+        if a is None or b is None:
+            continue
+        step = "n/a" if a.step_ms is None or b.step_ms is None else \
+            f"x{b.step_ms / a.step_ms:.2f}"
+        say(f"ratio xfeat / clahe-rootsift at {size[0]}x{size[1]}: extract "
+            f"x{b.extract_ms / a.extract_ms:.2f}, step {step}")

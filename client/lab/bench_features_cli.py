@@ -1,0 +1,103 @@
+"""CLI registration of ``swarmloc bench webcam-night`` (client/lab/bench_webcam.py) and
+``swarmloc bench extract`` (client/lab/bench_extract.py); kept apart so that the CLI's start-up
+imports none of the benchmarks' modules."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def _kinds(features: str) -> list[str]:
+    kinds = [k.strip() for k in features.split(",") if k.strip()]
+    unknown = [k for k in kinds if k not in ("clahe-rootsift", "xfeat")]
+    if unknown or not kinds:
+        raise typer.BadParameter(f"unknown feature type(s) {unknown}: use clahe-rootsift "
+                                 "and/or xfeat")
+    return kinds
+
+
+def register(bench_app: typer.Typer) -> None:
+    """``bench webcam-night`` and ``bench extract`` on the CLI's bench group."""
+
+    @bench_app.command("webcam-night")
+    def webcam_night_cmd(
+        scenes: Annotated[Path, typer.Argument(help="folder of scene folders, each the "
+                                                    "photos of one fixed camera, e.g. "
+                                                    "../shared/textures/tilde_webcam")],
+        features: Annotated[str, typer.Option(help="feature types compared (the ratio is "
+                                                   "the second over the first)")]
+        = "clahe-rootsift,xfeat",
+        area: Annotated[int, typer.Option(min=1024, help="pixels of the working size (the "
+                                                         "photo's aspect kept)")]
+        = 640 * 360,
+        night_max: Annotated[float, typer.Option(help="a photo darker than this mean grey "
+                                                      "is night")] = 80.0,
+        tolerance: Annotated[float, typer.Option(help="a match is correct within this "
+                                                      "many pixels of the identity")] = 3.0,
+    ) -> None:
+        """Day-night pairs of fixed cameras: the share of pairs with at least 10, 20 and 50
+        correct matches (the feature type's own matches, keypoints within TOLERANCE px under
+        the identity), per feature type, and their ratio."""
+        from client.lab.bench_webcam import bench_webcam, report
+
+        try:
+            b = bench_webcam(scenes, _kinds(features), area, night_max, tolerance)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc)) from None
+        report(b, typer.echo)
+
+    @bench_app.command("extract")
+    def extract_cmd(
+        dataset: Annotated[Path | None, typer.Argument(
+            help="dataset with the rounds for the localizer step (none: extraction only)")]
+        = None,
+        map_round: Annotated[str, typer.Option("--map", help="round used as the map")]
+        = "sunny1",
+        query: Annotated[str, typer.Option(help="round whose frames are localized (the map "
+                                                "round: its odd frames on a map of its even "
+                                                "frames)")] = "cloudy1",
+        image: Annotated[Path | None, typer.Option(
+            help="image timed for extraction, resized to each size (default: the query's "
+                 "first frame), e.g. a KITTI frame")] = None,
+        sizes: Annotated[str, typer.Option(help="working sizes WxH, comma-separated")]
+        = "320x240,640x480,1226x370",
+        features: Annotated[str, typer.Option(help="feature types")]
+        = "clahe-rootsift,xfeat",
+        repeats: Annotated[int, typer.Option(min=1, help="extractions timed per size")] = 15,
+        frames: Annotated[int, typer.Option(min=1, help="frames stepped after the warm-up")]
+        = 60,
+        warmup: Annotated[int, typer.Option(min=0, help="frames of global convergence not "
+                                                        "timed")] = 20,
+        seed: int = 0,
+    ) -> None:
+        """Extraction ms per frame (median, OpenCV and ONNX Runtime on one thread) of each
+        feature type at each size, the localizer step (median ms while tracking) on a map of
+        that type beside it, and the ratio XFeat / RootSIFT, measured in one run."""
+        from client.dataset import DatasetError, imread_gray
+        from client.lab.bench_extract import bench_extract, report, split_rounds
+
+        try:
+            wh = [tuple(int(v) for v in s.lower().split("x")) for s in sizes.split(",") if s]
+        except ValueError:
+            raise typer.BadParameter(f"--sizes takes WxH,WxH..., got {sizes!r}") from None
+        if not wh or any(len(s) != 2 or min(s) < 32 for s in wh):
+            raise typer.BadParameter(f"--sizes takes WxH,WxH... of at least 32x32, got "
+                                     f"{sizes!r}")
+        if dataset is None and image is None:
+            raise typer.BadParameter("give a DATASET (and rounds) or an --image to time")
+        try:
+            rounds = split_rounds(dataset, map_round, query) if dataset is not None else None
+        except DatasetError as exc:
+            raise typer.BadParameter(str(exc)) from None
+        path = image if image is not None else rounds[1].image_path(0)  # type: ignore[index]
+        img = imread_gray(path)
+        if img is None:
+            raise typer.BadParameter(f"{path} does not decode as an image")
+        typer.echo(f"extraction timed on {path} resized to each size; step: "
+                   + (f"{dataset} map {map_round}, query {query}" if rounds else "not measured"))
+        rows = bench_extract(img, [(s[0], s[1]) for s in wh], _kinds(features), repeats,
+                             rounds, frames, warmup, seed)
+        report(rows, typer.echo)
