@@ -34,7 +34,7 @@ def import_graph(packages: tuple[str, ...] = ("service", "client")) -> dict[str,
             for n in names:
                 while n and n not in mods:  # the longest prefix that is one of our modules
                     n = n.rpartition(".")[0]
-                if n and n != mod and not mod.startswith(n + ".") and n.split(".")[0] in packages:
+                if n and n != mod and n.split(".")[0] in packages:
                     deps.add(n)
         graph[mod] = deps
     return graph

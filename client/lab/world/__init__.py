@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from client.dataset import write_dataset_meta
 from client.lab.world.geometry import CONDITIONS, Camera, Condition, Pose, Route, Wall
 from client.lab.world.layout import day_walls, seasonal_walls, static_walls
 from client.lab.world.renderer import Renderer
@@ -35,7 +36,6 @@ from client.lab.world.rounds import (
     DatasetSpec,
     RoundSpec,
     contact_sheet,
-    render_dataset,
     render_round,
     round_movers,
     round_trajectory,
@@ -107,3 +107,27 @@ class World:
         """Render a round into ``out_dir`` (images, poses.csv with GPS-like noise, truth.csv)."""
         return render_round(self, out_dir, round_index, condition, day, n_frames, gps_noise_m,
                             progress)
+
+
+def render_dataset(out_dir: str | Path, spec: DatasetSpec, progress: bool = False,
+                   only: Iterable[str] | None = None) -> Path:
+    out_dir = Path(out_dir)
+    world = World(spec.seed, spec.length_m, spec.spacing_m)
+    wanted = set(only) if only else None
+    known = {r.name for r in spec.rounds + spec.extra_rounds}
+    if wanted and wanted - known:
+        raise ValueError(f"unknown round(s) {sorted(wanted - known)}; known: {sorted(known)}")
+    for r in spec.rounds + spec.extra_rounds:
+        if (r in spec.rounds and wanted is None) or (wanted is not None and r.name in wanted):
+            render_round(world, out_dir / r.name, r.index, r.condition, r.day, progress=progress)
+    write_dataset_meta(out_dir, {
+        "name": f"swarmloc-world-{spec.seed}",
+        "description": "Synthetic street loop rendered by swarmloc (client/lab/world)",
+        "generator": {"seed": spec.seed, "length_m": spec.length_m,
+                      "spacing_m": spec.spacing_m, "route_length_m": world.route.length},
+        "rounds": {r.name: {"condition": r.condition, "day": r.day, "index": r.index}
+                   for r in spec.rounds + spec.extra_rounds
+                   if (out_dir / r.name).is_dir()},
+        "camera": world.camera.__dict__,
+    })
+    return out_dir

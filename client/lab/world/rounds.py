@@ -4,20 +4,29 @@ rounds; a contact sheet to look at them."""
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import cv2
 import numpy as np
 
-from client.dataset import write_dataset_meta, write_round
-from client.lab.world.geometry import Pose
-from client.lab.world.scene import MOVER_CARS, MOVER_PEOPLE, Mover
+from client.dataset import write_round
+from client.lab.world.geometry import Camera, Pose, Route
+from client.lab.world.renderer import Renderer
+from client.lab.world.scene import MOVER_CARS, MOVER_PEOPLE, Mover, Scene
 
-if TYPE_CHECKING:
-    from client.lab.world import World
+
+class World(Protocol):
+    """What a round needs of the world it is rendered in (``client.lab.world.World``)."""
+
+    seed: int
+    spacing_m: float
+    route: Route
+    camera: Camera
+    renderer: Renderer
+
+    def scene(self, day: str, condition: str) -> Scene: ...
 
 def round_trajectory(world: World, round_index: int, n_frames: int | None = None,
                      speed_mps: float = 0.6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -121,32 +130,6 @@ class DatasetSpec:
         for i, (cond, k) in enumerate([(c, k) for c in ("lowsun", "dusk", "night")
                                        for k in (1, 2)])
     ])
-
-
-def render_dataset(out_dir: str | Path, spec: DatasetSpec, progress: bool = False,
-                   only: Iterable[str] | None = None) -> Path:
-    from client.lab.world import World
-
-    out_dir = Path(out_dir)
-    world = World(spec.seed, spec.length_m, spec.spacing_m)
-    wanted = set(only) if only else None
-    known = {r.name for r in spec.rounds + spec.extra_rounds}
-    if wanted and wanted - known:
-        raise ValueError(f"unknown round(s) {sorted(wanted - known)}; known: {sorted(known)}")
-    for r in spec.rounds + spec.extra_rounds:
-        if (r in spec.rounds and wanted is None) or (wanted is not None and r.name in wanted):
-            render_round(world, out_dir / r.name, r.index, r.condition, r.day, progress=progress)
-    write_dataset_meta(out_dir, {
-        "name": f"swarmloc-world-{spec.seed}",
-        "description": "Synthetic street loop rendered by swarmloc (client/lab/world)",
-        "generator": {"seed": spec.seed, "length_m": spec.length_m,
-                      "spacing_m": spec.spacing_m, "route_length_m": world.route.length},
-        "rounds": {r.name: {"condition": r.condition, "day": r.day, "index": r.index}
-                   for r in spec.rounds + spec.extra_rounds
-                   if (out_dir / r.name).is_dir()},
-        "camera": world.camera.__dict__,
-    })
-    return out_dir
 
 
 def contact_sheet(images: list[np.ndarray], cols: int = 4, labels: list[str] | None = None
