@@ -60,7 +60,7 @@ def serve(
         "session_store": session_store}.items() if v is not None}
     settings = Settings(**overrides)
     if settings.zenoh_enabled:
-        from service.zenoh.bridge import check_security
+        from service.zenoh.config import check_security
 
         check_security(settings)  # refuse before the demo map is built
     if demo:

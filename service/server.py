@@ -17,7 +17,8 @@ from service.engine.localization_service import LocalizationService
 from service.http.app import create_app
 from service.http.limits import limited_protocol
 from service.settings import Settings
-from service.zenoh.bridge import ZenohBridge, check_security
+from service.zenoh.bridge import ZenohBridge
+from service.zenoh.config import check_security
 
 log = logging.getLogger("swarmloc")
 

@@ -23,8 +23,7 @@ from service.maps.route_map import RouteMap, save_map
 from service.server import build_app, free_port, running_server
 from service.settings import Settings
 from service.vision.imaging import encode_png
-from service.zenoh.bridge import ZenohSecurityError
-from service.zenoh.config import zenoh_config
+from service.zenoh.config import ZenohSecurityError, zenoh_config
 
 PNG = {"content-type": "image/png"}
 

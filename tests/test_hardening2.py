@@ -27,8 +27,7 @@ from service.engine.localization_service import LocalizationService
 from service.maps.route_map import MapError, load_map, save_map
 from service.server import build_app, free_port, running_server
 from service.settings import Settings
-from service.zenoh.bridge import ZenohSecurityError, check_security
-from service.zenoh.config import zenoh_config
+from service.zenoh.config import ZenohSecurityError, check_security, zenoh_config
 from tests.test_fuzz_parsers import _tar_header
 from tests.test_hardening import _write_map
 

@@ -48,7 +48,7 @@ from service.api.models import (
 )
 from service.engine.localization_service import LocalizationService
 from service.settings import Settings
-from service.zenoh.config import ZenohSecurityError, check_security, service_zenoh_config
+from service.zenoh.config import check_security, service_zenoh_config
 from service.zenoh.maps import declare_map_queryables
 from service.zenoh.replies import (
     answer,
@@ -59,7 +59,7 @@ from service.zenoh.replies import (
 )
 
 log = logging.getLogger("swarmloc")
-__all__ = ["ZenohBridge", "ZenohSecurityError", "check_security", "control", "parse_attachment"]
+__all__ = ["ZenohBridge", "control", "parse_attachment"]
 
 
 @dataclass
