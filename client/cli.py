@@ -499,6 +499,11 @@ def replay_cmd(
     tolerance: Annotated[float, typer.Option(help="allowed relative regression")] = 0.1,
     token: Annotated[str | None, typer.Option(help="bearer token for HTTP")] = None,
     robot_id: str = "replay",
+    learn: Annotated[bool, typer.Option(
+        help="teach the map: confident frames become an experience (written when a run ends)")]
+    = False,
+    condition: Annotated[str | None, typer.Option(
+        help="the round's light (e.g. cloudy): the tag of what --learn teaches")] = None,
     image_topic: ImageTopic = None,
     gps_topic: GpsTopic = None,
     pose_topic: PoseTopic = None,
@@ -526,20 +531,21 @@ def replay_cmd(
                          min_distance)
             round_dir = bag_round
         _replay(round_dir, map_name, via, estimator, param, seed, start, speed, kidnap,
-                repeat, length, out, baseline, tolerance, token, robot_id)
+                repeat, length, out, baseline, tolerance, token, robot_id, learn, condition)
 
 
 def _replay(round_dir: Path, map_name: str | None, via: str, estimator: str,
             param: list[str] | None, seed: int, start: int, speed: float, kidnap: bool,
             repeat: int, length: int | None, out: Path, baseline: Path | None,
-            tolerance: float, token: str | None, robot_id: str) -> None:
+            tolerance: float, token: str | None, robot_id: str, learn: bool = False,
+            condition: str | None = None) -> None:
     from client.replay import ReplayConfig, replay
     from client.report import build_report, compare, write_report
     from client.transports import SwarmlocError, connect
 
     rnd = _read_round(round_dir)
     cfg = ReplayConfig(map_name, estimator, _parse_params(param), seed, start, speed, kidnap,
-                       length, repeat)
+                       length, repeat, learn, condition)
     try:
         client = connect(via, token)
     except ValueError as exc:
@@ -551,6 +557,8 @@ def _replay(round_dir: Path, map_name: str | None, via: str, estimator: str,
     try:
         runs = replay(client, rnd, cfg, robot_id=robot_id, progress=True)
         route = _route_positions(client, map_name, rnd)
+        if learn:
+            _echo_experiences(client, map_name)
     except SwarmlocError as exc:
         _fail(f"service error {exc.status}: {exc.message}")
     finally:
@@ -591,6 +599,23 @@ def _map_origin(via: str, token: str | None, map_name: str | None
     match = [m for m in maps if m.name == name]
     o = match[0].meta.get("origin") if len(match) == 1 else None
     return (float(o["lat"]), float(o["lon"])) if o else None
+
+
+def _echo_experiences(client: Client, map_name: str | None) -> None:
+    """What the map learned (where the transport lists maps: HTTP, local)."""
+    from client.transports import SwarmlocError
+
+    try:
+        maps = client.maps()
+    except SwarmlocError:
+        return
+    name = map_name or _default_map(maps)
+    for m in maps:
+        if m.name == name:
+            typer.echo(f"map {name}: version {str(m.checksum)[:12]}, {len(m.experiences)} "
+                       "experience(s)" + "".join(
+                           f"\n  {e.id}: {e.images} images, condition {e.condition}, "
+                           f"{e.bytes / 1e6:.1f} MB, {e.uses} uses" for e in m.experiences))
 
 
 def _default_map(maps: list[MapSummary]) -> str:

@@ -26,6 +26,8 @@ class ReplayConfig:
     kidnap: bool = False  # jump by n/2 images at the middle of the run (Sec. 7.1)
     length: int | None = None  # iterations per run (default: one round)
     repeat: int = 1  # runs from evenly spaced start images (seed + run index)
+    learn: bool = False  # the runs teach the map an experience (service/maps/experiences.py)
+    condition: str | None = None  # the light of the round: the experience's tag
 
 
 def replay(client: Client, rnd: Round, cfg: ReplayConfig, *, robot_id: str = "replay",
@@ -40,7 +42,8 @@ def replay(client: Client, rnd: Round, cfg: ReplayConfig, *, robot_id: str = "re
     for k, start in enumerate(starts):
         seq = frame_sequence(n, start, cfg.speed, cfg.kidnap, cfg.length)
         seed = cfg.seed + k
-        client.create_session(robot_id, cfg.map_name, cfg.estimator, cfg.params, seed)
+        client.create_session(robot_id, cfg.map_name, cfg.estimator, cfg.params, seed,
+                              learn=cfg.learn, condition=cfg.condition)
         it: Iterable[int] = range(len(seq))
         if progress:
             from tqdm import tqdm

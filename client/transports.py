@@ -50,10 +50,12 @@ def _frame_bytes(image: np.ndarray | bytes) -> bytes:
 
 
 def _config(map_name: str | None, estimator: str | None, params: dict | None, seed: int,
-            initial_pose: PosePrior | None) -> SessionConfig:
+            initial_pose: PosePrior | None, learn: bool = False,
+            condition: str | None = None) -> SessionConfig:
     return SessionConfig.model_validate({"map": map_name, "estimator": estimator,
                                          "params": params or {}, "seed": seed,
-                                         "initial_pose": initial_pose})
+                                         "initial_pose": initial_pose, "learn": learn,
+                                         "condition": condition})
 
 
 class Client(Protocol):
@@ -65,7 +67,10 @@ class Client(Protocol):
 
     def create_session(self, robot_id: str, map_name: str | None = None,
                        estimator: str | None = None, params: dict | None = None,
-                       seed: int = 0, initial_pose: PosePrior | None = None) -> SessionInfo: ...
+                       seed: int = 0, initial_pose: PosePrior | None = None,
+                       learn: bool = False, condition: str | None = None) -> SessionInfo:
+        """``learn``: the session's confident frames teach the map an experience tagged with
+        ``condition`` (the light, e.g. 'cloudy')."""
 
     def session(self, robot_id: str) -> SessionInfo: ...
 
@@ -131,8 +136,9 @@ class HttpClient:
 
     def create_session(self, robot_id: str, map_name: str | None = None,
                        estimator: str | None = None, params: dict | None = None,
-                       seed: int = 0, initial_pose: PosePrior | None = None) -> SessionInfo:
-        cfg = _config(map_name, estimator, params, seed, initial_pose)
+                       seed: int = 0, initial_pose: PosePrior | None = None,
+                       learn: bool = False, condition: str | None = None) -> SessionInfo:
+        cfg = _config(map_name, estimator, params, seed, initial_pose, learn, condition)
         resp = self._call("PUT", f"/sessions/{robot_id}", json=cfg.model_dump(mode="json"))
         return SessionInfo(**resp.json())
 
@@ -193,6 +199,13 @@ class HttpClient:
                           headers=_conditions(if_match, None))
         return MapDeleted(**resp.json())
 
+    def delete_experience(self, name: str, exp_id: str, if_match: str | None = None
+                          ) -> MapSummary:
+        """Remove one experience the fleet taught map ``name`` (a new map version)."""
+        resp = self._call("DELETE", f"/maps/{name}/experiences/{exp_id}",
+                          headers=_conditions(if_match, None))
+        return MapSummary(**resp.json())
+
     def build_map_remote(self, name: str, archive: str | Path | bytes,
                          if_none_match: str | None = None) -> JobInfo:
         """Post a zip/tar(.gz) of a round; the service builds the map as a job."""
@@ -237,9 +250,10 @@ class AsyncHttpClient:
 
     async def create_session(self, robot_id: str, map_name: str | None = None,
                              estimator: str | None = None, params: dict | None = None,
-                             seed: int = 0, initial_pose: PosePrior | None = None
+                             seed: int = 0, initial_pose: PosePrior | None = None,
+                             learn: bool = False, condition: str | None = None
                              ) -> SessionInfo:
-        cfg = _config(map_name, estimator, params, seed, initial_pose)
+        cfg = _config(map_name, estimator, params, seed, initial_pose, learn, condition)
         resp = await self._call("PUT", f"/sessions/{robot_id}", json=cfg.model_dump(mode="json"))
         return SessionInfo(**resp.json())
 
@@ -306,8 +320,9 @@ class ZenohClient:
 
     def create_session(self, robot_id: str, map_name: str | None = None,
                        estimator: str | None = None, params: dict | None = None,
-                       seed: int = 0, initial_pose: PosePrior | None = None) -> SessionInfo:
-        cfg = _config(map_name, estimator, params, seed, initial_pose)
+                       seed: int = 0, initial_pose: PosePrior | None = None,
+                       learn: bool = False, condition: str | None = None) -> SessionInfo:
+        cfg = _config(map_name, estimator, params, seed, initial_pose, learn, condition)
         return SessionInfo(**self._control(robot_id, {"action": "put",
                                                       **cfg.model_dump(mode="json")}))
 
@@ -397,8 +412,9 @@ class LocalClient:
 
     def create_session(self, robot_id: str, map_name: str | None = None,
                        estimator: str | None = None, params: dict | None = None,
-                       seed: int = 0, initial_pose: PosePrior | None = None) -> SessionInfo:
-        cfg = _config(map_name, estimator, params, seed, initial_pose)
+                       seed: int = 0, initial_pose: PosePrior | None = None,
+                       learn: bool = False, condition: str | None = None) -> SessionInfo:
+        cfg = _config(map_name, estimator, params, seed, initial_pose, learn, condition)
         return self._wrap(self.service.put_session, robot_id, cfg)[0]
 
     def session(self, robot_id: str) -> SessionInfo:

@@ -51,6 +51,18 @@ class Settings(BaseSettings):
                                      "(beyond: a zip bomb)")
     build_duty: float = Field(0.5, gt=0, le=1, description="share of the time a map build "
                               "works; it sleeps the rest so robots keep their frame rate")
+    experience_budget_mb: float = Field(
+        64.0, ge=0, description="most megabytes the learned experiences of one map take in its "
+        "file; beyond, the least used experience is retired first")
+    learn_commit_images: int = Field(
+        40, ge=1, description="a learning session's collected images are written into its map "
+        "(a new version) when this many are collected, and when the session ends or is reset")
+    learn_accuracy_m: float = Field(
+        1.5, gt=0, description="a learning session's frame teaches only with accuracy_m "
+        "at most this")
+    learn_weak_ratio: float = Field(
+        0.6, gt=0, le=1, description="a frame teaches only where the map's layers match it "
+        "weakly: their best similarity below this share of the session's tracking level")
     auth_token: str | None = Field(None, description="if set, HTTP needs 'Bearer <token>'")
     workers: int = Field(0, description="frame-processing threads (0: 2 x number of CPUs)")
     opencv_threads: int = Field(1, ge=0, description="OpenCV's own threads per call (0: its "

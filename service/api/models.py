@@ -77,6 +77,9 @@ class Estimate(BaseModel):
                     "first); more than one means the place is ambiguous")
     robot_id: str | None = None
     input_seq: int | None = Field(None, description="sequence number sent with the frame")
+    experience: str | None = Field(
+        None, description="the experience (a map layer the fleet learned) this frame was "
+        "matched with; null: the map's own images")
 
 
 class ErrorBody(BaseModel):
@@ -158,6 +161,12 @@ class SessionConfig(BaseModel):
     seed: int = Field(0, ge=0, lt=2**63,
                       description="random seed: same seed and frames, same estimates")
     initial_pose: PosePrior | None = None
+    learn: bool = Field(False, description="frames where this session is confidently "
+                        "localized teach its map a new experience (a layer of today's light)")
+    condition: str | None = Field(None, min_length=1, max_length=32,
+                                  pattern=r"^[A-Za-z0-9_.-]+$",
+                                  description="the light of this session's frames (e.g. "
+                                  "'cloudy'): the tag of the experience it teaches")
 
 
 class ResetRequest(BaseModel):
@@ -213,6 +222,23 @@ class SessionInfo(BaseModel):
     map_checksum: str | None = Field(
         None, description="version of the map the session runs on (a replaced map keeps "
         "serving its sessions until they are reset)")
+    learn: bool = Field(False, description="the session teaches its map (experiences)")
+    condition: str | None = None
+
+
+class ExperienceInfo(BaseModel):
+    """One experience of a map: a layer the fleet learned (service/maps/experiences.py)."""
+
+    id: str
+    layer: int = Field(description="the map layer of its images")
+    created: str = Field(description="when it was first written (ISO 8601, UTC)")
+    updated: str | None = Field(None, description="when images were last added")
+    condition: str | None = Field(None, description="the light, as the teaching robot gave it")
+    robot: str | None = Field(None, description="the robot whose session taught it")
+    images: int
+    bytes: int = Field(description="bytes its images take in the map file")
+    uses: int = Field(description="frames matched with it")
+    last_used: str | None = Field(None, description="the last frame matched with it")
 
 
 class MapSummary(BaseModel):
@@ -223,6 +249,8 @@ class MapSummary(BaseModel):
     spacing_m: float
     meta: dict[str, Any]
     checksum: str | None = Field(None, description="map version: SHA-256 of the file, the ETag")
+    experiences: list[ExperienceInfo] = Field(
+        default_factory=list, description="the layers the fleet learned (learning sessions)")
     build_date: str | None = None
 
 

@@ -26,6 +26,7 @@ from service.api.errors import (
 )
 from service.api.models import (
     Estimate,
+    ExperienceInfo,
     MapDetail,
     MapSummary,
     PosePrior,
@@ -36,6 +37,7 @@ from service.api.models import (
 )
 from service.api.params import ParamError
 from service.engine.events import EventHub
+from service.engine.learning import Learner, LearnGates
 from service.engine.localizer import Localizer
 from service.engine.map_admin import MapAdmin
 from service.engine.metrics import Metrics
@@ -50,6 +52,7 @@ from service.engine.store import (
     SessionStore,
 )
 from service.estimators.base import EstimatorStateError
+from service.maps.experiences import compatible, with_usage
 from service.maps.route_map import RouteMap, list_maps, load_map
 from service.settings import Settings
 from service.vision.imaging import decode_frame
@@ -71,6 +74,9 @@ class LocalizationService:
         self._in_flight = 0
         self._idle = threading.Condition(threading.Lock())
         self.admin = MapAdmin(self)  # upload / replace / delete / build without a restart
+        self.learner = Learner(LearnGates(settings.learn_accuracy_m, settings.learn_weak_ratio,
+                                          settings.learn_commit_images),
+                               self.admin.commit_experience)  # learning sessions
         if maps is None:
             self.load_maps(settings.maps_dir)
         self.store = open_store(settings, self.resolve_map)
@@ -179,13 +185,15 @@ class LocalizationService:
     def map_summary(self, name: str) -> MapSummary:
         return self._summary(self.get_map(name))
 
-    @staticmethod
-    def _summary(m: RouteMap) -> MapSummary:
+    def _summary(self, m: RouteMap) -> MapSummary:
         s = m.summary()
+        experiences = [ExperienceInfo(**e) for e in with_usage(m, self.learner.usage(m.name))]
+        s.pop("experiences", None)
+        s.pop("compatible_versions", None)
         return MapSummary(name=s.pop("name"), n_images=s.pop("n_images"),
                           n_features=s.pop("n_features"), bounds=s.pop("bounds"),
                           spacing_m=s.pop("spacing_m"), meta=s, checksum=m.meta.get("checksum"),
-                          build_date=s.get("build_date"))
+                          build_date=s.get("build_date"), experiences=experiences)
 
     def resolve_map(self, name: str, checksum: str | None, strict: bool = True) -> RouteMap:
         """The loaded map a stored session runs on; with ``strict`` the same version."""
@@ -194,7 +202,7 @@ class LocalizationService:
             raise NotFound(f"the session's map '{name}' is not loaded here; loaded maps: "
                            f"{sorted(self.maps)}")
         have = m.meta.get("checksum")
-        if strict and checksum != have:
+        if strict and not compatible(m, checksum):  # experiences only: continues
             raise Conflict(f"the session's map '{name}' (version {str(checksum)[:12]}) was "
                            f"replaced by version {str(have)[:12]}; reset the session to "
                            "continue on the new version")
@@ -238,8 +246,9 @@ class LocalizationService:
             if self.maps.get(map_name) is not route_map:
                 raise Conflict(f"map '{map_name}' was replaced or deleted meanwhile; retry")
             try:
-                s, created = self.store.create(Session(robot_id, loc, now, now), replace,
-                                               self.settings.max_sessions)
+                s, created = self.store.create(
+                    Session(robot_id, loc, now, now, learn=config.learn,
+                            condition=config.condition), replace, self.settings.max_sessions)
             except SessionLimit:
                 self.metrics.rejected.labels("session_limit").inc()
                 raise Unavailable(f"session limit of {self.settings.max_sessions} reached; "
@@ -248,6 +257,7 @@ class LocalizationService:
             self._update_gauge()
         if not created and replace:  # viewers drop the old session (maybe on another map)
             self.events.remove(robot_id)
+            self.learner.flush(robot_id, end=True)  # what the old session collected
         return s.info(), created
 
     def session(self, robot_id: str) -> Session:
@@ -289,6 +299,7 @@ class LocalizationService:
                 raise NotFound(f"no session for robot '{robot_id}'")
             self._update_gauge()
         self.events.remove(robot_id)
+        self.learner.flush(robot_id, end=True)  # a learning session's last images
 
     def reset_session(self, robot_id: str, near: PosePrior | None = None) -> SessionInfo:
         with self.store.locked(robot_id, strict_map=False) as s:
@@ -307,6 +318,7 @@ class LocalizationService:
             s.last_t = None
             s.last_input_seq = None
             s.last_used = time.time()
+        self.learner.flush(robot_id)  # a reset breaks the path: its images are written
         return s.info()
 
     def expire_idle(self, now: float | None = None) -> list[str]:
@@ -321,6 +333,7 @@ class LocalizationService:
         self.metrics.expired.inc(len(gone))
         for rid in gone:
             self.events.remove(rid)
+            self.learner.flush(rid, end=True)
         return gone
 
     def claim(self, robot_id: str) -> bool:
@@ -397,9 +410,15 @@ class LocalizationService:
                     s.last_input_seq = input_seq
                 s.last_used = time.time()
                 particles = self.events.particles_due(robot_id, s.localizer)
+                ran_on, learn, created, condition = (s.localizer.map, s.learn, s.created,
+                                                     s.condition)
         except Exception as exc:
             self.metrics.rejected.labels(type(exc).__name__).inc()
             raise
+        if est.experience is not None:
+            self.learner.used(ran_on.name, est.experience, time.time())
+        if learn:  # outside the session's lock: gates and a write touch only the map
+            self.learner.observe(robot_id, created, condition, ran_on, features, est)
         self.metrics.frames.labels(transport).inc()
         self.metrics.comparisons.inc(est.comparisons)
         elapsed = time.perf_counter() - t0

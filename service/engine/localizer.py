@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, cast
 
 import numpy as np
@@ -11,6 +12,7 @@ from service.api.params import DPSOParams
 from service.estimators.base import StepResult
 from service.estimators.fitness import LocateFn
 from service.estimators.registry import make_estimator
+from service.maps.experiences import LayerChoice, experience_layers
 from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
 from service.vision.map_geometry import GeometryParams
@@ -38,6 +40,7 @@ class Localizer:
                        if route_map.place_index is not None and k > 0 else None)
         self.seq = 0
         self.last: Estimate | None = None
+        self.choice = LayerChoice()  # the layer frames are matched with (maps with experiences)
 
     @property
     def params(self) -> dict[str, Any]:
@@ -60,10 +63,20 @@ class Localizer:
             self.estimator.constrain((prior[0], prior[1]), prior[2])
         codes = features.codes
         self.seed_places(codes)
-        res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t,
-                                  self.locator(features))
+        learned = bool(experience_layers(self.map))
+        if not learned:
+            res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t,
+                                      self.locator(features))
+            comparisons = res.comparisons
+        else:  # one layer per particle, then the layer probes (service/maps/experiences.py)
+            similarity = _Memo(lambda ids: self.map.similarity(codes, ids))
+            res = self.estimator.step(similarity, t, self.locator(features),
+                                      self.choice.nearest(self.map))
+            if not res.lost:
+                self.choice.probe(self.map, similarity, res.position)
+            comparisons = similarity.computed
         self.seq += 1
-        self.last = self._estimate(res, t)
+        self.last = self._estimate(res, t, comparisons, learned)
         return self.last
 
     def locator(self, features: Features) -> LocateFn | None:
@@ -83,7 +96,8 @@ class Localizer:
             self.seeder.before_step(self.estimator, codes, None if last is None
                                     else np.array([last.x, last.y]))
 
-    def _estimate(self, res: StepResult, t: float | None) -> Estimate:
+    def _estimate(self, res: StepResult, t: float | None, comparisons: int,
+                  learned: bool) -> Estimate:
         x, y = (float(v) for v in res.position)
         lat = lon = None
         frame = self.map.frame
@@ -99,10 +113,32 @@ class Localizer:
             estimator=cast(EstimatorName, self.estimator_name),
             x=x, y=y, lat=lat, lon=lon, heading=float(res.heading), speed=float(res.speed_mps),
             status=res.status.value, lost=bool(res.lost), score=float(res.score),
-            comparisons=int(res.comparisons), covariance=cov.tolist(),
+            comparisons=comparisons, covariance=cov.tolist(),
             pose_covariance=pose_cov.ravel().tolist(), accuracy_m=res.accuracy_m,
             nearest_image=nid, nearest_image_name=self.map.image_names[nid],
             spread_m=res.spread_m,
             hypotheses=[Hypothesis(x=h.x, y=h.y, weight=h.weight)
                         for h in res.hypotheses],
+            experience=self.choice.experience() if learned else None,
         )
+
+
+class _Memo:
+    """A frame's similarity function that compares each map image once and counts them (the
+    estimator's comparisons plus the layer probes)."""
+
+    def __init__(self, similarity: Callable[[np.ndarray], np.ndarray]) -> None:
+        self._similarity = similarity
+        self._known: dict[int, float] = {}
+
+    @property
+    def computed(self) -> int:
+        return len(self._known)
+
+    def __call__(self, ids: np.ndarray) -> np.ndarray:
+        ids = np.asarray(ids, np.int64)
+        new = [int(i) for i in np.unique(ids) if int(i) not in self._known]
+        if new:
+            self._known.update(zip(new, (float(v) for v in self._similarity(
+                np.array(new, np.int64))), strict=True))
+        return np.array([self._known[int(i)] for i in ids], float)

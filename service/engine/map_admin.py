@@ -19,6 +19,7 @@ The map is built in memory, saved atomically and only then registered: never hal
 
 from __future__ import annotations
 
+import logging
 import os
 import queue
 import re
@@ -43,6 +44,13 @@ from service.api.errors import (
     ServiceError,
 )
 from service.api.models import JobInfo, JobState, MapDeleted, MapSummary
+from service.maps.experiences import (
+    NewImage,
+    add_experience,
+    budget_bytes,
+    experience_layers,
+    remove_experience,
+)
 from service.maps.round_archive import ArchiveLimits, UploadedRound, extract_round, remove_tree
 from service.maps.route_map import (
     SUFFIX,
@@ -54,6 +62,7 @@ from service.maps.route_map import (
 )
 
 if TYPE_CHECKING:
+    from service.engine.learning import Learner
     from service.engine.metrics import Metrics
     from service.settings import Settings
 
@@ -65,12 +74,14 @@ class MapHost(Protocol):
     metrics: Metrics
     maps: dict[str, RouteMap]
     load_errors: dict[str, str]
+    learner: Learner
 
     def get_map(self, name: str) -> RouteMap: ...
     def map_summary(self, name: str) -> MapSummary: ...
     def sessions_on_map(self, name: str) -> list[str]: ...
     def delete_session(self, robot_id: str) -> None: ...
 
+log = logging.getLogger("swarmloc")
 TEMP_PREFIX = ".swarmloc-"  # hidden and without the .swmap suffix: never loaded as a map
 _NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
 _KEEP_JOBS = 100
@@ -274,6 +285,48 @@ class MapAdmin:
             self.service.metrics.maps.set(len(self.service.maps))
             self.service.metrics.map_deletes.inc()
         return MapDeleted(map=name, ended_sessions=users)
+
+    # ---- experiences (service/maps/experiences.py) ----------------------------------------
+    def _writable(self, m: RouteMap) -> Path:
+        if m.path is None or m.path.parent != self.directory:
+            raise Conflict(f"map '{m.name}' has no file in this service's maps directory; its "
+                           "experiences cannot be written")
+        return m.path
+
+    def commit_experience(self, name: str, exp_id: str, images: list[NewImage],
+                          condition: str | None, robot: str) -> None:
+        """Write a learning session's images into experience ``exp_id`` of map ``name``: a new
+        version (retiring the least used experiences beyond the budget). A failure is logged;
+        it never fails the frame that triggered it."""
+        try:
+            with self._lock:
+                m = self.service.get_map(name)
+                new, retired = add_experience(
+                    m, self._writable(m), exp_id, images, condition=condition, robot=robot,
+                    now=time.time(),
+                    budget_bytes=budget_bytes(self.settings.experience_budget_mb),
+                    usage=self.service.learner.usage(name, clear=True))
+                if new is not m:
+                    self._register(new, "experience")
+            if retired:
+                log.info("map %s: experiences %s retired (budget)", name, ", ".join(retired))
+        except Exception as exc:  # a map that cannot take it keeps serving as it is
+            self.service.metrics.map_loads.labels("experience", "failed").inc()
+            log.error("map %s: experience %s not written: %s", name, exp_id, exc)
+
+    def delete_experience(self, name: str, exp_id: str, if_match: str | None = None
+                          ) -> MapSummary:
+        """Remove one experience of a map (a new version)."""
+        with self._lock:
+            m = self.service.get_map(name)
+            self.check_preconditions(name, if_match, None)
+            if exp_id not in experience_layers(m):
+                raise NotFound(f"map '{name}' has no experience '{exp_id}'; it has "
+                               f"{sorted(experience_layers(m))}")
+            new = remove_experience(m, self._writable(m), exp_id,
+                                    self.service.learner.usage(name, clear=True))
+            self._register(new, "experience")
+        return self.service.map_summary(name)
 
     # ---- builds -------------------------------------------------------------------------
     def limits(self) -> ArchiveLimits:

@@ -50,6 +50,10 @@ REBUILT: dict[str, frozenset[str]] = {
                             "_x_sorted"}),
 }
 
+# attributes added since states were first stored: a state without them gets the fresh
+# object's value (a session stored before maps had experiences matches the map's own images)
+ADDED: dict[str, frozenset[str]] = {"localizer": frozenset({"choice"})}
+
 # classes an object in a state may be rebuilt as (a blob names its classes: never import
 # anything outside the service from it)
 _ALLOWED_MODULES = ("service.",)
@@ -285,6 +289,8 @@ class SessionState:
     last_used: float
     last_t: float | None = None  # timestamp of the last frame (frames must not go back)
     last_input_seq: int | None = None  # the robot's seq of the last applied frame
+    learn: bool = False  # the session's confident frames teach its map (experiences)
+    condition: str | None = None  # the light of its frames, as the robot gave it
 
 
 MapResolver = Callable[[str, "str | None"], RouteMap]  # (map name, checksum) -> the map
@@ -296,6 +302,7 @@ def encode_session(s: SessionState) -> bytes:
     return dumps({  # one tree, one encoder: references shared across objects stay shared
         "robot_id": s.robot_id, "created": s.created, "last_used": s.last_used,
         "last_t": s.last_t, "last_input_seq": s.last_input_seq,
+        "learn": s.learn, "condition": s.condition,
         "map": loc.map.name, "map_checksum": loc.map.meta.get("checksum"),
         "estimator_name": loc.estimator_name, "seed": loc.seed, "params": loc.params,
         "last": loc.last.model_dump(mode="python") if loc.last is not None else None,
@@ -311,10 +318,13 @@ def decode_session(blob: bytes, resolve_map: MapResolver) -> SessionState:
     try:
         route_map = resolve_map(d["map"], d["map_checksum"])
         loc = Localizer(route_map, d["estimator_name"], d["params"], d["seed"])
-        apply_object(loc, d["localizer"], REBUILT["localizer"] | {"last"}, "localizer")
+        added = {k: getattr(loc, k) for k in ADDED["localizer"]}
+        apply_object(loc, added | d["localizer"], REBUILT["localizer"] | {"last"},
+                     "localizer")
         apply_object(loc.estimator, d["estimator"], REBUILT["estimator"], "estimator")
         loc.last = Estimate.model_validate(d["last"]) if d["last"] is not None else None
         return SessionState(d["robot_id"], loc, d["created"], d["last_used"], d["last_t"],
-                            d["last_input_seq"])
+                            d["last_input_seq"], bool(d.get("learn", False)),
+                            d.get("condition"))
     except KeyError as exc:
         raise StateError(f"session state lacks {exc}") from None

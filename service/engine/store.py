@@ -74,7 +74,8 @@ class Session(SessionState):
                            estimator=cast(EstimatorName, loc.estimator_name), seed=loc.seed,
                            params=loc.params,
                            frames=loc.seq, created=self.created, last_used=self.last_used,
-                           last_estimate=loc.last, map_checksum=loc.map.meta.get("checksum"))
+                           last_estimate=loc.last, map_checksum=loc.map.meta.get("checksum"),
+                           learn=self.learn, condition=self.condition)
 
 
 def robot_lock(locks: dict[str, threading.Lock], guard: threading.Lock, robot_id: str

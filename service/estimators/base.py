@@ -10,7 +10,13 @@ import numpy as np
 
 from service.api.models import DEFAULT_PRIOR_RADIUS_M
 from service.api.params import CommonParams
-from service.estimators.fitness import FrameFitness, LocateFn, MapIndex, SimilarityFn
+from service.estimators.fitness import (
+    FrameFitness,
+    LocateFn,
+    MapIndex,
+    NearestFn,
+    SimilarityFn,
+)
 
 # radius of the 68 % confidence disc of a 2-D Gaussian in units of sigma: sqrt(chi2_2(0.68))
 _R68 = math.sqrt(-2.0 * math.log(1.0 - 0.68))
@@ -222,10 +228,13 @@ class Estimator:
         return (Status.TRACKING if self._converged else Status.INITIALIZING), False
 
     def step(self, similarity: SimilarityFn, t: float | None = None,
-             locate: LocateFn | None = None) -> StepResult:
+             locate: LocateFn | None = None, nearest: NearestFn | None = None) -> StepResult:
         """One frame: ``similarity`` compares it with map images; ``locate``, where given,
-        places its camera relative to one (two-view geometry, for an estimator that uses it)."""
-        fitness = FrameFitness(self.index, similarity, self.params.penalty_sigma_m, locate)
+        places its camera relative to one (two-view geometry, for an estimator that uses it);
+        ``nearest``, where given, names the images each particle is compared with (default:
+        the nearest of every layer)."""
+        fitness = FrameFitness(self.index, similarity, self.params.penalty_sigma_m, locate,
+                               nearest)
         try:
             result = self._step(fitness, t)
         except ValueError:  # e.g. a KD-tree query refusing non-finite particles

@@ -6,7 +6,8 @@ i_M(x) is the map image nearest to x, m the image similarity and zeta a Gaussian
 distance to that image's position. Particles sharing a nearest image share one comparison; the
 number of distinct images compared in a frame is the papers' "comparisons per image". In a map
 merged from several traversals (layers), a particle is compared with the nearest image of each
-layer and keeps the best m * zeta; every image compared counts.
+layer and keeps the best m * zeta; every image compared counts. A map with experiences gives
+a ``nearest`` that picks the layers of this frame instead (service/maps/experiences.py).
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ if TYPE_CHECKING:
 SimilarityFn = Callable[[np.ndarray], np.ndarray]  # map image ids -> m(frame, image)
 # map image id -> the frame's camera relative to that image's (service/vision/metric_pose.py)
 LocateFn = Callable[[int], "Offset | None"]
+# particle positions -> (ids, distances), each (n, k): the map images each particle is compared
+# with (a map with experiences: the layer chosen for this frame, service/maps/experiences.py)
+NearestFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 class MapIndex(Protocol):
@@ -38,8 +42,9 @@ class FrameFitness:
     """Eq. 3 for one frame, with a per-frame comparison cache and counter."""
 
     def __init__(self, index: MapIndex, similarity: SimilarityFn, penalty_sigma_m: float,
-                 locate: LocateFn | None = None) -> None:
+                 locate: LocateFn | None = None, nearest: NearestFn | None = None) -> None:
         self._index = index
+        self._nearest = nearest or index.nearest_per_layer
         self._similarity = similarity
         self.locate = locate  # None: the frame can only be placed at map images
         self._inv_two_sigma2 = 1.0 / (2.0 * penalty_sigma_m**2)
@@ -69,7 +74,7 @@ class FrameFitness:
 
     def __call__(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(fitness, similarity m, nearest image id) for each particle position."""
-        ids, dist = self._index.nearest_per_layer(positions)  # (n, layers)
+        ids, dist = self._nearest(positions)  # (n, layers)
         m = self.scores_of(ids)
         f = m * np.exp(-(dist**2) * self._inv_two_sigma2)
         k = np.argmax(f, axis=1)[:, None]

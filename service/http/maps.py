@@ -1,7 +1,8 @@
 """HTTP routes of the map lifecycle (thin: the work is in ``map_admin``).
 
 ``PUT /maps/{name}`` (a .swmap body), ``GET /maps/{name}/file``, ``DELETE /maps/{name}``,
-``POST /maps/{name}/build`` (a zip or tar(.gz) of a round), ``GET /jobs``, ``GET /jobs/{id}``.
+``POST /maps/{name}/build`` (a zip or tar(.gz) of a round), ``GET /jobs``, ``GET /jobs/{id}``,
+``DELETE /maps/{name}/experiences/{id}`` (one learned experience).
 Bodies are streamed to a hidden temporary file in the maps directory under a size limit.
 """
 
@@ -131,6 +132,17 @@ async def delete_map(name: str, service: ServiceDep, force: Annotated[bool, Quer
         if_match: IfMatch = None) -> MapDeleted:
     """Delete a map; 409 names the sessions on it unless ?force=true ends them."""
     return service.admin.delete(name, force, if_match)
+
+
+@map_router.delete("/maps/{name}/experiences/{exp_id}", tags=["maps"])
+async def delete_experience(name: str, exp_id: str, response: Response, service: ServiceDep,
+                            if_match: IfMatch = None) -> MapSummary:
+    """Remove one experience the fleet taught the map (listed by GET /maps/{name}): a new map
+    version, its ETag in the answer."""
+    summary = await anyio.to_thread.run_sync(service.admin.delete_experience, name, exp_id,
+                                             if_match)
+    response.headers["ETag"] = f'"{summary.checksum}"'
+    return summary
 
 
 @map_router.post("/maps/{name}/build", tags=["maps"], status_code=202,

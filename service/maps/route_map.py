@@ -260,6 +260,15 @@ class RouteMap:
             out_i[:, k] = ids[local]
         return out_i, out_d
 
+    def nearest_in_layer(self, positions: np.ndarray, layer: int
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, distances), each (n,): the nearest image of one layer."""
+        pts = np.asarray(positions, float).reshape(-1, 2)
+        if self.n_layers == 1:
+            return self.nearest(pts)
+        dist, local = self._layer_trees[layer].query(pts)
+        return self._layer_ids[layer][local].astype(np.int64), dist
+
     def prepared(self, image_id: int) -> PreparedSet:
         """One map image's codes prepared for the exact uint8 matcher (kept after first use;
         the codes stay memory-mapped)."""

@@ -1,0 +1,146 @@
+"""Experience maps in the lab: a sunny map learns a cloudy (or dusk) round, then localizes another.
+
+For each rendered world and condition C (``cloudy`` or ``dusk``), in process (the service's
+``Localizer`` and ``Learner``, as ``process_frame`` calls them), one run per round from its
+first image, errors scored after ``WARMUP`` frames:
+
+- *unlearned*: the sunny1 map, round C2;
+- *learn*: the sunny1 map, round C1 replayed by a session with ``learn`` (its experience is
+  written into the map when the session ends);
+- *learned*: the learned map, round C2;
+- *same light*: the C1 map (recorded in that light), round C2.
+
+Printed: mean errors, learned / unlearned and learned / same-light ratios, comparisons per
+frame before and after learning, the images learned and the map file's growth against the
+budget. Benchmarks print numbers; nothing here asserts.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from client.dataset import Round, read_round
+from service.engine.localization_service import LocalizationService
+from service.engine.localizer import Localizer
+from service.maps.experiences import experience_list
+from service.maps.route_map import RouteMap
+from service.settings import Settings
+from service.vision.features import Features, extract
+
+WARMUP = 20  # frames of global convergence before errors are scored
+
+
+@dataclass(frozen=True)
+class Replay:
+    mean_error_m: float
+    comparisons: float  # per frame
+    frames: int
+
+
+@dataclass(frozen=True)
+class Case:
+    seed: int
+    condition: str
+    unlearned: Replay
+    learned: Replay
+    same_light: Replay
+    learned_images: int
+    taught: int
+    file_growth_bytes: int
+    budget_bytes: int
+    learn_s: float
+
+
+def _features(rnd: Round, m: RouteMap, frames: int) -> list[Features]:
+    return [extract(rnd.load_image(i), m.feature_params) for i in range(min(frames, len(rnd)))]
+
+
+def replay(m: RouteMap, rnd: Round, feats: list[Features], *, seed: int = 0,
+           teach: tuple[LocalizationService, str] | None = None) -> Replay:
+    """One run from the round's first image (features extracted once per round and shared by
+    its runs). ``teach``: (service, condition), the run is a learning session of the service:
+    each estimate goes to its learner, as ``process_frame`` does, and the session's images are
+    written into the map when the run ends."""
+    loc = Localizer(m, seed=seed)
+    dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and len(rnd) > 1 else 1.0
+    est, comps = [], []
+    for i, f in enumerate(feats):
+        e = loc.step(f, t=i * dt)
+        if teach is not None:
+            teach[0].learner.observe("teacher", 0.0, teach[1], m, f, e)
+        est.append((e.x, e.y))
+        comps.append(e.comparisons)
+    err = np.linalg.norm(np.array(est) - rnd.reference_xy[: len(est)], axis=1)[WARMUP:]
+    return Replay(float(err.mean()), float(np.mean(comps)), len(est))
+
+
+def run_case(dataset: Path, seed: int, condition: str, work: Path, budget_mb: float,
+             frames: int) -> Case:
+    """One world and condition: the four runs above, ``frames`` images of each round."""
+    from client.lab.experiment_cli import map_for
+
+    sunny = map_for(dataset, "sunny1", papers=False)
+    same = map_for(dataset, f"{condition}1", papers=False)
+    first, second = (read_round(dataset / f"{condition}{k}") for k in (1, 2))
+    maps_dir = work / f"w{seed}-{condition}"
+    shutil.rmtree(maps_dir, ignore_errors=True)
+    maps_dir.mkdir(parents=True)
+    assert sunny.path is not None
+    shutil.copy(sunny.path, maps_dir / "sunny1.swmap")
+    service = LocalizationService(Settings(maps_dir=maps_dir, session_store="memory",
+                                           experience_budget_mb=budget_mb))
+    base = service.get_map("sunny1")
+    before = (maps_dir / "sunny1.swmap").stat().st_size
+    test_feats = _features(second, base, frames)
+    unlearned = replay(base, second, test_feats)
+    same_light = replay(same, second, test_feats)
+    t0 = time.perf_counter()
+    replay(base, first, _features(first, base, frames), teach=(service, condition))
+    stats = service.learner.stats("teacher")
+    service.learner.flush("teacher", end=True)  # the session ends: its images are written
+    learn_s = time.perf_counter() - t0
+    m = service.get_map("sunny1")
+    learned = replay(m, second, test_feats)
+    images = sum(int(e["images"]) for e in experience_list(m))
+    growth = (maps_dir / "sunny1.swmap").stat().st_size - before
+    service.close()
+    print(f"seed {seed} {condition}: learning gates {stats}", flush=True)
+    return Case(seed, condition, unlearned, learned, same_light, images,
+                stats.get("taught", 0), growth, int(budget_mb * 1024 * 1024), learn_s)
+
+
+def table(cases: list[Case]) -> str:
+    head = ("| world | light | unlearned | learned | same light | learned / unlearned | "
+            "learned / same light | comp. before | comp. after | growth | images | "
+            "file growth (budget) |\n|" + "---|" * 12)
+    rows = []
+    for c in cases:
+        rows.append(
+            f"| seed {c.seed} | {c.condition} | {c.unlearned.mean_error_m:.2f} | "
+            f"**{c.learned.mean_error_m:.2f}** | {c.same_light.mean_error_m:.2f} | "
+            f"x{c.learned.mean_error_m / c.unlearned.mean_error_m:.2f} | "
+            f"x{c.learned.mean_error_m / c.same_light.mean_error_m:.2f} | "
+            f"{c.unlearned.comparisons:.1f} | {c.learned.comparisons:.1f} | "
+            f"{100 * (c.learned.comparisons / c.unlearned.comparisons - 1):+.0f} % | "
+            f"{c.learned_images} | {c.file_growth_bytes / 1e6:.1f} MB "
+            f"({c.budget_bytes / 1e6:.0f} MB) |")
+    return "\n".join([head, *rows])
+
+
+def summary(cases: list[Case]) -> str:
+    lines = []
+    for cond in sorted({c.condition for c in cases}):
+        cs = [c for c in cases if c.condition == cond]
+        u = np.mean([c.unlearned.mean_error_m for c in cs])
+        le = np.mean([c.learned.mean_error_m for c in cs])
+        s = np.mean([c.same_light.mean_error_m for c in cs])
+        g = np.mean([c.learned.comparisons / c.unlearned.comparisons - 1 for c in cs])
+        lines.append(f"{cond}: mean over {len(cs)} worlds: unlearned {u:.2f} m, learned "
+                     f"{le:.2f} m (x{le / u:.2f}), same light {s:.2f} m (learned x{le / s:.2f}); "
+                     f"comparisons {100 * g:+.0f} %")
+    return "\n".join(lines)

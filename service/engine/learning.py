@@ -1,0 +1,224 @@
+"""Learning sessions: frames where a robot is confidently localized become an experience.
+
+A session created with ``learn`` hands each estimate to ``Learner.observe``. A frame teaches
+only when every gate holds (a kidnapped or lost robot never does):
+
+1. the estimate is ``tracking`` with ``accuracy_m`` at most ``learn_accuracy_m``;
+2. it agrees with the recent path: the two frames before were taught-worthy estimates of the
+   same session, and the constant-velocity prediction from them lies within ``PATH_TOLERANCE_M``;
+3. the map's layers match it weakly there: the best similarity of the nearest image of every
+   layer near the estimate is below ``learn_weak_ratio`` of the session's tracking level (the
+   running mean of its best matches), so the frame adds a new appearance;
+4. where the map has the camera, two-view geometry locates the frame at one of those images,
+   within ``LOCATED_TOLERANCE_M`` of the estimate.
+
+Taught frames are kept (one per place) until ``learn_commit_images`` are collected or the
+session ends or is reset; then the map admin writes them into the map as a new version
+(service/maps/experiences.py). The collected frames stay in this process's memory, not in the
+stored session: a replica that dies loses at most one batch, never a map.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import threading
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.api.models import Estimate
+from service.estimators.along_track import path_tangent
+from service.maps.experiences import (
+    GAP_SPACINGS,
+    PLACE_SPACINGS,
+    NewImage,
+    Usage,
+    base_spacing,
+)
+from service.maps.route_map import RouteMap
+from service.vision.features import Features
+from service.vision.map_geometry import GeometryParams
+
+PATH_TOLERANCE_M = 1.0  # the estimate lies this close to the path's constant-velocity prediction
+LOCATED_TOLERANCE_M = 1.0  # and this close to where the geometry locates the frame
+LEVEL_ALPHA = 0.1  # weight of a frame's best match in the session's tracking level
+GEOMETRY_TRIES = 3  # images near the estimate the geometry tries, best match first
+
+Commit = Callable[[str, str, list[NewImage], str | None, str], None]
+# (map name, experience id, images, condition, robot id) -> written (the map admin's)
+
+
+@dataclass(frozen=True)
+class LearnGates:
+    accuracy_m: float
+    weak_ratio: float
+    commit_images: int
+
+
+@dataclass
+class _Trail:
+    """One learning robot's collection on one map."""
+
+    exp_id: str
+    map_name: str
+    condition: str | None
+    path: deque[tuple[int, np.ndarray]] = field(default_factory=lambda: deque(maxlen=2))
+    level: float | None = None
+    pending: list[NewImage] = field(default_factory=list)
+    taught: int = 0  # frames that passed the gates
+    seen: int = 0
+    refused: dict[str, int] = field(default_factory=dict)  # frames stopped, by gate
+
+    def refuse(self, gate: str) -> None:
+        self.refused[gate] = self.refused.get(gate, 0) + 1
+
+
+def experience_id(robot_id: str, created: float) -> str:
+    """The experience a session teaches: the same on every replica (robot id and the session's
+    creation time)."""
+    digest = hashlib.blake2b(f"{robot_id}\0{created!r}".encode(), digest_size=5).hexdigest()
+    return f"e{digest}"
+
+
+class Learner:
+    """The learning robots' collections of one service; thread-safe."""
+
+    def __init__(self, gates: LearnGates, commit: Commit) -> None:
+        self.gates = gates
+        self._commit = commit
+        self._trails: dict[str, _Trail] = {}
+        self._usage: dict[str, Usage] = {}
+        self._lock = threading.Lock()
+
+    # ---- use statistics of experiences (every session) -------------------------------------
+    def used(self, map_name: str, exp_id: str, now: float) -> None:
+        with self._lock:
+            u = self._usage.setdefault(map_name, {})
+            n, _ = u.get(exp_id, (0, 0.0))
+            u[exp_id] = (n + 1, now)
+
+    def usage(self, map_name: str, clear: bool = False) -> Usage:
+        with self._lock:
+            u = self._usage.get(map_name, {})
+            if clear:
+                self._usage.pop(map_name, None)
+            return dict(u)
+
+    # ---- learning sessions -----------------------------------------------------------------
+    def stats(self, robot_id: str) -> dict[str, int]:
+        """A learning robot's frames seen, taught, images waiting, and frames stopped by each
+        gate (``confident``, ``path``, ``appearance``, ``located``, ``place``)."""
+        with self._lock:
+            t = self._trails.get(robot_id)
+            if t is None:
+                return {}
+            return {"seen": t.seen, "taught": t.taught, "waiting": len(t.pending),
+                    **t.refused}
+
+    def observe(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
+                features: Features, est: Estimate) -> None:
+        """One estimate of a learning session: collect the frame if it passes the gates,
+        write the collection when it is full."""
+        with self._lock:
+            t = self._trails.get(robot_id)
+            if t is None or t.map_name != m.name:
+                t = self._trails[robot_id] = _Trail(experience_id(robot_id, created), m.name,
+                                                    condition)
+            t.seen += 1
+            xy = np.array([est.x, est.y])
+            ok = self._confident(t, est, xy)
+            if est.status == "tracking":
+                t.level = est.score if t.level is None else \
+                    (1 - LEVEL_ALPHA) * t.level + LEVEL_ALPHA * est.score
+            if not ok:
+                return
+            level = t.level
+        gate = ("appearance" if not self._new_appearance(m, features, xy, level) else
+                "located" if not self._located(m, features, xy) else None)
+        with self._lock:
+            radius = PLACE_SPACINGS * base_spacing(m)
+            if gate is None and any(float(np.linalg.norm(f.xy - xy)) < radius
+                                    for f in t.pending):
+                gate = "place"  # one image per place and experience
+            if gate is not None:
+                t.refuse(gate)
+                return
+            t.taught += 1
+            t.pending.append(NewImage(np.array(features.codes), np.array(features.keypoints,
+                                                                          np.float32),
+                                      xy, f"{t.exp_id}/{est.seq:06d}"))
+            full = len(t.pending) >= self.gates.commit_images
+        if full:
+            self.flush(robot_id)
+
+    def _confident(self, t: _Trail, est: Estimate, xy: np.ndarray) -> bool:
+        """Gates 1 and 2; remembers the frame as part of the path when gate 1 holds."""
+        if est.status != "tracking" or est.lost or est.accuracy_m > self.gates.accuracy_m:
+            t.path.clear()
+            t.refuse("confident")
+            return False
+        path = list(t.path)
+        t.path.append((est.seq, xy))
+        if len(path) < 2 or path[0][0] != est.seq - 2 or path[1][0] != est.seq - 1 or \
+                float(np.linalg.norm(2 * path[1][1] - path[0][1] - xy)) > PATH_TOLERANCE_M:
+            t.refuse("path")
+            return False
+        return True
+
+    def _new_appearance(self, m: RouteMap, features: Features, xy: np.ndarray,
+                        level: float | None) -> bool:
+        """Gate 3: every layer's image near the estimate matches below the weak share of the
+        tracking level."""
+        if level is None or level <= 0:
+            return False
+        ids = self._near_images(m, xy)
+        if not len(ids):
+            return False
+        best = float(np.max(m.similarity(features.codes, ids)))
+        return best < self.gates.weak_ratio * level
+
+    @staticmethod
+    def _near_images(m: RouteMap, xy: np.ndarray) -> np.ndarray:
+        ids, dist = m.nearest_per_layer(xy[None, :])
+        return ids[0][dist[0] <= GAP_SPACINGS * base_spacing(m)]
+
+    def _located(self, m: RouteMap, features: Features, xy: np.ndarray) -> bool:
+        """Gate 4: the geometry places the frame near the estimate (maps without the
+        camera: the gate does not apply)."""
+        geometry = m.geometry
+        if geometry is None:
+            return True
+        ids = self._near_images(m, xy)
+        order = ids[np.argsort(-m.similarity(features.codes, ids), kind="stable")]
+        p = GeometryParams()
+        spacing = base_spacing(m)
+        for image in order[:GEOMETRY_TRIES]:
+            image = int(image)
+            tangent = path_tangent(m.positions, image, spacing)
+            off = geometry.locate(features, image, p) if tangent is not None else None
+            if off is None or tangent is None:
+                continue
+            right = np.array([tangent[1], -tangent[0]])
+            at = m.positions[image] + off.right_m * right + off.ahead_m * tangent
+            if math.isfinite(float(at[0])) and \
+                    float(np.linalg.norm(at - xy)) <= LOCATED_TOLERANCE_M:
+                return True
+        return False
+
+    def flush(self, robot_id: str, end: bool = False) -> None:
+        """Write the robot's collected images into its map (and with ``end`` forget it)."""
+        with self._lock:
+            t = self._trails.pop(robot_id, None) if end else self._trails.get(robot_id)
+            if t is None:
+                return
+            images, t.pending = t.pending, []
+            t.path.clear()
+        if images:
+            self._commit(t.map_name, t.exp_id, images, t.condition, robot_id)
+
+    def forget(self, robot_id: str) -> None:
+        with self._lock:
+            self._trails.pop(robot_id, None)

@@ -1,0 +1,324 @@
+"""Experiences: layers of a map that the fleet learned, and the layer each frame is matched with.
+
+An *experience* (Churchill and Newman, "Practice makes perfect", 2012) is a layer appended to a
+route map: frames a robot saw where it was confidently localized, stored like map images (their
+descriptor codes, keypoints and estimated positions) with one image per place. The map header's
+``experiences`` lists them (id, layer, created, updated, condition, robot, images, bytes, uses,
+last used); the map's own traversals are its *base* layers. A map without the list is a map
+without experiences: older files load unchanged, and an older service reads experiences as
+ordinary traversals. Every change is a new file written atomically with its checksums
+(service/maps/route_map.py ``write_map``): a new version and ETag. Versions that differ only by
+experiences keep the base images' ids; ``compatible_versions`` lists the earlier versions a
+stored session may continue from without a reset.
+
+Localization does not compare a particle with every layer: ``LayerChoice`` keeps, per session,
+an exponential average of how well each layer matched at the estimate, and the particles are
+compared with the *active* layer's image at their place (the base images where the active
+experience has none). After each frame the active layer and one other, in turn, are compared at
+the estimate (``probe``: at most two comparisons, mostly one already made), so a session moves
+to the layer of today's light without multiplying comparisons by the number of layers.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from service.maps.route_map import Chunk, MapError, RouteMap, load_map, write_map
+from service.vision.place_index import PlaceIndex
+
+KEY = "experiences"
+COMPATIBLE = "compatible_versions"
+MAX_COMPATIBLE = 64  # earlier versions a stored session may continue from
+BASE = "base"  # the LayerChoice key of the map's own traversals
+EMA_ALPHA = 0.3  # weight of the newest probe in a layer's score
+SWITCH_RATIO = 1.1  # another layer becomes active when its score beats the active one's by this
+GAP_SPACINGS = 2.0  # a particle farther than this many spacings from an experience image uses
+#                     the base images there
+PLACE_SPACINGS = 0.5  # one image per place and experience: this many spacings apart at least
+
+Usage = dict[str, tuple[int, float]]  # experience id -> (frames matched, last use, unix s)
+
+
+def now_iso(t: float) -> str:
+    return dt.datetime.fromtimestamp(t, dt.UTC).isoformat(timespec="seconds")
+
+
+def _layers(m: RouteMap) -> np.ndarray:
+    assert m.layers is not None  # set by RouteMap.__post_init__
+    return m.layers
+
+
+def experience_list(m: RouteMap) -> list[dict]:
+    """The map's experiences as stored in its header (empty for a map without)."""
+    return [dict(e) for e in m.meta.get(KEY) or []]
+
+
+def experience_layers(m: RouteMap) -> dict[str, int]:
+    """Experience id -> its layer."""
+    return {str(e["id"]): int(e["layer"]) for e in m.meta.get(KEY) or []}
+
+
+def base_layers(m: RouteMap) -> list[int]:
+    learned = set(experience_layers(m).values())
+    return [k for k in range(m.n_layers) if k not in learned]
+
+
+def base_spacing(m: RouteMap) -> float:
+    """Median spacing of the map's own images (the experiences' are not counted)."""
+    base = np.flatnonzero(np.isin(_layers(m), base_layers(m)))
+    pos = m.positions[base]
+    if len(pos) < 2:
+        return 1.0
+    return float(np.median(np.linalg.norm(np.diff(pos, axis=0), axis=1)))
+
+
+def image_bytes(m: RouteMap, ids: np.ndarray) -> int:
+    """Bytes the images ``ids`` take in the map file (codes, keypoints, position, layer, offset,
+    digest, place descriptor and name)."""
+    ids = np.asarray(ids, np.int64)
+    feats = int(np.sum(m.offsets[ids + 1] - m.offsets[ids]))
+    per_feature = m.codes.shape[1] * m.codes.dtype.itemsize + 8
+    place = m.place_index.dims * 4 if m.place_index is not None else 0
+    names = sum(len(m.image_names[int(i)].encode()) + 4 for i in ids)
+    return feats * per_feature + len(ids) * (16 + 8 + 8 + 16 + place) + names
+
+
+@dataclass(frozen=True)
+class NewImage:
+    """A frame to learn: its descriptor codes and keypoints (the map's feature type) and its
+    estimated position."""
+
+    codes: np.ndarray
+    keypoints: np.ndarray
+    xy: np.ndarray
+    name: str
+
+
+def _rewrite(m: RouteMap, path: Path, keep: np.ndarray, new: Sequence[NewImage],
+             new_layer: int, layer_map: np.ndarray, meta: dict) -> RouteMap:
+    """Write the map's kept images (``keep``, with layers renumbered by ``layer_map``) and
+    ``new`` images of layer ``new_layer`` atomically to ``path``; load it back (verified)."""
+    kept = np.flatnonzero(keep)
+    counts_old = np.diff(m.offsets)[kept]
+    counts = np.concatenate([counts_old, [len(f.codes) for f in new]]).astype(np.int64)
+    positions = np.concatenate([m.positions[kept], np.array([f.xy for f in new],
+                                                             float).reshape(-1, 2)])
+    names = [m.image_names[int(i)] for i in kept] + [f.name for f in new]
+    layers = np.concatenate([layer_map[_layers(m)[kept]],
+                             np.full(len(new), new_layer, np.int64)]).astype(np.int64)
+    place = m.place_index
+    if place is not None:
+        extra = np.array([place.describe(f.codes) for f in new], np.float32).reshape(
+            -1, place.dims)
+        place = PlaceIndex(place.words, place.mean, place.projection,
+                           np.concatenate([np.asarray(place.descriptors)[kept], extra]))
+
+    def chunks() -> Iterator[Chunk]:
+        for a in range(0, len(kept), 512):  # whole images, bounded memory
+            ids = kept[a: a + 512]
+            parts = [slice(int(m.offsets[i]), int(m.offsets[i + 1])) for i in ids]
+            yield (np.concatenate([m.codes[s] for s in parts]),
+                   np.concatenate([m.keypoints[s] for s in parts]), counts_old[a: a + 512])
+        if new:
+            yield (np.concatenate([f.codes for f in new]),
+                   np.concatenate([f.keypoints for f in new]).astype(np.float32),
+                   counts[len(kept):])
+
+    out = write_map(path, m.name, meta, positions, names, layers, counts, chunks(), place)
+    return load_map(out, verify=True)
+
+
+def _history(m: RouteMap) -> list[str]:
+    old = [str(c) for c in m.meta.get(COMPATIBLE) or []]
+    have = m.meta.get("checksum")
+    return ([*old, have] if have else old)[-MAX_COMPATIBLE:]
+
+
+def _with_usage(entries: list[dict], usage: Usage) -> list[dict]:
+    for e in entries:
+        frames, last = usage.get(str(e["id"]), (0, 0.0))
+        if frames:
+            e["uses"] = int(e.get("uses", 0)) + frames
+            e["last_used"] = now_iso(last)
+    return entries
+
+
+def add_experience(m: RouteMap, path: Path, exp_id: str, images: Sequence[NewImage], *,
+                   condition: str | None, robot: str | None, now: float, budget_bytes: int,
+                   usage: Usage | None = None) -> tuple[RouteMap, list[str]]:
+    """A new version of ``m`` at ``path`` with ``images`` added to experience ``exp_id``
+    (created when new): one image per place and experience (an image closer than
+    ``PLACE_SPACINGS`` spacings to one the experience has, or to an earlier new one, is left
+    out). The experiences then take at most ``budget_bytes``: the least used others are retired
+    first (fewest uses, then the oldest last use), and what still does not fit of the new images
+    is left out. Returns (the new map, the ids of retired experiences); ``m`` unchanged when
+    no image is added."""
+    entries = _with_usage(experience_list(m), usage or {})
+    layers = experience_layers(m)
+    layer = layers.get(exp_id, m.n_layers)
+    radius = PLACE_SPACINGS * base_spacing(m)
+    have = m.positions[_layers(m) == layer] if exp_id in layers else np.zeros((0, 2))
+    chosen: list[NewImage] = []
+    for f in images:
+        xy = np.asarray(f.xy, float)
+        placed = np.concatenate([have, [g.xy for g in chosen]]) if chosen else have
+        if len(placed) and float(np.min(np.linalg.norm(placed - xy, axis=1))) < radius:
+            continue
+        chosen.append(f)
+    if not chosen:
+        return m, []
+    per_new = [_new_bytes(m, f) for f in chosen]
+    sizes = {str(e["id"]): int(e.get("bytes", 0)) for e in entries}
+    mine = sizes.get(exp_id, 0)
+    fit = int(np.searchsorted(np.cumsum(per_new), max(budget_bytes - mine, 0), side="right"))
+    chosen, per_new = chosen[:fit], per_new[:fit]
+    if not chosen:
+        return m, []
+    need = mine + sum(per_new)
+    others = sorted((e for e in entries if str(e["id"]) != exp_id),
+                    key=lambda e: (int(e.get("uses", 0)), str(e.get("last_used") or
+                                                                e.get("created"))))
+    retired: list[str] = []
+    total = need + sum(sizes[str(e["id"])] for e in others)
+    for e in others:
+        if total <= budget_bytes:
+            break
+        retired.append(str(e["id"]))
+        total -= sizes[str(e["id"])]
+    gone_layers = {layers[r] for r in retired}
+    keep = ~np.isin(_layers(m), list(gone_layers))
+    layer_map = np.cumsum([k not in gone_layers for k in range(m.n_layers)]) - 1
+    new_layer = int(layer_map[layer]) if exp_id in layers else \
+        m.n_layers - len(gone_layers)
+    stamp = now_iso(now)
+    kept_entries = [e for e in entries if str(e["id"]) not in retired]
+    for e in kept_entries:
+        e["layer"] = int(layer_map[int(e["layer"])])
+    mine_entry = next((e for e in kept_entries if str(e["id"]) == exp_id), None)
+    if mine_entry is None:
+        mine_entry = {"id": exp_id, "layer": new_layer, "created": stamp, "condition": condition,
+                      "robot": robot, "images": 0, "bytes": 0, "uses": 0, "last_used": None}
+        kept_entries.append(mine_entry)
+    mine_entry.update(updated=stamp, images=int(mine_entry["images"]) + len(chosen),
+                      bytes=need)
+    meta = {**m.meta, KEY: kept_entries, COMPATIBLE: _history(m)}
+    return _rewrite(m, path, keep, chosen, new_layer, layer_map, meta), retired
+
+
+def _new_bytes(m: RouteMap, f: NewImage) -> int:
+    place = m.place_index.dims * 4 if m.place_index is not None else 0
+    return (len(f.codes) * (m.codes.shape[1] * m.codes.dtype.itemsize + 8)
+            + 16 + 8 + 8 + 16 + place + len(f.name.encode()) + 4)
+
+
+def remove_experience(m: RouteMap, path: Path, exp_id: str, usage: Usage | None = None
+                      ) -> RouteMap:
+    """A new version of ``m`` at ``path`` without experience ``exp_id`` (KeyError: none)."""
+    layers = experience_layers(m)
+    gone = layers[exp_id]
+    entries = [e for e in _with_usage(experience_list(m), usage or {}) if str(e["id"]) != exp_id]
+    layer_map = np.cumsum([k != gone for k in range(m.n_layers)]) - 1
+    for e in entries:
+        e["layer"] = int(layer_map[int(e["layer"])])
+    meta = {**m.meta, KEY: entries, COMPATIBLE: _history(m)}
+    return _rewrite(m, path, _layers(m) != gone, [], 0, layer_map, meta)
+
+
+def with_usage(m: RouteMap, usage: Usage) -> list[dict]:
+    """The map's experiences with the uses counted since its last write added."""
+    return _with_usage(experience_list(m), usage)
+
+
+def compatible(m: RouteMap, checksum: str | None) -> bool:
+    """Whether a session stored on version ``checksum`` may continue on ``m`` (the same
+    version, or an earlier one that differs only by experiences)."""
+    return checksum == m.meta.get("checksum") or checksum in (m.meta.get(COMPATIBLE) or [])
+
+
+# ---- which layer each frame is matched with -------------------------------------------------
+SimilarityFn = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass
+class LayerChoice:
+    """A session's choice of layer (kept with its state): the score of each layer (``BASE``
+    or an experience id) and the active one."""
+
+    scores: dict[str, float] = field(default_factory=dict)
+    active: str = BASE
+    turn: int = 0  # round-robin over the other layers for the probe
+
+    def nearest(self, m: RouteMap) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """For the fitness: each particle's base images (one column per base layer), replaced
+        by the active experience's image where it has one within ``GAP_SPACINGS``."""
+        base = base_layers(m)
+        layer = experience_layers(m).get(self.active)
+        gap = GAP_SPACINGS * base_spacing(m)
+
+        def nearest(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            cols = [m.nearest_in_layer(positions, k) for k in base]
+            ids = np.column_stack([c[0] for c in cols])
+            dist = np.column_stack([c[1] for c in cols])
+            if layer is None:
+                return ids, dist
+            e_ids, e_dist = m.nearest_in_layer(positions, layer)
+            near = (e_dist <= gap)[:, None]
+            return (np.where(near, e_ids[:, None], ids), np.where(near, e_dist[:, None], dist))
+
+        return nearest
+
+    def probe(self, m: RouteMap, similarity: SimilarityFn, position: np.ndarray) -> None:
+        """Compare the frame at ``position`` with the active layer and one other (in turn);
+        update their scores and switch to a layer that matches clearly better."""
+        layers = experience_layers(m)
+        gap = GAP_SPACINGS * base_spacing(m)
+        here: dict[str, int] = {}
+        for key, k in layers.items():
+            i, d = m.nearest_in_layer(position[None, :], k)
+            if float(d[0]) <= gap:
+                here[key] = int(i[0])
+        if not here:
+            return
+        if self.active != BASE and self.active not in layers:
+            self.active = BASE  # its experience was removed
+        keys = [BASE, *sorted(here)]
+        others = [k for k in keys if k != self.active]
+        probed = [self.active] if self.active in keys else []
+        if others:
+            probed.append(others[self.turn % len(others)])
+            self.turn += 1
+        for key in probed:
+            if key == BASE:
+                ids = np.array([int(m.nearest_in_layer(position[None, :], k)[0][0])
+                                for k in base_layers(m)], np.int64)
+            else:
+                ids = np.array([here[key]], np.int64)
+            score = float(np.max(similarity(ids)))
+            old = self.scores.get(key)
+            self.scores[key] = score if old is None else \
+                (1 - EMA_ALPHA) * old + EMA_ALPHA * score
+        for key in list(self.scores):
+            if key != BASE and key not in layers:
+                del self.scores[key]
+        best = max(self.scores, key=lambda k: self.scores[k])
+        if best != self.active and self.scores[best] > SWITCH_RATIO * self.scores.get(
+                self.active, 0.0):
+            self.active = best
+
+    def experience(self) -> str | None:
+        return None if self.active == BASE else self.active
+
+
+def check_experience_id(exp_id: str) -> None:
+    if not (0 < len(exp_id) <= 64 and all(c.isalnum() or c in "-_." for c in exp_id)):
+        raise MapError(f"experience id '{exp_id}' must be 1-64 letters, digits, '-', '_' or '.'")
+
+
+def budget_bytes(megabytes: float) -> int:
+    return math.floor(megabytes * 1024 * 1024)

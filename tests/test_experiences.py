@@ -1,0 +1,231 @@
+"""Experience maps: layers the fleet learns (service/maps/experiences.py, engine/learning.py).
+
+The map format keeps experiences as layers with their metadata (each change a new, verified
+version); localization matches each particle with one layer; a learning session teaches only
+where it is confidently right, and a session that is confidently wrong by construction teaches
+nothing.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from client.dataset import Round
+from client.lab.world import World
+from service.api.errors import NotFound
+from service.api.models import Estimate, PosePrior, SessionConfig
+from service.engine.learning import Learner, LearnGates, _Trail
+from service.engine.localization_service import LocalizationService
+from service.engine.localizer import Localizer
+from service.maps.experiences import (
+    BASE,
+    NewImage,
+    add_experience,
+    compatible,
+    experience_layers,
+    experience_list,
+    remove_experience,
+)
+from service.maps.route_map import RouteMap, build_map_from_rounds, load_map, save_map
+from service.settings import Settings
+from service.vision.features import extract
+
+
+def _images(m: RouteMap, rnd: Round, ids: range, tag: str) -> list[NewImage]:
+    out = []
+    for i in ids:
+        f = extract(rnd.load_image(i), m.feature_params)
+        out.append(NewImage(f.codes, f.keypoints, np.asarray(rnd.xy[i], float), f"{tag}/{i}"))
+    return out
+
+
+@pytest.fixture(scope="module")
+def cloudy_images(small_map: RouteMap, cloudy1: Round) -> list[NewImage]:
+    return _images(small_map, cloudy1, range(len(cloudy1)), "cloudy")
+
+
+@pytest.fixture
+def map_copy(small_map: RouteMap, tmp_path: Path) -> RouteMap:
+    assert small_map.path is not None
+    shutil.copy(small_map.path, tmp_path / "small.swmap")
+    return load_map(tmp_path / "small.swmap")
+
+
+def test_an_experience_is_a_new_verified_version_with_its_layer(
+        map_copy: RouteMap, cloudy_images: list[NewImage]) -> None:
+    assert experience_list(map_copy) == []  # a map from before experiences loads unchanged
+    old_sum = map_copy.meta["checksum"]
+    assert map_copy.path is not None
+    new, retired = add_experience(map_copy, map_copy.path, "e1", cloudy_images[:20],
+                                  condition="cloudy", robot="r1", now=1.0e9,
+                                  budget_bytes=1 << 30)
+    assert retired == []
+    again = load_map(map_copy.path, verify=True)  # written atomically, checksummed
+    assert again.meta["checksum"] == new.meta["checksum"] != old_sum
+    assert compatible(again, old_sum) and not compatible(again, "0" * 64)
+    (e,) = experience_list(again)
+    assert (e["id"], e["condition"], e["robot"], e["layer"]) == ("e1", "cloudy", "r1", 1)
+    assert e["images"] == int(np.sum(again.layers == 1)) > 0
+    assert again.n_images == map_copy.n_images + e["images"]
+    # the base images keep their ids and contents; the place index covers the new images
+    assert np.array_equal(again.codes_of(5), map_copy.codes_of(5))
+    assert again.place_index is not None and again.place_index.n_images == again.n_images
+
+
+def test_one_image_per_place_and_experience(map_copy: RouteMap,
+                                            cloudy_images: list[NewImage]) -> None:
+    assert map_copy.path is not None
+    a, _ = add_experience(map_copy, map_copy.path, "e1", cloudy_images[:10], condition=None,
+                          robot=None, now=1.0, budget_bytes=1 << 30)
+    same = [NewImage(f.codes, f.keypoints, f.xy + 0.05, f.name + "b") for f in
+            cloudy_images[:10]]
+    b, _ = add_experience(a, map_copy.path, "e1", same, condition=None, robot=None, now=2.0,
+                          budget_bytes=1 << 30)
+    assert b is a  # every place already has its image in e1: nothing written
+    c, _ = add_experience(a, map_copy.path, "e2", same, condition=None, robot=None, now=3.0,
+                          budget_bytes=1 << 30)
+    assert experience_list(c)[1]["images"] == experience_list(c)[0]["images"]
+
+
+def test_budget_retires_the_least_used_experience(map_copy: RouteMap,
+                                                  cloudy_images: list[NewImage]) -> None:
+    assert map_copy.path is not None
+    a, _ = add_experience(map_copy, map_copy.path, "used", cloudy_images[0:30],
+                          condition=None, robot=None, now=1.0, budget_bytes=1 << 30)
+    b, _ = add_experience(a, map_copy.path, "idle", cloudy_images[30:60], condition=None,
+                          robot=None, now=2.0, budget_bytes=1 << 30)
+    size = {e["id"]: e["bytes"] for e in experience_list(b)}
+    budget = size["used"] + size["idle"] + 1000  # room for the two, not for a third
+    c, retired = add_experience(b, map_copy.path, "new", cloudy_images[60:90],
+                                condition=None, robot=None, now=3.0, budget_bytes=budget,
+                                usage={"used": (12, 2.5)})
+    assert retired == ["idle"]
+    kept = {e["id"]: e for e in experience_list(c)}
+    assert set(kept) == {"used", "new"} and kept["used"]["uses"] == 12
+    assert sum(e["bytes"] for e in kept.values()) <= budget
+    assert sorted(e["layer"] for e in kept.values()) == [1, 2]  # renumbered, 0..L-1
+    assert c.n_images == map_copy.n_images + kept["used"]["images"] + kept["new"]["images"]
+    gone = remove_experience(c, map_copy.path, "used")
+    assert list(experience_layers(gone)) == ["new"] and experience_layers(gone)["new"] == 1
+    assert load_map(map_copy.path).n_images == map_copy.n_images + kept["new"]["images"]
+
+
+def test_particles_match_one_layer_and_the_session_moves_to_todays_light(
+        map_copy: RouteMap, cloudy_images: list[NewImage], cloudy1: Round) -> None:
+    assert map_copy.path is not None
+    learned, _ = add_experience(map_copy, map_copy.path, "cloudy", cloudy_images,
+                                condition="cloudy", robot=None, now=1.0, budget_bytes=1 << 30)
+    frames = [extract(cloudy1.load_image(i), map_copy.feature_params) for i in range(60)]
+    plain, taught = Localizer(map_copy, seed=1), Localizer(learned, seed=1)
+    before = [plain.step(f, t=float(i)).comparisons for i, f in enumerate(frames)]
+    after = [taught.step(f, t=float(i)) for i, f in enumerate(frames)]
+    assert taught.choice.active == "cloudy" and after[-1].experience == "cloudy"
+    assert taught.choice.scores["cloudy"] > taught.choice.scores[BASE]
+    # one layer per particle: the probes add little, the layers do not multiply the work
+    assert np.mean([e.comparisons for e in after]) <= 1.2 * np.mean(before)
+
+
+@pytest.fixture(scope="module")
+def camera_maps(tmp_path_factory: pytest.TempPathFactory, sunny1: Round) -> Path:
+    """A maps directory with the sunny map built with the camera (the geometry gate runs)."""
+    d = tmp_path_factory.mktemp("exp_maps")
+    save_map(build_map_from_rounds([sunny1], name="route"), d / "route")
+    return d
+
+
+def _service(camera_maps: Path, tmp_path: Path, **kw: float) -> LocalizationService:
+    d = tmp_path / "maps"
+    shutil.copytree(camera_maps, d)
+    return LocalizationService(Settings(maps_dir=d, session_store="memory",
+                                        learn_commit_images=1000, **kw))
+
+
+def test_a_learning_session_teaches_its_map_a_new_version(
+        camera_maps: Path, tmp_path: Path, cloudy1: Round) -> None:
+    service = _service(camera_maps, tmp_path)
+    old = service.get_map("route").meta["checksum"]
+    service.put_session("r1", SessionConfig(map="route", learn=True, condition="cloudy"))
+    for i in range(len(cloudy1)):
+        service.process_frame("r1", cloudy1.image_path(i).read_bytes(), t=float(i))
+    stats = service.learner.stats("r1")
+    assert stats["taught"] > 0, stats
+    service.delete_session("r1")  # its images are written when it ends
+    summary = service.map_summary("route")
+    assert summary.checksum != old
+    (e,) = summary.experiences
+    assert e.condition == "cloudy" and e.robot == "r1" and 0 < e.images <= stats["taught"]
+    m = load_map(service.get_map("route").path, verify=True)  # the file on disk is it
+    assert m.meta["checksum"] == summary.checksum
+    assert float(np.max(np.abs(m.positions[m.layers == e.layer] -
+                                 _truth(cloudy1, m.image_names, m.layers == e.layer)))) < 3.0
+    service.close()
+
+
+def _truth(rnd: Round, names: list[str], mask: np.ndarray) -> np.ndarray:
+    seq = [int(n.rsplit("/", 1)[1]) - 1 for n, k in zip(names, mask, strict=True) if k]
+    return rnd.reference_xy[seq]  # frame i was sent with t = i, its estimate has seq i + 1
+
+
+def test_a_session_confidently_wrong_by_construction_learns_nothing(
+        camera_maps: Path, tmp_path: Path, sunny1: Round) -> None:
+    """Another route's frames with a forced prior along this map: the estimator is held at
+    the prior, and the gates (tracking, path, weak appearance, the geometry) refuse all."""
+    other = World(seed=11, length_m=90.0)
+    other.render_round(tmp_path / "other", 3, "cloudy")
+    from client.dataset import read_round
+
+    rnd = read_round(tmp_path / "other")
+    service = _service(camera_maps, tmp_path)
+    old = service.get_map("route").meta["checksum"]
+    service.put_session("liar", SessionConfig(map="route", learn=True, condition="cloudy"))
+    xy = sunny1.xy
+    for i in range(min(len(rnd), len(xy))):
+        service.process_frame("liar", rnd.image_path(i).read_bytes(), t=float(i),
+                              prior=PosePrior(x=float(xy[i][0]), y=float(xy[i][1]),
+                                              radius=1.0))
+    stats = service.learner.stats("liar")
+    service.delete_session("liar")
+    assert stats.get("taught", 0) == 0, stats
+    assert service.get_map("route").meta["checksum"] == old
+    assert service.map_summary("route").experiences == []
+    service.close()
+
+
+def test_deleting_an_experience_and_unknown_ones(map_copy: RouteMap, tmp_path: Path,
+                                                 cloudy_images: list[NewImage]) -> None:
+    assert map_copy.path is not None
+    add_experience(map_copy, map_copy.path, "e1", cloudy_images[:10], condition=None,
+                   robot=None, now=1.0, budget_bytes=1 << 30)
+    service = LocalizationService(Settings(maps_dir=map_copy.path.parent,
+                                           session_store="memory"))
+    version = service.map_summary("small").checksum
+    with pytest.raises(NotFound, match="no experience 'nope'"):
+        service.admin.delete_experience("small", "nope")
+    assert service.map_summary("small").checksum == version  # untouched
+    summary = service.admin.delete_experience("small", "e1", if_match=f'"{version}"')
+    assert summary.experiences == [] and summary.checksum != version
+    assert summary.n_images == map_copy.n_images
+
+
+def test_learner_gates_need_a_continuous_path() -> None:
+    """Gate 2: a frame right after a jump (or the first frames) does not teach."""
+    learner = Learner(LearnGates(1.5, 0.6, 10), lambda *a: None)
+    trail = _Trail("e", "m", None)
+
+    def est(seq: int, x: float) -> Estimate:
+        return Estimate(seq=seq, stamp=None, frame_id="m", estimator="dpso", x=x, y=0.0,
+                        heading=0.0, speed=0.0, status="tracking", lost=False, score=0.5,
+                        comparisons=1, covariance=[[0.1, 0], [0, 0.1]],
+                        pose_covariance=[0.0] * 36, accuracy_m=0.5, nearest_image=0,
+                        nearest_image_name="x", spread_m=0.1)
+
+    ok = [learner._confident(trail, e, np.array([e.x, e.y]))
+          for e in (est(1, 0.0), est(2, 0.6), est(3, 1.2), est(4, 9.0), est(5, 9.6),
+                    est(6, 10.2))]
+    # the first two frames have no path yet; the jump breaks it until two frames agree again
+    assert ok == [False, False, True, False, False, True]
+    assert trail.refused == {"path": 4}
