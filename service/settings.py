@@ -61,8 +61,9 @@ class Settings(BaseSettings):
         1.5, gt=0, description="a learning session's frame teaches only with accuracy_m "
         "at most this")
     learn_weak_ratio: float = Field(
-        0.6, gt=0, le=1, description="a frame teaches only where the map's layers match it "
-        "weakly: their best similarity below this share of the session's tracking level")
+        0.4, gt=0, le=1, description="a frame teaches only where the map's layers match it "
+        "weakly: their best similarity below this share of the map's same-light level (how "
+        "well its consecutive images match each other)")
     auth_token: str | None = Field(None, description="if set, HTTP needs 'Bearer <token>'")
     workers: int = Field(0, description="frame-processing threads (0: 2 x number of CPUs)")
     opencv_threads: int = Field(1, ge=0, description="OpenCV's own threads per call (0: its "

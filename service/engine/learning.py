@@ -7,10 +7,12 @@ only when every gate holds (a kidnapped or lost robot never does):
 2. it agrees with the recent path: the two frames before were taught-worthy estimates of the
    same session, and the constant-velocity prediction from them lies within ``PATH_TOLERANCE_M``;
 3. the map's layers match it weakly there: the best similarity of the nearest image of every
-   layer near the estimate is below ``learn_weak_ratio`` of the session's tracking level (the
-   running mean of its best matches), so the frame adds a new appearance;
+   layer near the estimate is below ``learn_weak_ratio`` of the map's same-light level (the
+   median similarity of its consecutive images, ``same_light_level``), so the frame adds a
+   new appearance;
 4. where the map has the camera, two-view geometry locates the frame at one of those images,
-   within ``LOCATED_TOLERANCE_M`` of the estimate.
+   within ``LOCATED_TOLERANCE_M`` of the estimate; the located position is the image's
+   position in the experience (the estimate where the map has no camera).
 
 Taught frames are kept (one per place) until ``learn_commit_images`` are collected or the
 session ends or is reset; then the map admin writes them into the map as a new version
@@ -21,7 +23,6 @@ stored session: a replica that dies loses at most one batch, never a map.
 from __future__ import annotations
 
 import hashlib
-import math
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -36,6 +37,7 @@ from service.maps.experiences import (
     PLACE_SPACINGS,
     NewImage,
     Usage,
+    base_layers,
     base_spacing,
 )
 from service.maps.route_map import RouteMap
@@ -44,7 +46,7 @@ from service.vision.map_geometry import GeometryParams
 
 PATH_TOLERANCE_M = 1.0  # the estimate lies this close to the path's constant-velocity prediction
 LOCATED_TOLERANCE_M = 1.0  # and this close to where the geometry locates the frame
-LEVEL_ALPHA = 0.1  # weight of a frame's best match in the session's tracking level
+LEVEL_SAMPLE = 40  # consecutive image pairs of a map whose median similarity is its level
 GEOMETRY_TRIES = 3  # images near the estimate the geometry tries, best match first
 
 Commit = Callable[[str, str, list[NewImage], str | None, str], None]
@@ -66,7 +68,6 @@ class _Trail:
     map_name: str
     condition: str | None
     path: deque[tuple[int, np.ndarray]] = field(default_factory=lambda: deque(maxlen=2))
-    level: float | None = None
     pending: list[NewImage] = field(default_factory=list)
     taught: int = 0  # frames that passed the gates
     seen: int = 0
@@ -74,6 +75,23 @@ class _Trail:
 
     def refuse(self, gate: str) -> None:
         self.refused[gate] = self.refused.get(gate, 0) + 1
+
+
+def same_light_level(m: RouteMap) -> float:
+    """How well a frame in the map's own light matches it: the median similarity of up to
+    ``LEVEL_SAMPLE`` map images with their successor in the same traversal (within two
+    spacings)."""
+    layers = np.asarray(m.layers)
+    base = np.flatnonzero(np.isin(layers, base_layers(m)))[:-1]
+    spacing = base_spacing(m)
+    ok = base[(layers[base] == layers[base + 1]) &
+              (np.linalg.norm(m.positions[base + 1] - m.positions[base], axis=1)
+               <= 2 * spacing)]
+    if not len(ok):
+        return 1.0
+    pick = ok[np.linspace(0, len(ok) - 1, min(LEVEL_SAMPLE, len(ok))).astype(int)]
+    return float(np.median([m.similarity(np.asarray(m.codes_of(int(i))), [int(i) + 1])[0]
+                            for i in pick]))
 
 
 def experience_id(robot_id: str, created: float) -> str:
@@ -91,6 +109,7 @@ class Learner:
         self._commit = commit
         self._trails: dict[str, _Trail] = {}
         self._usage: dict[str, Usage] = {}
+        self._levels: dict[str, float] = {}  # map version -> same_light_level
         self._lock = threading.Lock()
 
     # ---- use statistics of experiences (every session) -------------------------------------
@@ -129,27 +148,25 @@ class Learner:
                                                     condition)
             t.seen += 1
             xy = np.array([est.x, est.y])
-            ok = self._confident(t, est, xy)
-            if est.status == "tracking":
-                t.level = est.score if t.level is None else \
-                    (1 - LEVEL_ALPHA) * t.level + LEVEL_ALPHA * est.score
-            if not ok:
+            if not self._confident(t, est, xy):
                 return
-            level = t.level
-        gate = ("appearance" if not self._new_appearance(m, features, xy, level) else
-                "located" if not self._located(m, features, xy) else None)
+        at: np.ndarray | None = None
+        gate: str | None = "appearance"
+        if self._new_appearance(m, features, xy):
+            at = self._located(m, features, xy)
+            gate = None if at is not None else "located"
         with self._lock:
             radius = PLACE_SPACINGS * base_spacing(m)
             if gate is None and any(float(np.linalg.norm(f.xy - xy)) < radius
                                     for f in t.pending):
                 gate = "place"  # one image per place and experience
-            if gate is not None:
-                t.refuse(gate)
+            if gate is not None or at is None:
+                t.refuse(gate or "located")
                 return
             t.taught += 1
             t.pending.append(NewImage(np.array(features.codes), np.array(features.keypoints,
                                                                           np.float32),
-                                      xy, f"{t.exp_id}/{est.seq:06d}"))
+                                      at, f"{t.exp_id}/{est.seq:06d}"))
             full = len(t.pending) >= self.gates.commit_images
         if full:
             self.flush(robot_id)
@@ -168,29 +185,37 @@ class Learner:
             return False
         return True
 
-    def _new_appearance(self, m: RouteMap, features: Features, xy: np.ndarray,
-                        level: float | None) -> bool:
+    def level(self, m: RouteMap) -> float:
+        """The map's same-light level, kept per version."""
+        key = str(m.meta.get("checksum"))
+        with self._lock:
+            have = self._levels.get(key)
+        if have is None:
+            have = same_light_level(m)
+            with self._lock:
+                self._levels[key] = have
+        return have
+
+    def _new_appearance(self, m: RouteMap, features: Features, xy: np.ndarray) -> bool:
         """Gate 3: every layer's image near the estimate matches below the weak share of the
-        tracking level."""
-        if level is None or level <= 0:
-            return False
+        map's same-light level."""
         ids = self._near_images(m, xy)
         if not len(ids):
             return False
         best = float(np.max(m.similarity(features.codes, ids)))
-        return best < self.gates.weak_ratio * level
+        return best < self.gates.weak_ratio * self.level(m)
 
     @staticmethod
     def _near_images(m: RouteMap, xy: np.ndarray) -> np.ndarray:
         ids, dist = m.nearest_per_layer(xy[None, :])
         return ids[0][dist[0] <= GAP_SPACINGS * base_spacing(m)]
 
-    def _located(self, m: RouteMap, features: Features, xy: np.ndarray) -> bool:
-        """Gate 4: the geometry places the frame near the estimate (maps without the
-        camera: the gate does not apply)."""
+    def _located(self, m: RouteMap, features: Features, xy: np.ndarray) -> np.ndarray | None:
+        """Gate 4: where the geometry places the frame, near the estimate; None where it does
+        not (maps without the camera: the estimate, the gate does not apply)."""
         geometry = m.geometry
         if geometry is None:
-            return True
+            return xy
         ids = self._near_images(m, xy)
         order = ids[np.argsort(-m.similarity(features.codes, ids), kind="stable")]
         p = GeometryParams()
@@ -203,10 +228,9 @@ class Learner:
                 continue
             right = np.array([tangent[1], -tangent[0]])
             at = m.positions[image] + off.right_m * right + off.ahead_m * tangent
-            if math.isfinite(float(at[0])) and \
-                    float(np.linalg.norm(at - xy)) <= LOCATED_TOLERANCE_M:
-                return True
-        return False
+            if np.isfinite(at).all() and float(np.linalg.norm(at - xy)) <= LOCATED_TOLERANCE_M:
+                return np.asarray(at, float)
+        return None
 
     def flush(self, robot_id: str, end: bool = False) -> None:
         """Write the robot's collected images into its map (and with ``end`` forget it)."""

@@ -183,7 +183,7 @@ class LocalizationService:
             raise NotFound(f"unknown map '{name}'; loaded maps: {sorted(self.maps)}") from None
 
     def map_summary(self, name: str) -> MapSummary:
-        return self._summary(self.get_map(name))
+        return self._summary(self.admin.refresh(name))
 
     def _summary(self, m: RouteMap) -> MapSummary:
         s = m.summary()
@@ -201,15 +201,19 @@ class LocalizationService:
         if m is None:
             raise NotFound(f"the session's map '{name}' is not loaded here; loaded maps: "
                            f"{sorted(self.maps)}")
+        # a version that differs only by experiences continues; one this replica has not
+        # loaded yet (another replica wrote it) is loaded first
+        if strict and not compatible(m, checksum):
+            m = self.admin.refresh(name)
         have = m.meta.get("checksum")
-        if strict and not compatible(m, checksum):  # experiences only: continues
+        if strict and not compatible(m, checksum):
             raise Conflict(f"the session's map '{name}' (version {str(checksum)[:12]}) was "
                            f"replaced by version {str(have)[:12]}; reset the session to "
                            "continue on the new version")
         return m
 
     def map_detail(self, name: str) -> MapDetail:
-        m = self.get_map(name)  # one version for the summary and the positions
+        m = self.admin.refresh(name)  # one version for the summary and the positions
         return MapDetail(**self._summary(m).model_dump(),
                          positions=m.positions.tolist(), image_names=m.image_names)
 
@@ -223,7 +227,7 @@ class LocalizationService:
         """
         check_robot_id(robot_id)
         map_name = config.map or self.default_map
-        route_map = self.get_map(map_name)
+        route_map = self.admin.refresh(map_name)  # the newest version on disk
         estimator = config.estimator or self.settings.default_estimator
         n = config.params.get("n_particles") if isinstance(config.params, dict) else None
         if isinstance(n, int) and not isinstance(n, bool) and n > self.settings.max_particles:

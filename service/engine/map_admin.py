@@ -19,6 +19,8 @@ The map is built in memory, saved atomically and only then registered: never hal
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import os
 import queue
@@ -57,6 +59,7 @@ from service.maps.route_map import (
     MapError,
     RouteMap,
     build_map_from_rounds,
+    file_version,
     load_map,
     save_map,
 )
@@ -293,14 +296,47 @@ class MapAdmin:
                            "experiences cannot be written")
         return m.path
 
+    def refresh(self, name: str) -> RouteMap:
+        """The loaded map ``name``, first reloaded when its file holds another version (one
+        that another replica on the same maps directory wrote); a header read."""
+        with self._lock:
+            m = self.service.get_map(name)
+            if m.path is None or m.path.parent != self.directory:
+                return m
+            on_disk = file_version(m.path)
+            if on_disk is None or on_disk == m.meta.get("checksum"):
+                return m
+            try:
+                new = load_map(m.path, verify="lazy")
+            except MapError as exc:  # half-seen or broken: keep serving the loaded version
+                log.warning("map %s: newer file not loaded: %s", name, exc)
+                return m
+            if new.name == name:
+                self._register(new, "reload")
+                return new
+            return m
+
+    @contextlib.contextmanager
+    def _writer(self, name: str) -> Iterator[RouteMap]:
+        """The one writer of map ``name`` across every process on this maps directory (an
+        exclusive lock on its lock file), with the map at its newest version on disk."""
+        with self._lock:
+            path = self._writable(self.service.get_map(name))
+            lock = path.with_name(f".{path.name}.lock")
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+                yield self.refresh(name)
+            finally:
+                os.close(fd)  # releases the lock
+
     def commit_experience(self, name: str, exp_id: str, images: list[NewImage],
                           condition: str | None, robot: str) -> None:
         """Write a learning session's images into experience ``exp_id`` of map ``name``: a new
         version (retiring the least used experiences beyond the budget). A failure is logged;
         it never fails the frame that triggered it."""
         try:
-            with self._lock:
-                m = self.service.get_map(name)
+            with self._writer(name) as m:
                 new, retired = add_experience(
                     m, self._writable(m), exp_id, images, condition=condition, robot=robot,
                     now=time.time(),
@@ -317,8 +353,7 @@ class MapAdmin:
     def delete_experience(self, name: str, exp_id: str, if_match: str | None = None
                           ) -> MapSummary:
         """Remove one experience of a map (a new version)."""
-        with self._lock:
-            m = self.service.get_map(name)
+        with self._writer(name) as m:
             self.check_preconditions(name, if_match, None)
             if exp_id not in experience_layers(m):
                 raise NotFound(f"map '{name}' has no experience '{exp_id}'; it has "

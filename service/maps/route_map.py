@@ -673,6 +673,17 @@ def _read_header(path: Path) -> tuple[dict, int]:
     return header, start + _pad(start)
 
 
+def file_version(path: str | Path) -> str | None:
+    """The checksum (version) in a map file's header, read without opening its arrays; None
+    when the file is missing or unreadable (``load_map`` then says why)."""
+    try:
+        header, _ = _read_header(Path(path))
+    except MapError:
+        return None
+    v = header.get("checksum")
+    return v if isinstance(v, str) else None
+
+
 def _open_arrays(path: Path, header: dict, data_start: int, dtypes: dict[str, np.dtype],
                  optional: tuple[str, ...]) -> dict[str, np.ndarray]:
     size = path.stat().st_size
