@@ -325,3 +325,18 @@ def test_two_replicas_on_redis_one_writer_no_lost_update(
     assert replicas[1].session("walker").info().map_checksum == on_disk.meta["checksum"]
     for r in replicas:
         r.close()
+
+
+def test_the_viewer_stream_names_the_experience() -> None:
+    import json
+
+    from service.engine.events import estimate_message
+
+    est = Estimate(seq=1, stamp=None, frame_id="m", estimator="dpso", x=0.0, y=0.0,
+                   heading=0.0, speed=0.0, status="tracking", lost=False, score=0.5,
+                   comparisons=1, covariance=[[0.1, 0], [0, 0.1]], pose_covariance=[0.0] * 36,
+                   accuracy_m=0.5, nearest_image=0, nearest_image_name="x", spread_m=0.1,
+                   robot_id="r")
+    assert "experience" not in json.loads(estimate_message(est, 0.0, None))
+    learned = est.model_copy(update={"experience": "e1"})
+    assert json.loads(estimate_message(learned, 0.0, None))["experience"] == "e1"

@@ -61,6 +61,8 @@ def estimate_message(est: Estimate, wall: float, latency_s: float | None) -> str
         "score": _r(est.score, 4), "comparisons": est.comparisons,
         "latency_ms": None if latency_s is None else round(1e3 * latency_s, 2),
     }
+    if est.experience is not None:  # the learned layer it matched (service/maps/experiences.py)
+        msg["experience"] = est.experience
     if est.hypotheses:  # competing places (multi-swarm DPSO), best first
         msg["hypotheses"] = [[_r(h.x, 2), _r(h.y, 2), _r(h.weight, 4)] for h in est.hypotheses]
     return json.dumps(msg, separators=(",", ":"))

@@ -48,6 +48,7 @@ PATH_TOLERANCE_M = 1.0  # the estimate lies this close to the path's constant-ve
 LOCATED_TOLERANCE_M = 1.0  # and this close to where the geometry locates the frame
 LEVEL_SAMPLE = 40  # consecutive image pairs of a map whose median similarity is its level
 GEOMETRY_TRIES = 3  # images near the estimate the geometry tries, best match first
+SMOOTH_FRAMES = 4  # learned positions: a line through the taught frames this many frames away
 
 Commit = Callable[[str, str, list[NewImage], str | None, str], None]
 # (map name, experience id, images, condition, robot id) -> written (the map admin's)
@@ -72,9 +73,29 @@ class _Trail:
     taught: int = 0  # frames that passed the gates
     seen: int = 0
     refused: dict[str, int] = field(default_factory=dict)  # frames stopped, by gate
+    seqs: list[int] = field(default_factory=list)  # the frame number of each pending image
 
     def refuse(self, gate: str) -> None:
         self.refused[gate] = self.refused.get(gate, 0) + 1
+
+
+def smoothed(images: list[NewImage], seqs: list[int], k: int = SMOOTH_FRAMES
+             ) -> list[NewImage]:
+    """The images with their positions on the least-squares line (in frame number) through
+    the taught frames within ``k`` frames: along a run the robot moves steadily, and each
+    located position's own error averages out."""
+    s = np.asarray(seqs, float)
+    xy = np.array([f.xy for f in images], float).reshape(-1, 2)
+    out = []
+    for i, f in enumerate(images):
+        near = np.abs(s - s[i]) <= k
+        if near.sum() < 3:
+            out.append(f)
+            continue
+        a = np.column_stack([np.ones(int(near.sum())), s[near] - s[i]])
+        coef, *_ = np.linalg.lstsq(a, xy[near], rcond=None)
+        out.append(NewImage(f.codes, f.keypoints, coef[0], f.name))
+    return out
 
 
 def same_light_level(m: RouteMap) -> float:
@@ -167,6 +188,7 @@ class Learner:
             t.pending.append(NewImage(np.array(features.codes), np.array(features.keypoints,
                                                                           np.float32),
                                       at, f"{t.exp_id}/{est.seq:06d}"))
+            t.seqs.append(est.seq)
             full = len(t.pending) >= self.gates.commit_images
         if full:
             self.flush(robot_id)
@@ -239,9 +261,10 @@ class Learner:
             if t is None:
                 return
             images, t.pending = t.pending, []
+            seqs, t.seqs = t.seqs, []
             t.path.clear()
         if images:
-            self._commit(t.map_name, t.exp_id, images, t.condition, robot_id)
+            self._commit(t.map_name, t.exp_id, smoothed(images, seqs), t.condition, robot_id)
 
     def forget(self, robot_id: str) -> None:
         with self._lock:

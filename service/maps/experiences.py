@@ -14,9 +14,10 @@ stored session may continue from without a reset.
 Localization does not compare a particle with every layer: ``LayerChoice`` keeps, per session,
 an exponential average of how well each layer matched at the estimate, and the particles are
 compared with the *active* layer's image at their place (the base images where the active
-experience has none). After each frame the active layer and one other, in turn, are compared at
-the estimate (``probe``: at most two comparisons, mostly one already made), so a session moves
-to the layer of today's light without multiplying comparisons by the number of layers.
+experience has none). After each frame the active layer, and every second frame one other in
+turn, are compared at the estimate (``probe``: at most two comparisons, mostly one already
+made), so a session moves to the layer of today's light without multiplying comparisons by
+the number of layers.
 """
 
 from __future__ import annotations
@@ -290,9 +291,9 @@ class LayerChoice:
         keys = [BASE, *sorted(here)]
         others = [k for k in keys if k != self.active]
         probed = [self.active] if self.active in keys else []
-        if others:
-            probed.append(others[self.turn % len(others)])
-            self.turn += 1
+        self.turn += 1
+        if others and (self.turn % 2 == 0 or not probed):  # another layer every 2nd frame
+            probed.append(others[(self.turn // 2) % len(others)])
         for key in probed:
             if key == BASE:
                 ids = np.array([int(m.nearest_in_layer(position[None, :], k)[0][0])

@@ -28,7 +28,8 @@ export class Panel {
       <label class="particles"><input type="checkbox"> particles</label></div>
       <dl><dt>speed</dt><dd class="speed"></dd><dt>score</dt><dd class="score"></dd>
       <dt>comp.</dt><dd class="comparisons"></dd><dt>rate</dt><dd class="fps"></dd>
-      <dt>latency</dt><dd class="latency"></dd><dt>last</dt><dd class="age"></dd></dl>`;
+      <dt>latency</dt><dd class="latency"></dd><dt>last</dt><dd class="age"></dd>
+      <dt>layer</dt><dd class="experience"></dd></dl>`;
     li.querySelector(".name").textContent = id;
     li.addEventListener("click", (e) => {
       if (!e.target.closest("label")) this.onSelect(id);
@@ -70,6 +71,9 @@ export class Panel {
       q(".speed").textContent = fmt(e.speed, 2, " m/s");
       q(".score").textContent = fmt(e.score, 3);
       q(".comparisons").textContent = `${e.comparisons}`;
+      // the experience (learned layer) the frame was matched with; "map": the map's own images
+      q(".experience").textContent = e.experience ?? "map";
+      li.dataset.experience = e.experience ?? "";
       q(".fps").textContent = fmt(r.fps, 1, "/s");
       q(".latency").textContent = fmt(e.latency_ms, 0, " ms");
       q(".age").textContent = age < 60 ? `${Math.max(0, age).toFixed(1)} s` : `${(age / 60).toFixed(0)} min`;
