@@ -340,3 +340,20 @@ def test_the_viewer_stream_names_the_experience() -> None:
     assert "experience" not in json.loads(estimate_message(est, 0.0, None))
     learned = est.model_copy(update={"experience": "e1"})
     assert json.loads(estimate_message(learned, 0.0, None))["experience"] == "e1"
+
+
+def test_replay_learn_through_the_local_transport(camera_maps: Path, tmp_path: Path,
+                                                  cloudy1: Round) -> None:
+    from typer.testing import CliRunner
+
+    from client.cli import app
+
+    shutil.copytree(camera_maps, tmp_path / "maps")
+    out = CliRunner().invoke(app, [
+        "replay", str(cloudy1.path), "--map", "route", "--via", f"local:{tmp_path / 'maps'}",
+        "--learn", "--condition", "cloudy", "--out", str(tmp_path / "report")])
+    assert out.exit_code == 0, out.output
+    assert "map route: version" in out.output and "condition cloudy" in out.output
+    m = load_map(tmp_path / "maps" / "route.swmap")
+    (e,) = experience_list(m)
+    assert e["condition"] == "cloudy" and e["robot"] == "replay" and e["images"] > 0
