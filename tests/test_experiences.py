@@ -8,6 +8,7 @@ nothing.
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from pathlib import Path
 
@@ -17,7 +18,8 @@ import pytest
 from client.dataset import Round
 from client.lab.world import World
 from service.api.errors import NotFound
-from service.api.models import Estimate, PosePrior, SessionConfig
+from service.api.models import Estimate, MapSummary, PosePrior, SessionConfig
+from service.api.round_format import camera_from_hfov
 from service.engine.learning import Learner, LearnGates, _Trail
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
@@ -30,22 +32,27 @@ from service.maps.experiences import (
     experience_list,
     remove_experience,
 )
-from service.maps.route_map import RouteMap, build_map_from_rounds, load_map, save_map
+from service.maps.route_map import RouteMap, load_map, save_map
 from service.settings import Settings
-from service.vision.features import extract
+from service.vision.features import Features, extract
+from service.vision.metric_pose import Camera
 
-
-def _images(m: RouteMap, rnd: Round, ids: range, tag: str) -> list[NewImage]:
-    out = []
-    for i in ids:
-        f = extract(rnd.load_image(i), m.feature_params)
-        out.append(NewImage(f.codes, f.keypoints, np.asarray(rnd.xy[i], float), f"{tag}/{i}"))
-    return out
+STRETCH = 60  # cloudy frames the map-format tests use (a stretch of the round)
+LEARN_FRAMES = 30  # frames a learning session sends (the start of the round)
+# test settings: a commit every few taught frames (over the stretch: two while the session
+# runs, a few images left for its end), and a gate 1 that the short stretch passes
+LEARN = {"learn_commit_images": 7, "learn_accuracy_m": 2.0}
 
 
 @pytest.fixture(scope="module")
-def cloudy_images(small_map: RouteMap, cloudy1: Round) -> list[NewImage]:
-    return _images(small_map, cloudy1, range(len(cloudy1)), "cloudy")
+def cloudy_features(small_map: RouteMap, cloudy1: Round) -> list[Features]:
+    return [extract(cloudy1.load_image(i), small_map.feature_params) for i in range(STRETCH)]
+
+
+@pytest.fixture(scope="module")
+def cloudy_images(cloudy_features: list[Features], cloudy1: Round) -> list[NewImage]:
+    return [NewImage(f.codes, f.keypoints, np.asarray(cloudy1.xy[i], float), f"cloudy/{i}")
+            for i, f in enumerate(cloudy_features)]
 
 
 @pytest.fixture
@@ -94,13 +101,13 @@ def test_one_image_per_place_and_experience(map_copy: RouteMap,
 def test_budget_retires_the_least_used_experience(map_copy: RouteMap,
                                                   cloudy_images: list[NewImage]) -> None:
     assert map_copy.path is not None
-    a, _ = add_experience(map_copy, map_copy.path, "used", cloudy_images[0:30],
+    a, _ = add_experience(map_copy, map_copy.path, "used", cloudy_images[0:20],
                           condition=None, robot=None, now=1.0, budget_bytes=1 << 30)
-    b, _ = add_experience(a, map_copy.path, "idle", cloudy_images[30:60], condition=None,
+    b, _ = add_experience(a, map_copy.path, "idle", cloudy_images[20:40], condition=None,
                           robot=None, now=2.0, budget_bytes=1 << 30)
     size = {e["id"]: e["bytes"] for e in experience_list(b)}
     budget = size["used"] + size["idle"] + 1000  # room for the two, not for a third
-    c, retired = add_experience(b, map_copy.path, "new", cloudy_images[60:90],
+    c, retired = add_experience(b, map_copy.path, "new", cloudy_images[40:60],
                                 condition=None, robot=None, now=3.0, budget_bytes=budget,
                                 usage={"used": (12, 2.5)})
     assert retired == ["idle"]
@@ -115,7 +122,8 @@ def test_budget_retires_the_least_used_experience(map_copy: RouteMap,
 
 
 def test_particles_match_one_layer_and_the_session_moves_to_todays_light(
-        map_copy: RouteMap, cloudy_images: list[NewImage], cloudy1: Round) -> None:
+        map_copy: RouteMap, cloudy_images: list[NewImage],
+        cloudy_features: list[Features]) -> None:
     assert map_copy.path is not None
     learned, _ = add_experience(map_copy, map_copy.path, "cloudy", cloudy_images,
                                 condition="cloudy", robot=None, now=1.0, budget_bytes=1 << 30)
@@ -125,7 +133,7 @@ def test_particles_match_one_layer_and_the_session_moves_to_todays_light(
         learned, _ = add_experience(learned, map_copy.path, f"other{k}", shifted,
                                     condition=None, robot=None, now=2.0, budget_bytes=1 << 30)
     assert learned.n_layers == 5
-    frames = [extract(cloudy1.load_image(i), map_copy.feature_params) for i in range(40)]
+    frames = cloudy_features[:40]
     taught = Localizer(learned, seed=1)
     fitness: list[int] = []
     step = taught.estimator.step
@@ -148,39 +156,70 @@ def test_particles_match_one_layer_and_the_session_moves_to_todays_light(
 
 
 @pytest.fixture(scope="module")
-def camera_maps(tmp_path_factory: pytest.TempPathFactory, sunny1: Round) -> Path:
-    """A maps directory with the sunny map built with the camera (the geometry gate runs)."""
+def camera_maps(tmp_path_factory: pytest.TempPathFactory, small_map: RouteMap,
+                small_world: World) -> Path:
+    """A maps directory with the sunny map and the world's camera (the geometry gate runs):
+    the session's map with the intrinsics in its metadata, as a build from the round with a
+    dataset.json camera gives."""
     d = tmp_path_factory.mktemp("exp_maps")
-    save_map(build_map_from_rounds([sunny1], name="route"), d / "route")
+    cam = small_world.camera
+    camera = Camera.from_dict(camera_from_hfov(cam.hfov_deg, cam.width, cam.height)).as_dict()
+    route = dataclasses.replace(small_map, name="route", meta={**small_map.meta,
+                                                               "camera": camera})
+    assert load_map(save_map(route, d / "route"), verify=True).geometry is not None
     return d
 
 
-def _service(camera_maps: Path, tmp_path: Path, **kw: float) -> LocalizationService:
+def _service(camera_maps: Path, tmp_path: Path) -> LocalizationService:
     d = tmp_path / "maps"
     shutil.copytree(camera_maps, d)
-    return LocalizationService(Settings(maps_dir=d, session_store="memory",
-                                        learn_commit_images=1000, **kw))
+    return LocalizationService(Settings(maps_dir=d, session_store="memory", **LEARN))
 
 
-def test_a_learning_session_teaches_its_map_a_new_version(
-        camera_maps: Path, tmp_path: Path, cloudy1: Round) -> None:
-    service = _service(camera_maps, tmp_path)
-    old = service.get_map("route").meta["checksum"]
+@dataclasses.dataclass(frozen=True)
+class LearningRun:
+    old: str  # the map's version before
+    during: str  # its version while the session still runs (after a commit)
+    stats: dict[str, int]
+    summary: MapSummary  # after the session ended
+    on_disk: RouteMap
+
+
+@pytest.fixture(scope="module")
+def learning_run(camera_maps: Path, tmp_path_factory: pytest.TempPathFactory,
+                 cloudy1: Round) -> LearningRun:
+    """One learning session over the start of the cloudy round (shared by the tests)."""
+    service = _service(camera_maps, tmp_path_factory.mktemp("learn"))
+    old = str(service.get_map("route").meta["checksum"])
     service.put_session("r1", SessionConfig(map="route", learn=True, condition="cloudy"))
-    for i in range(len(cloudy1)):
+    for i in range(LEARN_FRAMES):
         service.process_frame("r1", cloudy1.image_path(i).read_bytes(), t=float(i))
     stats = service.learner.stats("r1")
-    assert stats["taught"] > 0, stats
-    service.delete_session("r1")  # its images are written when it ends
+    during = str(service.map_summary("route").checksum)
+    service.delete_session("r1")  # the images collected since the last commit are written
     summary = service.map_summary("route")
-    assert summary.checksum != old
-    (e,) = summary.experiences
-    assert e.condition == "cloudy" and e.robot == "r1" and 0 < e.images <= stats["taught"]
-    m = load_map(service.get_map("route").path, verify=True)  # the file on disk is it
-    assert m.meta["checksum"] == summary.checksum
-    assert float(np.max(np.abs(m.positions[m.layers == e.layer] -
-                                 _truth(cloudy1, m.image_names, m.layers == e.layer)))) < 3.0
+    path = service.get_map("route").path
+    assert path is not None
+    on_disk = load_map(path, verify=True)
     service.close()
+    return LearningRun(old, during, stats, summary, on_disk)
+
+
+def test_a_learning_session_teaches_its_map_a_new_version(learning_run: LearningRun,
+                                                          cloudy1: Round) -> None:
+    run = learning_run
+    assert run.stats["seen"] == LEARN_FRAMES
+    assert run.stats["taught"] > LEARN["learn_commit_images"], run.stats
+    assert run.during != run.old  # a full collection is written while the session runs
+    # the end of the session writes the images still waiting (a new version), if any
+    assert (run.summary.checksum != run.during) == (run.stats["waiting"] > 0)
+    (e,) = run.summary.experiences  # one session, one experience
+    assert e.condition == "cloudy" and e.robot == "r1" and 0 < e.images <= run.stats["taught"]
+    m = run.on_disk  # the file on disk is it
+    assert m.meta["checksum"] == run.summary.checksum
+    mask = m.layers == e.layer
+    assert int(mask.sum()) == e.images
+    assert float(np.max(np.abs(m.positions[mask] - _truth(cloudy1, m.image_names, mask)))) < 3.0
 
 
 def _truth(rnd: Round, names: list[str], mask: np.ndarray) -> np.ndarray:
@@ -189,25 +228,23 @@ def _truth(rnd: Round, names: list[str], mask: np.ndarray) -> np.ndarray:
 
 
 def test_a_session_confidently_wrong_by_construction_learns_nothing(
-        camera_maps: Path, tmp_path: Path, sunny1: Round) -> None:
-    """Another route's frames with a forced prior along this map: the estimator is held at
+        camera_maps: Path, tmp_path: Path, sunny1: Round, cloudy1: Round) -> None:
+    """Frames of one place with a forced prior half the route away: the estimator is held at
     the prior, and the gates (tracking, path, weak appearance, the geometry) refuse all."""
-    other = World(seed=11, length_m=90.0)
-    other.render_round(tmp_path / "other", 3, "cloudy")
-    from client.dataset import read_round
-
-    rnd = read_round(tmp_path / "other")
     service = _service(camera_maps, tmp_path)
     old = service.get_map("route").meta["checksum"]
     service.put_session("liar", SessionConfig(map="route", learn=True, condition="cloudy"))
-    xy = sunny1.xy
-    for i in range(min(len(rnd), len(xy))):
-        service.process_frame("liar", rnd.image_path(i).read_bytes(), t=float(i),
-                              prior=PosePrior(x=float(xy[i][0]), y=float(xy[i][1]),
+    xy, n = sunny1.xy, len(sunny1.xy)
+    for i in range(LEARN_FRAMES):
+        there = xy[(i + n // 2) % n]
+        service.process_frame("liar", cloudy1.image_path(i).read_bytes(), t=float(i),
+                              prior=PosePrior(x=float(there[0]), y=float(there[1]),
                                               radius=1.0))
     stats = service.learner.stats("liar")
     service.delete_session("liar")
-    assert stats.get("taught", 0) == 0, stats
+    assert stats["seen"] == LEARN_FRAMES and stats.get("taught", 0) == 0, stats
+    assert sum(v for k, v in stats.items() if k not in ("seen", "taught", "waiting")) == \
+        LEARN_FRAMES  # every frame stopped at a gate
     assert service.get_map("route").meta["checksum"] == old
     assert service.map_summary("route").experiences == []
     service.close()
@@ -343,15 +380,19 @@ def test_the_viewer_stream_names_the_experience() -> None:
 
 
 def test_replay_learn_through_the_local_transport(camera_maps: Path, tmp_path: Path,
-                                                  cloudy1: Round) -> None:
+                                                  cloudy1: Round,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     from typer.testing import CliRunner
 
     from client.cli import app
 
+    for key, value in LEARN.items():  # the in-process service's settings
+        monkeypatch.setenv(f"SWARMLOC_{key.upper()}", str(value))
     shutil.copytree(camera_maps, tmp_path / "maps")
     out = CliRunner().invoke(app, [
         "replay", str(cloudy1.path), "--map", "route", "--via", f"local:{tmp_path / 'maps'}",
-        "--learn", "--condition", "cloudy", "--out", str(tmp_path / "report")])
+        "--length", "20", "--learn", "--condition", "cloudy",
+        "--out", str(tmp_path / "report")])
     assert out.exit_code == 0, out.output
     assert "map route: version" in out.output and "condition cloudy" in out.output
     m = load_map(tmp_path / "maps" / "route.swmap")
