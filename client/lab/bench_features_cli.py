@@ -19,6 +19,17 @@ def _kinds(features: str) -> list[str]:
     return kinds
 
 
+def _sizes(text: str, option: str) -> list[tuple[int, int]]:
+    """``WxH,WxH...`` as (width, height) pairs of at least 32x32."""
+    try:
+        wh = [tuple(int(v) for v in s.lower().split("x")) for s in text.split(",") if s]
+    except ValueError:
+        raise typer.BadParameter(f"{option} takes WxH,WxH..., got {text!r}") from None
+    if not wh or any(len(s) != 2 or min(s) < 32 for s in wh):
+        raise typer.BadParameter(f"{option} takes WxH,WxH... of at least 32x32, got {text!r}")
+    return [(s[0], s[1]) for s in wh]
+
+
 def register(bench_app: typer.Typer) -> None:
     """``bench webcam-night`` and ``bench extract`` on the CLI's bench group."""
 
@@ -72,20 +83,27 @@ def register(bench_app: typer.Typer) -> None:
         warmup: Annotated[int, typer.Option(min=0, help="frames of global convergence not "
                                                         "timed")] = 20,
         seed: int = 0,
+        sweep: Annotated[str, typer.Option(
+            help="features-per-frame caps, e.g. 500,1000,2000,4000: the step's growth with "
+                 "the features (needs DATASET), at --sweep-size")] = "",
+        sweep_size: Annotated[str, typer.Option(help="working size WxH of the sweep")]
+        = "1226x370",
+        skip_sizes: Annotated[bool, typer.Option(
+            help="only the sweep (not the table per size)")] = False,
     ) -> None:
         """Extraction ms per frame (median, OpenCV and ONNX Runtime on one thread) of each
         feature type at each size, the localizer step (median ms while tracking) on a map of
         that type beside it, and the ratio XFeat / RootSIFT, measured in one run."""
         from client.dataset import DatasetError, imread_gray
-        from client.lab.bench_extract import bench_extract, report, split_rounds
+        from client.lab.bench_extract import bench_extract, report, report_sweep, split_rounds
 
+        wh = _sizes(sizes, "--sizes")
         try:
-            wh = [tuple(int(v) for v in s.lower().split("x")) for s in sizes.split(",") if s]
+            caps = [int(c) for c in sweep.split(",") if c.strip()]
         except ValueError:
-            raise typer.BadParameter(f"--sizes takes WxH,WxH..., got {sizes!r}") from None
-        if not wh or any(len(s) != 2 or min(s) < 32 for s in wh):
-            raise typer.BadParameter(f"--sizes takes WxH,WxH... of at least 32x32, got "
-                                     f"{sizes!r}")
+            raise typer.BadParameter(f"--sweep takes N,N,..., got {sweep!r}") from None
+        if any(c < 2 for c in caps) or (caps and dataset is None):
+            raise typer.BadParameter("--sweep takes counts of at least 2 and needs a DATASET")
         if dataset is None and image is None:
             raise typer.BadParameter("give a DATASET (and rounds) or an --image to time")
         try:
@@ -98,6 +116,14 @@ def register(bench_app: typer.Typer) -> None:
             raise typer.BadParameter(f"{path} does not decode as an image")
         typer.echo(f"extraction timed on {path} resized to each size; step: "
                    + (f"{dataset} map {map_round}, query {query}" if rounds else "not measured"))
-        rows = bench_extract(img, [(s[0], s[1]) for s in wh], _kinds(features), repeats,
-                             rounds, frames, warmup, seed)
-        report(rows, typer.echo)
+        if not skip_sizes:
+            rows = bench_extract(img, wh, _kinds(features), repeats, rounds, frames, warmup,
+                                 seed)
+            report(rows, typer.echo)
+        if caps:
+            size = _sizes(sweep_size, "--sweep-size")[0]
+            typer.echo(f"sweep at {size[0]}x{size[1]}: features per frame capped at {caps} "
+                       "(map and frames); features/frame counted on the timed image")
+            swept = bench_extract(img, [size], _kinds(features), repeats, rounds, frames,
+                                  warmup, seed, caps)
+            report_sweep(swept, caps, typer.echo)

@@ -24,8 +24,11 @@ integers and float64, so the result equals the reference's.
 from __future__ import annotations
 
 import math
+import os
+import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,15 +39,54 @@ _TOL = 1e-6  # relative; the float32 key error is at most ~2.5e-7
 _TILE = 256  # rows of A per GEMM tile (the uint32 tile stays in L2)
 
 
-def _jit(fn: Callable) -> Callable:
-    """numba ``njit(cache=True, nogil=True)``; without the on-disk cache where it cannot be
-    written (read-only install and no writable user cache): compiled per process instead."""
+def _jit(fn: Callable) -> Any:
+    """numba ``njit(nogil=True)``, compiled on first use; ``cache_kernels_in`` gives it an
+    on-disk cache (this module gives every kernel the default one at import)."""
     import numba
 
+    return numba.njit(nogil=True)(fn)
+
+
+def default_cache_dir() -> Path:
+    """Where the kernels are cached by default: ``$XDG_CACHE_HOME/swarmloc/numba`` (else
+    ``~/.cache/swarmloc/numba``), never the installed package (site-packages may be
+    read-only, and a cache written there on the first frame made it take seconds)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "swarmloc" / "numba"
+
+
+def _writable_dir(path: Path) -> bool:
     try:
-        return numba.njit(cache=True, nogil=True)(fn)
-    except RuntimeError:  # "cannot cache function ...: no locator available"
-        return numba.njit(nogil=True)(fn)
+        path.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=path).close()
+    except OSError:
+        return False
+    return True
+
+
+def cache_kernels_in(path: Path | None, kernels: Sequence[Any] | None = None) -> Path | None:
+    """Keep the compiled numba kernels (``kernels``, default this module's) in ``path``;
+    returns the directory used, or None where ``path`` is None or cannot be written: the
+    kernels then compile in each process (a few seconds, in ``warm_up``)."""
+    import numba
+    from numba.core.caching import NullCache
+
+    config: Any = numba.config
+    used = path if path is not None and _writable_dir(path) else None
+    saved = config.CACHE_DIR
+    config.CACHE_DIR = str(used) if used is not None else ""
+    try:  # numba reads CACHE_DIR when a kernel's cache is made, not later
+        for kernel in _KERNELS if kernels is None else kernels:
+            try:
+                if used is not None:
+                    kernel.enable_caching()
+                    continue
+            except RuntimeError:  # "cannot cache function ...: no locator available"
+                used = None
+            kernel._cache = NullCache()  # numba's own "no cache" (njit without cache=True)
+    finally:
+        config.CACHE_DIR = saved
+    return used
 
 
 try:  # NumKong: exact packed uint8 GEMM (AMX / AVX-512 VNNI); optional, BLAS otherwise
@@ -330,6 +372,9 @@ _exact_scan = _jit(_exact_scan)
 _passes = _jit(_passes)
 _ratio = _jit(_ratio)
 _decide = _jit(_decide)
+_KERNELS: tuple[Any, ...] = (_scan_columns, _finish_row, _scan_rows, _scan_tile, _dot, _cos,
+                             _exact_scan, _passes, _ratio, _decide)
+cache_kernels_in(default_cache_dir())
 
 
 # ---- public API -----------------------------------------------------------------------------
@@ -435,9 +480,21 @@ def _reference_side(cos: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarr
     return best, ok
 
 
+def compiled_signatures() -> int:
+    """How many type signatures the kernels have compiled (or loaded) in this process."""
+    return sum(len(k.signatures) for k in _KERNELS)
+
+
 def warm_up() -> None:
-    """Compile (or load from the cache) the numba kernels, outside any timed section."""
+    """Compile (or load from the cache) the numba kernels for every argument type a frame
+    meets, outside any timed section: writable and read-only descriptors on either side (a
+    loaded map's codes are read-only memory maps; a map image is the frame of the two-view
+    geometry's structure), NumKong's uint32 and BLAS's float32 dot products."""
     rng = np.random.default_rng(0)
     x = rng.integers(1, 255, (20, 128), dtype=np.uint8)
+    ro = x.copy()
+    ro.flags.writeable = False
     for backend in ("auto", "blas"):
-        match_batch_u8(x, [x[:19], prepare(x[1:], backend)], backend=backend)
+        for a in (x, ro):
+            match_batch_u8(a, [x[:19], prepare(ro[1:], backend), prepare(x[2:], backend)],
+                           backend=backend)
