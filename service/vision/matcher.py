@@ -29,7 +29,7 @@ import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -362,6 +362,46 @@ def _decide(a, na, b, nb, inv_na, rm1, rj1, rm2, rd1, cm1, cm2, delta, tol, matc
     return count
 
 
+def _ivf_scan(a, na, words, b, nb, starts, rc1, rc2, rj, cc1, cc2, ci):
+    """Exact cosines of the candidate pairs (b's word among a's words): the two best of
+    every row (best column kept) and of every column (best row kept)."""
+    dims = a.shape[1]
+    for i in range(a.shape[0]):
+        for q in range(words.shape[1]):
+            w = words[i, q]
+            for j in range(starts[w], starts[w + 1]):
+                d = np.int64(0)
+                for t in range(dims):
+                    d += np.int32(a[i, t]) * np.int32(b[j, t])
+                c = min(d / (na[i] * nb[j]), 1.0)
+                if c > rc1[i]:
+                    rc2[i] = rc1[i]
+                    rc1[i] = c
+                    rj[i] = j
+                elif c > rc2[i]:
+                    rc2[i] = c
+                if c > cc1[j]:
+                    cc2[j] = cc1[j]
+                    cc1[j] = c
+                    ci[j] = i
+                elif c > cc2[j]:
+                    cc2[j] = c
+
+
+def _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, delta, matched):
+    """Rows in a symmetric ratio-test match among their candidates (a side with fewer than
+    two candidates never passes); returns the count and marks ``matched``."""
+    count = 0
+    for i in range(rc1.shape[0]):
+        j = rj[i]
+        if j < 0 or ci[j] != i or rc2[i] < -1.5 or cc2[j] < -1.5:
+            continue
+        if _passes(rc1[i], rc2[i], delta) and _passes(cc1[j], cc2[j], delta):
+            matched[i] = True
+            count += 1
+    return count
+
+
 _scan_columns = _jit(_scan_columns)
 _finish_row = _jit(_finish_row)
 _scan_rows = _jit(_scan_rows)
@@ -372,8 +412,10 @@ _exact_scan = _jit(_exact_scan)
 _passes = _jit(_passes)
 _ratio = _jit(_ratio)
 _decide = _jit(_decide)
+_ivf_scan = _jit(_ivf_scan)
+_ivf_decide = _jit(_ivf_decide)
 _KERNELS: tuple[Any, ...] = (_scan_columns, _finish_row, _scan_rows, _scan_tile, _dot, _cos,
-                             _exact_scan, _passes, _ratio, _decide)
+                             _exact_scan, _passes, _ratio, _decide, _ivf_scan, _ivf_decide)
 cache_kernels_in(default_cache_dir())
 
 
@@ -439,6 +481,53 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
     return BatchMatch(counts, scores, matched)
 
 
+class WordSorted(Protocol):
+    """A map image's uint8 descriptors sorted by visual word (service/vision/vocabulary.py):
+    ``desc`` (n, D) uint8 word by word, ``norms`` (n,) float64, ``starts`` (k + 1,) int64
+    (word q's rows are starts[q]:starts[q + 1])."""
+
+    @property
+    def desc(self) -> np.ndarray: ...
+    @property
+    def norms(self) -> np.ndarray: ...
+    @property
+    def starts(self) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class _Sorted:  # one word, for the warm-up
+    desc: np.ndarray
+    norms: np.ndarray
+    starts: np.ndarray
+
+
+def match_batch_ivf(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray,
+                    sets: Sequence[WordSorted], delta: float = DEFAULT_DELTA) -> BatchMatch:
+    """The symmetric ratio test of ``a`` (nA, D) uint8 against each word-sorted set, among
+    the candidate pairs only: b's word is one of ``words_a``'s (nA, w) words of a. Exact
+    cosines; with every word probed it equals ``match_batch_u8``."""
+    k = len(sets)
+    na_rows = len(a)
+    counts = np.zeros(k, np.int64)
+    matched = np.zeros((k, na_rows), bool)
+    nb_all = np.array([len(s.desc) for s in sets], np.int64)
+    for idx, s in enumerate(sets):
+        nb = len(s.desc)
+        if nb < 2 or na_rows < 2:
+            continue
+        rc1 = np.full(na_rows, -2.0)
+        rc2 = np.full(na_rows, -2.0)
+        rj = np.full(na_rows, -1, np.int64)
+        cc1 = np.full(nb, -2.0)
+        cc2 = np.full(nb, -2.0)
+        ci = np.full(nb, -1, np.int64)
+        _ivf_scan(a, norms_a, words_a, s.desc, s.norms, s.starts, rc1, rc2, rj, cc1, cc2, ci)
+        counts[idx] = _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, float(delta), matched[idx])
+    denom = np.minimum(na_rows, nb_all)
+    scores = np.where(denom > 0, counts / np.maximum(denom, 1), 0.0)
+    return BatchMatch(counts, scores, matched)
+
+
 def match_batch_u8_reference(a: np.ndarray, sets: Sequence[np.ndarray],
                              delta: float = DEFAULT_DELTA) -> BatchMatch:
     """The definition above, written plainly: float64 dot products (exact for uint8),
@@ -498,3 +587,6 @@ def warm_up() -> None:
         for a in (x, ro):
             match_batch_u8(a, [x[:19], prepare(ro[1:], backend), prepare(x[2:], backend)],
                            backend=backend)
+    one_word = _Sorted(x.copy(), norms_u8(x), np.array([0, len(x)], np.int64))
+    for a in (x, ro):
+        match_batch_ivf(a, norms_u8(a), np.zeros((len(a), 1), np.int64), [one_word])
