@@ -53,3 +53,15 @@ def test_one_map_and_seed_give_one_vocabulary_and_a_consistent_index(frames) -> 
     words = a.nearest(idx.desc)[:, 0]
     assert (np.diff(words) >= 0).all() and idx.starts[-1] == len(images[0])
     assert all((words[idx.starts[q]:idx.starts[q + 1]] == q).all() for q in range(a.k))
+
+
+def test_geometry_pairs_with_every_word_equal_the_exact_pairs(frames) -> None:
+    from service.vision.metric_pose import match_pairs
+
+    images, queries = frames
+    m = _matcher(images, k=16, probes=16)
+    for q in queries[:2]:
+        got = m.pairs(q, 3, 0.9)
+        want = match_pairs(q, images[3], 0.9)
+        assert len(want[0]) > 10
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])

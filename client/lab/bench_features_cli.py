@@ -60,6 +60,43 @@ def register(bench_app: typer.Typer) -> None:
             raise typer.BadParameter(str(exc)) from None
         report(b, typer.echo)
 
+    @bench_app.command("approx")
+    def approx_cmd(
+        dataset: Annotated[Path, typer.Argument(help="dataset with the rounds")],
+        map_round: Annotated[str, typer.Option("--map", help="round used as the map")]
+        = "sunny1",
+        query: Annotated[str, typer.Option(help="comma-separated query rounds (the map "
+                                                "round: its odd frames on a map of its even "
+                                                "frames)")] = "cloudy1",
+        size: Annotated[str, typer.Option(help="working size WxH")] = "320x240",
+        words: Annotated[int, typer.Option(min=1, help="visual words of the map (k)")] = 256,
+        probes: Annotated[int, typer.Option(min=1, help="words a frame feature is compared "
+                                                        "in (w)")] = 3,
+        frames: Annotated[int, typer.Option(min=1, help="frames after the warm-up")] = 60,
+        warmup: Annotated[int, typer.Option(min=0, help="frames of global convergence not "
+                                                        "scored")] = 20,
+        seed: int = 0,
+        max_features: Annotated[int, typer.Option(
+            min=0, help="features per frame capped at N with a low detector threshold (rich "
+                        "frames); 0: the default features")] = 0,
+    ) -> None:
+        """The inverted-file matcher against the exact one on the same frames: localizer
+        step, step / extraction, mean error, match counts and the best image per frame."""
+        from client.dataset import DatasetError
+        from client.lab.bench_approx import bench_approx, report
+        from client.lab.bench_extract import split_rounds
+
+        try:
+            pairs = [(q, *split_rounds(dataset, map_round, q)) for q in query.split(",") if q]
+        except DatasetError as exc:
+            raise typer.BadParameter(str(exc)) from None
+        wh = _sizes(size, "--size")[0]
+        typer.echo(f"{dataset} map {map_round} at {wh[0]}x{wh[1]}"
+                   + (f", at most {max_features} features" if max_features else "")
+                   + f"; inverted file k={words}, w={probes}; DPSO seed {seed}; one thread")
+        report(bench_approx(pairs, wh, frames, warmup, seed, words, probes, max_features),
+               typer.echo)
+
     @bench_app.command("extract")
     def extract_cmd(
         dataset: Annotated[Path | None, typer.Argument(

@@ -501,6 +501,31 @@ class _Sorted:  # one word, for the warm-up
     starts: np.ndarray
 
 
+def _ivf_one(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray, s: WordSorted,
+             delta: float, matched: np.ndarray) -> tuple[int, np.ndarray]:
+    """(count, each row's best candidate row of ``s``), marking ``matched``."""
+    na_rows, nb = len(a), len(s.desc)
+    rj = np.full(na_rows, -1, np.int64)
+    if nb < 2 or na_rows < 2:
+        return 0, rj
+    rc1 = np.full(na_rows, -2.0)
+    rc2 = np.full(na_rows, -2.0)
+    cc1 = np.full(nb, -2.0)
+    cc2 = np.full(nb, -2.0)
+    ci = np.full(nb, -1, np.int64)
+    _ivf_scan(a, norms_a, words_a, s.desc, s.norms, s.starts, rc1, rc2, rj, cc1, cc2, ci)
+    return _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, float(delta), matched), rj
+
+
+def pairs_ivf(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray, s: WordSorted,
+              delta: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (rows of ``a``, rows of ``s.desc``) of ``match_batch_ivf``'s matches."""
+    matched = np.zeros(len(a), bool)
+    _, rj = _ivf_one(a, norms_a, words_a, s, delta, matched)
+    rows = np.flatnonzero(matched)
+    return rows, rj[rows]
+
+
 def match_batch_ivf(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray,
                     sets: Sequence[WordSorted], delta: float = DEFAULT_DELTA) -> BatchMatch:
     """The symmetric ratio test of ``a`` (nA, D) uint8 against each word-sorted set, among
@@ -512,17 +537,7 @@ def match_batch_ivf(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray,
     matched = np.zeros((k, na_rows), bool)
     nb_all = np.array([len(s.desc) for s in sets], np.int64)
     for idx, s in enumerate(sets):
-        nb = len(s.desc)
-        if nb < 2 or na_rows < 2:
-            continue
-        rc1 = np.full(na_rows, -2.0)
-        rc2 = np.full(na_rows, -2.0)
-        rj = np.full(na_rows, -1, np.int64)
-        cc1 = np.full(nb, -2.0)
-        cc2 = np.full(nb, -2.0)
-        ci = np.full(nb, -1, np.int64)
-        _ivf_scan(a, norms_a, words_a, s.desc, s.norms, s.starts, rc1, rc2, rj, cc1, cc2, ci)
-        counts[idx] = _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, float(delta), matched[idx])
+        counts[idx] = _ivf_one(a, norms_a, words_a, s, delta, matched[idx])[0]
     denom = np.minimum(na_rows, nb_all)
     scores = np.where(denom > 0, counts / np.maximum(denom, 1), 0.0)
     return BatchMatch(counts, scores, matched)

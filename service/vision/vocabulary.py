@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.vision.features import DEFAULT_DELTA, BatchMatch, unit_descriptors
-from service.vision.matcher import match_batch_ivf, norms_u8
+from service.vision.matcher import match_batch_ivf, norms_u8, pairs_ivf
 
 DEFAULT_WORDS = 256  # k: visual words of a map
 DEFAULT_PROBES = 3  # w: nearest words a frame feature is compared in
@@ -68,10 +68,12 @@ class Vocabulary:
     def nearest(self, codes: np.ndarray, w: int = 1) -> np.ndarray:
         """(n, w) int64: the ``w`` nearest words of each row of uint8 ``codes``."""
         s = unit_descriptors(codes) @ self.centroids.T
-        w = min(w, self.k)
-        if w == 1:
-            return s.argmax(axis=1)[:, None].astype(np.int64)
-        return np.argpartition(-s, w - 1, axis=1)[:, :w].astype(np.int64)
+        out = np.empty((len(s), min(w, self.k)), np.int64)
+        rows = np.arange(len(s))
+        for q in range(out.shape[1]):  # w argmax passes: far cheaper than argpartition
+            out[:, q] = s.argmax(axis=1)
+            s[rows, out[:, q]] = -np.inf
+        return out
 
 
 @dataclass(frozen=True)
@@ -128,8 +130,9 @@ class InvertedFileMatcher:
             self._indexes[image_id] = found
         return found
 
-    def frame_words(self, codes: np.ndarray) -> FrameWords:
-        """The frame's words, computed once for the frame (the last frame's are kept)."""
+    def frame_words(self, codes: np.ndarray, keep: bool = True) -> FrameWords:
+        """The frame's words, computed once for the frame (the last frame's are kept;
+        ``keep=False``: codes of a map image, not kept)."""
         with self._lock:
             last = self._frame
         if last is not None and last.codes is codes:
@@ -138,8 +141,9 @@ class InvertedFileMatcher:
         fw = FrameWords(codes, norms_u8(c) if len(c) else np.zeros(0),
                         self.vocabulary.nearest(c, self.probes) if len(c) else
                         np.zeros((0, self.probes), np.int64))
-        with self._lock:
-            self._frame = fw
+        if keep:
+            with self._lock:
+                self._frame = fw
         return fw
 
     def match(self, codes: np.ndarray, image_ids: Sequence[int] | np.ndarray,
@@ -147,6 +151,16 @@ class InvertedFileMatcher:
         fw = self.frame_words(codes)
         return match_batch_ivf(np.ascontiguousarray(codes, np.uint8), fw.norms, fw.words,
                                [self.index(int(i)) for i in image_ids], delta)
+
+    def pairs(self, codes: np.ndarray, image_id: int, delta: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Matched feature indices (in ``codes``, in the image) for the two-view geometry,
+        through the vocabulary as the similarity's."""
+        c = np.ascontiguousarray(codes, np.uint8)
+        idx = self.index(image_id)
+        fw = self.frame_words(codes, keep=False)
+        rows, cols = pairs_ivf(c, fw.norms, fw.words, idx, delta)
+        return rows, idx.perm[cols]
 
     def similarity(self, codes: np.ndarray, image_ids: Sequence[int] | np.ndarray,
                    delta: float = DEFAULT_DELTA) -> np.ndarray:
