@@ -3,8 +3,9 @@ the exact one, side by side, on the same map, frames and seed.
 
 Per query round, two localizers with one map, one estimator (DPSO, the service's defaults)
 and one seed step through the same extracted frames: one with the exact similarity
-(``RouteMap.similarity``), one with the inverted file's, for the similarity and for the
-two-view geometry's matches (every other part is the map's own). Printed per round:
+(``RouteMap.similarity``), one with the inverted file's, for the similarity and (unless
+``--exact-geometry``) for the two-view geometry's matches (every other part is the map's
+own). Printed per round:
 
 - ``step ms``: the median ``Localizer.step`` over the frames after the warm-up (one thread,
   as ``swarmloc serve`` runs), and step / extraction;
@@ -38,9 +39,11 @@ from service.vision.vocabulary import DEFAULT_PROBES, DEFAULT_WORDS, InvertedFil
 class _WithMatcher:
     """The map, its similarity answered by an inverted file (everything else delegated)."""
 
-    def __init__(self, route_map: RouteMap, matcher: InvertedFileMatcher) -> None:
+    def __init__(self, route_map: RouteMap, matcher: InvertedFileMatcher,
+                 exact_geometry: bool = False) -> None:
         self._map = route_map
         self._matcher = matcher
+        self._exact_geometry = exact_geometry
 
     def similarity(self, codes: np.ndarray, image_ids: Any) -> np.ndarray:
         return self._matcher.similarity(codes, np.asarray(list(image_ids)), self._map.delta)
@@ -52,6 +55,8 @@ class _WithMatcher:
     @functools.cached_property
     def geometry(self) -> MapGeometry | None:
         """The map's two-view geometry on the inverted file's matches."""
+        if self._exact_geometry:
+            return self._map.geometry
         cam, p = self._map.camera, self._map.feature_params
         return None if cam is None else MapGeometry(self, cam, p.width, p.height)
 
@@ -90,8 +95,8 @@ def _run(loc: Localizer, feats: Sequence[Any], truth: np.ndarray, warmup: int
 
 
 def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], frames: int,
-            warmup: int, seed: int, k: int, probes: int, cap: int = 0, images: int = 18
-            ) -> ApproxRow:
+            warmup: int, seed: int, k: int, probes: int, cap: int = 0,
+            exact_geometry: bool = False, images: int = 18) -> ApproxRow:
     params = capped_params("clahe-rootsift", size, cap) if cap else \
         named_params("clahe-rootsift", *size)
     m = build_map_from_rounds([map_rnd], params=params)
@@ -105,7 +110,7 @@ def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], fram
         ext_ms.append(1e3 * (time.perf_counter() - t0))
     truth = query.reference_xy[:n]
     exact = Localizer(m, "dpso", {}, seed)
-    approx = Localizer(cast(RouteMap, _WithMatcher(m, ivf)), "dpso", {}, seed)
+    approx = Localizer(cast(RouteMap, _WithMatcher(m, ivf, exact_geometry)), "dpso", {}, seed)
     ms_e, err_e = _run(exact, feats, truth, warmup)
     ms_a, err_a = _run(approx, feats, truth, warmup)
     got, want, same = 0, 0, 0
@@ -126,18 +131,20 @@ def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], fram
 
 def bench_approx(pairs: Sequence[tuple[str, Round, Round]], size: tuple[int, int],
                  frames: int = 60, warmup: int = 20, seed: int = 0, k: int = DEFAULT_WORDS,
-                 probes: int = DEFAULT_PROBES, cap: int = 0) -> list[ApproxRow]:
+                 probes: int = DEFAULT_PROBES, cap: int = 0, exact_geometry: bool = False
+                 ) -> list[ApproxRow]:
     """One row per (name, map round, query round), OpenCV and BLAS on one thread; ``cap``:
     at most that many features per frame, with a low detector threshold (``bench extract``'s
-    sweep), 0: the default features."""
+    sweep), 0: the default features; ``exact_geometry``: the two-view geometry keeps the exact
+    matcher's pairs (only the similarity goes through the inverted file)."""
     from threadpoolctl import threadpool_limits
 
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
         with threadpool_limits(1, "blas"):
-            return [compare(mr, q, name, size, frames, warmup, seed, k, probes, cap)
-                    for name, mr, q in pairs]
+            return [compare(mr, q, name, size, frames, warmup, seed, k, probes, cap,
+                            exact_geometry) for name, mr, q in pairs]
     finally:
         cv2.setNumThreads(threads)
 

@@ -79,6 +79,8 @@ def register(bench_app: typer.Typer) -> None:
         max_features: Annotated[int, typer.Option(
             min=0, help="features per frame capped at N with a low detector threshold (rich "
                         "frames); 0: the default features")] = 0,
+        exact_geometry: Annotated[bool, typer.Option(
+            help="the two-view geometry on the exact matcher's pairs")] = False,
     ) -> None:
         """The inverted-file matcher against the exact one on the same frames: localizer
         step, step / extraction, mean error, match counts and the best image per frame."""
@@ -93,9 +95,11 @@ def register(bench_app: typer.Typer) -> None:
         wh = _sizes(size, "--size")[0]
         typer.echo(f"{dataset} map {map_round} at {wh[0]}x{wh[1]}"
                    + (f", at most {max_features} features" if max_features else "")
-                   + f"; inverted file k={words}, w={probes}; DPSO seed {seed}; one thread")
-        report(bench_approx(pairs, wh, frames, warmup, seed, words, probes, max_features),
-               typer.echo)
+                   + f"; inverted file k={words}, w={probes}"
+                   + (" (similarity only, exact geometry)" if exact_geometry else "")
+                   + f"; DPSO seed {seed}; one thread")
+        report(bench_approx(pairs, wh, frames, warmup, seed, words, probes, max_features,
+                            exact_geometry), typer.echo)
 
     @bench_app.command("extract")
     def extract_cmd(
