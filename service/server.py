@@ -86,13 +86,18 @@ def warm_kernels(settings: Settings, service: LocalizationService) -> str:
     """Compile (or load from the cache directory) the matcher's kernels and run each loaded
     map's feature type once, before the service reports ready: the first frame then costs
     what a later one does. Returns the banner's line on where the kernels are cached."""
-    from service.vision.features import warm_up
-    from service.vision.matcher import cache_kernels_in, default_cache_dir
+    import numpy as np
+
+    from service.vision.features import extract
+    from service.vision.matcher import cache_kernels_in, default_cache_dir, warm_up
 
     wanted = settings.numba_cache_dir or default_cache_dir()
     used = cache_kernels_in(wanted)
     t0 = time.perf_counter()
-    warm_up([m.feature_params for m in service.maps.values()])
+    rng = np.random.default_rng(0)
+    for p in dict.fromkeys(m.feature_params for m in service.maps.values()):
+        extract(rng.integers(0, 256, (p.height, p.width), dtype=np.uint8), p)  # XFeat: ONNX
+    warm_up()
     took = f"ready in {time.perf_counter() - t0:.1f} s"
     if used is None:
         return (f"{took}, compiled at each start: {wanted} is not writable "

@@ -174,18 +174,6 @@ def extract(image: np.ndarray, params: FeatureParams | None = None) -> Features:
     return Features(pts, codes[keep])
 
 
-def warm_up(params: Sequence[FeatureParams]) -> None:
-    """Run each feature type once (OpenCV's SIFT, XFeat's ONNX Runtime session, made on first
-    use) and the matcher's kernels (service/vision/matcher.py), so that the first frame costs
-    what a later one does."""
-    from service.vision.matcher import warm_up as warm_matcher
-
-    rng = np.random.default_rng(0)
-    for p in dict.fromkeys(params):
-        extract(rng.integers(0, 256, (p.height, p.width), dtype=np.uint8), p)
-    warm_matcher()
-
-
 def _angles(dots: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(dots, -1.0, 1.0))
 
