@@ -135,3 +135,17 @@ def test_cli_extract_bench_sweeps_features_per_frame(rounds_dir: Path) -> None:
     bad = CliRunner().invoke(app, ["bench", "extract", "--image", str(rounds_dir / "x.png"),
                                    "--sweep", "100"])
     assert bad.exit_code != 0 and "DATASET" in bad.output
+
+
+def test_cli_approx_bench_prints_both_matchers_side_by_side(rounds_dir: Path) -> None:
+    out = CliRunner().invoke(app, ["bench", "approx", str(rounds_dir), "--map", "sunny1",
+                                   "--query", "sunny2", "--words", "16", "--frames", "4",
+                                   "--warmup", "6", "--exact-geometry"])
+    assert out.exit_code == 0, out.output
+    [row] = _rows(out.output, "sunny2")
+    steps = [float(v) for v in row[3].split(" / ")]
+    assert len(steps) == 2 and min(steps) > 0
+    assert 0.5 < float(row[6]) < 1.5  # the inverted file's counts near the exact ones
+    assert "similarity only" in out.output
+    bad = CliRunner().invoke(app, ["bench", "approx", str(rounds_dir), "--query", "nope"])
+    assert bad.exit_code != 0
