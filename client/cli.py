@@ -16,6 +16,7 @@ import typer
 from client.lab.bench_features_cli import register as register_feature_benches
 from client.lab.bench_frame_cli import register as register_frame_bench
 from client.lab.bench_load_cli import register as register_load_bench
+from client.lab.bench_odometry import register as register_odometry_bench
 from client.lab.experiment_cli import experiment, sweep
 from client.lab.scale_map_cli import register as register_scale_map
 from service.cli import DebugOpt, run_cli, serve
@@ -43,6 +44,7 @@ app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
 register_load_bench(bench_app)  # bench load, bench fuzz (client/lab/bench_load_cli.py)
 register_frame_bench(bench_app)  # bench frame (client/lab/bench_frame_cli.py)
+register_odometry_bench(bench_app)  # bench odometry (client/lab/bench_odometry.py)
 # bench webcam-night, bench extract (client/lab/bench_features_cli.py)
 register_feature_benches(bench_app)
 register_scale_map(world_app, bench_app)  # world long-route, bench scale-map

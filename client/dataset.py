@@ -6,8 +6,9 @@ WGS84 degrees) and the PNG/JPEG images it names by relative path. An optional ``
 beside it (same header, same images, same order) holds exact positions; ``poses.csv`` then holds
 the GPS-like ones. An optional ``odometry.csv`` (header ``image,x,y,yaw``, same images, same
 order) holds the robot's wheel-odometry pose at each image (m, m, rad in its own odometry
-frame), which a replay sends with the frames. An optional ``dataset.json`` at the top carries a name, a description and,
-for geographic data, the ``origin`` ({"lat": .., "lon": ..}) of the shared local frame.
+frame), which a replay sends with the frames. An optional ``dataset.json`` at the top
+carries a name, a description and, for geographic data, the ``origin``
+({"lat": .., "lon": ..}) of the shared local frame.
 """
 
 from __future__ import annotations

@@ -285,6 +285,12 @@ class DPSOParams(CommonParams):
     along_track_gate_m: float = Field(
         10.0, gt=0, le=1e5, description="a correction longer than this restarts the "
         "smoother at the swarm's estimate (m); 10 m, so a real jump is reported at once")
+    odom_alpha: float = Field(
+        0.3, ge=0, le=1, description="with wheel odometry, the share of the image "
+        "estimate's correction (along and across the path) the reported position takes "
+        "while tracking; the odometry's prediction carries the rest (an alpha filter whose "
+        "prediction is the odometry step; a correction beyond along_track_gate_m restarts "
+        "it at the estimate) (no unit)")
     odom_alpha_weak: float = Field(
         0.1, ge=0, le=1, description="with wheel odometry, the share of a weak frame's "
         "correction (along and across the path) the reported position takes; the "

@@ -66,10 +66,15 @@ class Localizer:
                  odom: Odometry | None = None) -> Estimate:
         return self.step(self.extract(image), t, prior, odom)
 
-    def odom_step(self, odom: Odometry | None) -> OdomStep | None:
+    def take_odometry(self, odom: Odometry | None) -> OdomStep | None:
         """The robot's motion since the previous frame from its odometry pose (None without
-        one, or after a frame without one); InvalidParameters for a step longer than
-        MAX_ODOM_STEP_M, before anything changes."""
+        one, or after a frame without one), and ``odom`` kept for the next frame;
+        InvalidParameters for a step longer than MAX_ODOM_STEP_M, before anything changes."""
+        step = self._odom_step(odom)
+        self.odom_prev = None if odom is None else (odom.x, odom.y, odom.yaw)
+        return step
+
+    def _odom_step(self, odom: Odometry | None) -> OdomStep | None:
         if odom is None or self.odom_prev is None:
             return None
         p = self.estimator.params
@@ -88,14 +93,13 @@ class Localizer:
              odom: Odometry | None = None) -> Estimate:
         """One frame: optional pose prior (x, y, radius), optional odometry pose, estimator
         step, Estimate."""
-        motion = self.odom_step(odom)
+        motion = self.take_odometry(odom)
         if prior is not None:
             self.estimator.constrain((prior[0], prior[1]), prior[2])
         codes = features.codes
         self.seed_places(codes)
         res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t,
                                   self.locator(features), motion)
-        self.odom_prev = None if odom is None else (odom.x, odom.y, odom.yaw)
         self.seq += 1
         self.last = self._estimate(res, t)
         return self.last

@@ -58,6 +58,7 @@ class StepResult:
     # odometry's yaw turned into the map, service/estimators/odometry.py) or "camera"
     heading_source: str = "motion"
     heading_sigma: float | None = None  # std of the heading, rad (None: not estimated)
+    located: bool = False  # the frame was located by two-view geometry (multi-swarm DPSO)
 
     @property
     def accuracy_m(self) -> float:

@@ -221,7 +221,7 @@ class MultiSwarmDPSO(DPSO):
         heading, source, h_sigma = self.odom_heading(odom, heading)
         return StepResult(reported, cov, heading, speed, status,
                           lost or self.recovering, ev.best_m, fitness.comparisons, spread,
-                          hypotheses, source, h_sigma)
+                          hypotheses, source, h_sigma, located is not None)
 
     def odometry_prediction(self, odom: OdomStep) -> np.ndarray:
         """Move every particle by the odometry step in the map frame, with its noise
@@ -318,12 +318,11 @@ class MultiSwarmDPSO(DPSO):
         nearest = int(ids[np.argmin(np.einsum("ij,ij->i", compared_xy - pos,
                                               compared_xy - pos))])
         tangent = path_tangent(self._map_positions, nearest, self._spacing)
-        if odom_d is not None:  # the odometry predicts; a weak frame corrects it a little
+        if odom_d is not None:  # the odometry predicts, the images correct a share of it
             weak = self.weak_frames > 0
-            return self.smoother.update(
-                pos, tangent, p.odom_alpha_weak if weak else alpha, p.along_track_gate_m,
-                self.ema_step, motion=odom_d, across=p.odom_alpha_weak if weak else 1.0,
-                hold=weak)
+            gain = p.odom_alpha_weak if weak else p.odom_alpha
+            return self.smoother.update(pos, tangent, gain, p.along_track_gate_m,
+                                        self.ema_step, motion=odom_d, across=gain, hold=weak)
         return self.smoother.update(pos, tangent, alpha, p.along_track_gate_m, self.ema_step)
 
     def mean_evidence(self) -> np.ndarray:
