@@ -292,9 +292,10 @@ class DPSOParams(CommonParams):
         "prediction is the odometry step; a correction beyond along_track_gate_m restarts "
         "it at the estimate) (no unit)")
     odom_alpha_weak: float = Field(
-        0.1, ge=0, le=1, description="with wheel odometry, the share of a weak frame's "
-        "correction (along and across the path) the reported position takes; the "
-        "odometry's prediction carries the rest, and a weak frame farther than "
+        0.05, ge=0, le=1, description="with wheel odometry, the share of the correction "
+        "(along and across the path) the reported position takes from a frame the images "
+        "do not confirm (not located where the map's geometry runs; weak without it); the "
+        "odometry's prediction carries the rest, and such a frame farther than "
         "along_track_gate_m from it is not taken at all (no unit)")
     metric_pose: bool = Field(
         True, description="while tracking, locate the camera between map images by two-view "

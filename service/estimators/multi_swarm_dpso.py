@@ -213,10 +213,13 @@ class MultiSwarmDPSO(DPSO):
             sigma = self.noise.sigma(p.metric_map_sigma_m, p.metric_jitter_gain,
                                      p.metric_jitter_prior_m)
             cov = np.eye(2) * sigma ** 2
+        geometry = self._geometry_runs(fitness)
+        # the images confirm the place: a located frame, or a strong one without geometry
+        confirmed = located is not None if geometry else self.weak_frames == 0
         reported = self._reported(pos, status, ids, compared_xy,
-                                  self._along_alpha(self._geometry_runs(fitness),
-                                                    located is not None), odom_d)
-        self.odom_observe(odom, pos, status is Status.TRACKING and self.weak_frames == 0,
+                                  self._along_alpha(geometry, located is not None), odom_d,
+                                  confirmed)
+        self.odom_observe(odom, pos, status is Status.TRACKING and confirmed,
                           lost or self.recovering)
         heading, source, h_sigma = self.odom_heading(odom, heading)
         return StepResult(reported, cov, heading, speed, status,
@@ -304,8 +307,8 @@ class MultiSwarmDPSO(DPSO):
         return None
 
     def _reported(self, pos: np.ndarray, status: Status, ids: np.ndarray,
-                  compared_xy: np.ndarray, alpha: float, odom_d: np.ndarray | None = None
-                  ) -> np.ndarray:
+                  compared_xy: np.ndarray, alpha: float, odom_d: np.ndarray | None = None,
+                  confirmed: bool = True) -> np.ndarray:
         """The position reported for the estimate ``pos``: smoothed along the map's path
         while tracking (service/estimators/along_track.py; ``alpha`` of the along-path correction),
         ``pos`` itself otherwise. The path's
@@ -319,10 +322,10 @@ class MultiSwarmDPSO(DPSO):
                                               compared_xy - pos))])
         tangent = path_tangent(self._map_positions, nearest, self._spacing)
         if odom_d is not None:  # the odometry predicts, the images correct a share of it
-            weak = self.weak_frames > 0
-            gain = p.odom_alpha_weak if weak else p.odom_alpha
+            gain = p.odom_alpha if confirmed else p.odom_alpha_weak
             return self.smoother.update(pos, tangent, gain, p.along_track_gate_m,
-                                        self.ema_step, motion=odom_d, across=gain, hold=weak)
+                                        self.ema_step, motion=odom_d, across=gain,
+                                        hold=not confirmed)
         return self.smoother.update(pos, tangent, alpha, p.along_track_gate_m, self.ema_step)
 
     def mean_evidence(self) -> np.ndarray:

@@ -8,8 +8,9 @@ To move particles in the map by that step, the estimator needs the robot's headi
 map. ``OdomHeading`` keeps the odometry integrated from the session's first step (its own
 dead-reckoned frame) and fits the rotation between that frame and the map from the places
 the images located the robot at: the rotation that best maps the dead-reckoned positions
-onto the image estimates (a weighted 2-D Procrustes fit, recent travel weighted more, so the
-odometry's heading drift is followed). The map heading is then the dead-reckoned yaw plus
+onto the image estimates (a weighted 2-D Procrustes fit with scale, Umeyama 1991; recent
+travel weighted more, so the odometry's heading drift is followed; the scale corrects the
+odometry's scale error). The map heading is then the dead-reckoned yaw plus
 that rotation. Until the fit has seen ``min_span_m`` of travel, the heading is the direction
 of motion the estimator tracks, with a wide uncertainty.
 
@@ -79,6 +80,7 @@ class OdomHeading:
         self.pairs = np.zeros((0, 5))  # (travelled, odom x, odom y, map x, map y)
         self.offset: float | None = None  # map yaw - dead-reckoned yaw, rad
         self.offset_sigma = math.pi  # its std, rad
+        self.scale = 1.0  # map metres per odometry metre, from the same fit
         self.since_fit = 0.0  # m travelled since the last fit (grows its std)
 
     def advance(self, step: OdomStep) -> None:
@@ -110,7 +112,8 @@ class OdomHeading:
         if heading is None:  # no direction known: the step only spreads the particles
             return np.zeros(2), step.distance + step.sigma_xy
         c, s = math.cos(heading), math.sin(heading)
-        d = np.array([c * step.forward - s * step.left, s * step.forward + c * step.left])
+        d = self.scale * np.array([c * step.forward - s * step.left,
+                                   s * step.forward + c * step.left])
         return d, math.hypot(step.sigma_xy, step.distance * min(sigma, 1.0))
 
     def observe(self, xy: np.ndarray) -> None:
@@ -141,9 +144,11 @@ class OdomHeading:
         dot = float(w @ np.einsum("ij,ij->i", a, b))
         cross = float(w @ (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
         theta = math.atan2(cross, dot)
+        # the odometry's scale error (wheel circumference): the similarity transform's scale
+        self.scale = float(np.clip(math.hypot(dot, cross) / (span * span), 0.8, 1.25))
         # residual scatter of the fit across the dead-reckoned spread gives its std
         c, s = math.cos(theta), math.sin(theta)
-        rot = a @ np.array([[c, s], [-s, c]])
+        rot = self.scale * (a @ np.array([[c, s], [-s, c]]))
         resid = math.sqrt(float(w @ np.einsum("ij,ij->i", b - rot, b - rot)))
         n_eff = 1.0 / float(w @ w)
         self.offset = theta
