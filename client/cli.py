@@ -495,6 +495,8 @@ def replay_cmd(
     = False,
     repeat: Annotated[int, typer.Option(help="runs from evenly spaced start images")] = 1,
     length: Annotated[int | None, typer.Option(help="iterations per run")] = None,
+    odometry: Annotated[bool, typer.Option(help="send the round's odometry.csv with the "
+                                                "frames, where it has one")] = True,
     out: Annotated[Path, typer.Option(help="report directory")] = Path("report"),
     baseline: Annotated[Path | None, typer.Option(help="earlier report.json to compare")]
     = None,
@@ -528,20 +530,21 @@ def replay_cmd(
                          min_distance)
             round_dir = bag_round
         _replay(round_dir, map_name, via, estimator, param, seed, start, speed, kidnap,
-                repeat, length, out, baseline, tolerance, token, robot_id)
+                repeat, length, out, baseline, tolerance, token, robot_id, odometry)
 
 
 def _replay(round_dir: Path, map_name: str | None, via: str, estimator: str,
             param: list[str] | None, seed: int, start: int, speed: float, kidnap: bool,
             repeat: int, length: int | None, out: Path, baseline: Path | None,
-            tolerance: float, token: str | None, robot_id: str) -> None:
+            tolerance: float, token: str | None, robot_id: str, odometry: bool = True
+            ) -> None:
     from client.replay import ReplayConfig, replay
     from client.report import build_report, compare, write_report
     from client.transports import SwarmlocError, connect
 
     rnd = _read_round(round_dir)
     cfg = ReplayConfig(map_name, estimator, _parse_params(param), seed, start, speed, kidnap,
-                       length, repeat)
+                       length, repeat, odometry)
     try:
         client = connect(via, token)
     except ValueError as exc:
