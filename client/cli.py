@@ -168,19 +168,23 @@ ImageTopic = Annotated[str | None, typer.Option(
 GpsTopic = Annotated[str | None, typer.Option(help="rosbag2: sensor_msgs/NavSatFix topic")]
 PoseTopic = Annotated[str | None, typer.Option(
     help="rosbag2: nav_msgs/Odometry, PoseStamped or PoseWithCovarianceStamped topic")]
+OdomTopic = Annotated[str | None, typer.Option(
+    help="rosbag2: nav_msgs/Odometry topic of the wheel odometry, written to odometry.csv")]
 MinDistance = Annotated[float, typer.Option(
     help="rosbag2: keep an image every this many metres travelled (0: all)")]
 
 
 def _convert_bag(bag: Path, image_topic: str | None, out: Path, gps_topic: str | None,
-                 pose_topic: str | None, min_distance: float) -> None:
+                 pose_topic: str | None, min_distance: float, odom_topic: str | None = None
+                 ) -> None:
     """Convert a rosbag2 recording to a round, or exit with what is wrong."""
     if not image_topic:
         _fail("a rosbag2 needs --image-topic (and --gps-topic or --pose-topic)")
     from client.bag import BagError, convert_bag
 
     try:
-        c = convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance)
+        c = convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance,
+                        odom_topic)
     except BagError as exc:
         _fail(str(exc))
     except ImportError as exc:
@@ -200,9 +204,10 @@ def dataset_from_bag(
     gps_topic: GpsTopic = None,
     pose_topic: PoseTopic = None,
     min_distance: MinDistance = 0.0,
+    odom_topic: OdomTopic = None,
 ) -> None:
     """Convert a rosbag2 recording (sqlite3 or MCAP) into a round of the dataset format."""
-    _convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance)
+    _convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance, odom_topic)
 
 
 # ---- maps -------------------------------------------------------------------------------
@@ -507,6 +512,7 @@ def replay_cmd(
     gps_topic: GpsTopic = None,
     pose_topic: PoseTopic = None,
     min_distance: MinDistance = 0.0,
+    odom_topic: OdomTopic = None,
 ) -> None:
     """Replay a round (or a rosbag2) against a map; write report.json, report.md and plots;
     compare with a baseline."""
@@ -527,7 +533,7 @@ def replay_cmd(
                 write_dataset_meta(tmp, {"origin": {"lat": origin[0], "lon": origin[1]}})
             bag_round = Path(tmp) / round_dir.stem
             _convert_bag(round_dir, image_topic, bag_round, gps_topic, pose_topic,
-                         min_distance)
+                         min_distance, odom_topic)
             round_dir = bag_round
         _replay(round_dir, map_name, via, estimator, param, seed, start, speed, kidnap,
                 repeat, length, out, baseline, tolerance, token, robot_id, odometry)
