@@ -38,7 +38,8 @@ def test_the_step_does_not_depend_on_the_odometry_origin() -> None:
 
 
 def test_the_heading_fit_finds_the_rotation_and_scale_between_odometry_and_map() -> None:
-    h = OdomHeading(min_span_m=1.0)
+    h = OdomHeading()
+    h.min_span_m = 1.0
     truth_offset, scale = 0.7, 1.03
     for k in range(30):  # a gentle curve, in odometry steps of 0.6 m
         h.advance(OdomStep(0.6, 0.0, 0.02, 0.0, 0.0))
@@ -88,7 +89,8 @@ def test_an_odometry_session_survives_the_store_bit_for_bit(small_map: RouteMap,
             loc.step(frames[i], float(i), odom=odom[i])
         twin = decode_session(encode_session(SessionState("r", loc, 0.0, 0.0)),
                               lambda name, checksum: small_map).localizer
-        assert twin.odom_prev == loc.odom_prev and twin.estimator.odometry.offset is not None
+        odo = twin.estimator.odometry
+        assert twin.odom_prev == loc.odom_prev and odo is not None and odo.offset is not None
         for i in range(30, 40):
             a = loc.step(frames[i], float(i), odom=odom[i])
             b = twin.step(frames[i], float(i), odom=odom[i])

@@ -104,7 +104,9 @@ class Estimator:
         self._converged = False
         self._last_t: float | None = None
         self._dt_ema: float | None = None
-        self.odometry = OdomHeading()  # the map heading from wheel odometry, where sent
+        # the map heading from wheel odometry: made by the first odometry step (a session
+        # without odometry stores nothing of it)
+        self.odometry: OdomHeading | None = None
         self.reset_motion()
 
     # ---- placement ----------------------------------------------------------------------
@@ -121,7 +123,7 @@ class Estimator:
         self._converged = False
         self._last_t = None
         self._dt_ema = None
-        self.odometry.reset()
+        self.odometry = None
         self.reset_motion()
 
     def sample_positions(self, n: int) -> np.ndarray:
@@ -219,6 +221,8 @@ class Estimator:
         """The odometry step in the map frame (m) and the std (m, per axis) of where it
         ends, turned by the map heading at the previous frame; advances the dead reckoning."""
         motion_heading = self.motion(1.0)[1] if self.ema_step is not None else None
+        if self.odometry is None:
+            self.odometry = OdomHeading()
         d, sigma = self.odometry.displacement(odom, motion_heading)
         self.odometry.advance(odom)
         return d, sigma
@@ -228,6 +232,8 @@ class Estimator:
         """After a frame: an image estimate ``trusted`` to be the place teaches the map
         heading; a lost place, or a frame without odometry, forgets the pairs (they may
         belong to a wrong place, or the dead reckoning missed a step)."""
+        if self.odometry is None:
+            return
         if odom is None or lost:
             if len(self.odometry.pairs):
                 self.odometry.forget()
@@ -239,7 +245,7 @@ class Estimator:
                      ) -> tuple[float, str, float | None]:
         """(heading, its source, its std): the odometry's where it has a map heading, the
         direction of motion ``heading`` otherwise."""
-        if odom is not None and self.odometry.offset is not None:
+        if odom is not None and self.odometry is not None and self.odometry.offset is not None:
             h, sigma = self.odometry.heading(None)
             assert h is not None
             return h, "odometry", sigma

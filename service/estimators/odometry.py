@@ -68,10 +68,11 @@ def body_step(prev: tuple[float, float, float], cur: tuple[float, float, float],
 class OdomHeading:
     """The robot's heading in the map from odometry and the image estimates."""
 
-    def __init__(self, tau_m: float = 12.0, min_span_m: float = 3.0, keep: int = 200) -> None:
-        self.tau_m = tau_m  # travel over which a pair's weight falls by e
-        self.min_span_m = min_span_m  # rms spread of the dead-reckoned points a fit needs
-        self.keep = keep  # pairs kept at most
+    tau_m = 12.0  # travel over which a pair's weight falls by e
+    min_span_m = 3.0  # rms spread of the dead-reckoned points a fit needs
+    keep = 200  # pairs kept at most
+
+    def __init__(self) -> None:
         self.reset()
 
     def reset(self) -> None:
@@ -81,7 +82,6 @@ class OdomHeading:
         self.offset: float | None = None  # map yaw - dead-reckoned yaw, rad
         self.offset_sigma = math.pi  # its std, rad
         self.scale = 1.0  # map metres per odometry metre, from the same fit
-        self.since_fit = 0.0  # m travelled since the last fit (grows its std)
 
     def advance(self, step: OdomStep) -> None:
         """Integrate one step into the dead-reckoned pose."""
@@ -91,7 +91,6 @@ class OdomHeading:
                               y + s * step.forward + c * step.left,
                               wrap_angle(yaw + step.turn)])
         self.travelled += step.distance
-        self.since_fit += step.distance
         if self.offset is not None:  # the odometry's heading drifts while no fit corrects it
             self.offset_sigma = math.hypot(self.offset_sigma,
                                            math.sqrt(step.var_yaw * step.distance))
@@ -153,4 +152,3 @@ class OdomHeading:
         n_eff = 1.0 / float(w @ w)
         self.offset = theta
         self.offset_sigma = max(resid / (span * math.sqrt(n_eff)), math.radians(0.5))
-        self.since_fit = 0.0
