@@ -82,9 +82,9 @@ def test_an_odometry_session_survives_the_store_bit_for_bit(small_map: RouteMap,
                                                             sunny2: Round) -> None:
     assert sunny2.odometry is not None
     odom = [Odometry(x=float(x), y=float(y), yaw=float(a)) for x, y, a in sunny2.odometry]
+    frames = [Localizer(small_map).extract(sunny2.load_image(i)) for i in range(40)]
     for est in ("dpso", "pf-l"):
         loc = Localizer(small_map, est, seed=2)
-        frames = [loc.extract(sunny2.load_image(i)) for i in range(40)]
         for i in range(30):
             loc.step(frames[i], float(i), odom=odom[i])
         twin = decode_session(encode_session(SessionState("r", loc, 0.0, 0.0)),
@@ -103,12 +103,9 @@ def test_the_kidnapped_robot_is_found_again_with_odometry(small_world: World,
     """The wheels know nothing of the kidnap (their step at the jump is an ordinary one):
     the images must win against the odometry. Headings come from the odometry once the
     fit has seen enough travel, and follow the robot's."""
-    seq_runs = [run(small_map, table, sunny2, "dpso", seed=s, start=st, kidnap=True,
-                    odometry=True) for s, st in ((0, 0), (1, 75))]
-    for r in seq_runs:
-        assert frames_to_recover(r) is not None, "the kidnap was not recovered"
+    r = run(small_map, table, sunny2, "dpso", seed=0, start=0, kidnap=True, odometry=True)
+    assert frames_to_recover(r) is not None, "the kidnap was not recovered"
     truth = small_world.round_trajectory(1, len(sunny2))[0][:, 2]
-    r = seq_runs[0]
     assert r.heading_sources is not None
     half = len(r.frames) // 2
     use = [k for k in range(20, half) if r.heading_sources[k] == "odometry"
