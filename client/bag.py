@@ -107,14 +107,14 @@ def _positions(reader: Any, store: Any, topic: str) -> tuple[np.ndarray, np.ndar
 
 def _odometry(reader: Any, store: Any, topic: str) -> tuple[np.ndarray, np.ndarray]:
     """(times, (N, 3) x, y, unwrapped yaw) of a nav_msgs/Odometry topic."""
+    from service.zenoh.ros2 import quaternion_yaw
+
     conns = _connections(reader, topic, ("nav_msgs/msg/Odometry",))
     times, values = [], []
     for conn, t_ns, raw in reader.messages(connections=conns):
         msg = store.deserialize_cdr(raw, conn.msgtype)
         pose = msg.pose.pose
-        q = pose.orientation
-        yaw = np.arctan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
-        v = (pose.position.x, pose.position.y, yaw)
+        v = (pose.position.x, pose.position.y, quaternion_yaw(pose.orientation))
         if np.all(np.isfinite(v)):
             times.append(_stamp(msg, t_ns))
             values.append(v)

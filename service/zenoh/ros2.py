@@ -179,8 +179,7 @@ class Codec:
         nav_msgs/Odometry; InvalidParameters for a non-finite pose."""
         msg = self.deserialize(payload, ODOMETRY)
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
-        yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
-        pose = (float(p.x), float(p.y), yaw)
+        pose = (float(p.x), float(p.y), quaternion_yaw(q))
         if not all(math.isfinite(v) for v in pose):
             raise InvalidParameters("odometry pose must be finite")
         st = msg.header.stamp
@@ -236,6 +235,11 @@ class Codec:
         prior = validated(PosePrior, {"x": float(p.x), "y": float(p.y), "radius": radius},
                           "initial pose")
         return prior, str(msg.header.frame_id)
+
+
+def quaternion_yaw(q: Any) -> float:
+    """Yaw (rad, about z) of a geometry_msgs/Quaternion."""
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
 def map_to_odom(map_base: tuple[float, float, float], odom_base: tuple[float, float, float]
