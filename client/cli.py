@@ -16,6 +16,7 @@ import typer
 from client.lab.bench_features_cli import register as register_feature_benches
 from client.lab.bench_frame_cli import register as register_frame_bench
 from client.lab.bench_load_cli import register as register_load_bench
+from client.lab.bench_odometry import register as register_odometry_bench
 from client.lab.experiment_cli import experiment, sweep
 from client.lab.scale_map_cli import register as register_scale_map
 from service.cli import DebugOpt, run_cli, serve
@@ -43,6 +44,7 @@ app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
 register_load_bench(bench_app)  # bench load, bench fuzz (client/lab/bench_load_cli.py)
 register_frame_bench(bench_app)  # bench frame (client/lab/bench_frame_cli.py)
+register_odometry_bench(bench_app)  # bench odometry (client/lab/bench_odometry.py)
 # bench webcam-night, bench extract (client/lab/bench_features_cli.py)
 register_feature_benches(bench_app)
 register_scale_map(world_app, bench_app)  # world long-route, bench scale-map
@@ -166,19 +168,23 @@ ImageTopic = Annotated[str | None, typer.Option(
 GpsTopic = Annotated[str | None, typer.Option(help="rosbag2: sensor_msgs/NavSatFix topic")]
 PoseTopic = Annotated[str | None, typer.Option(
     help="rosbag2: nav_msgs/Odometry, PoseStamped or PoseWithCovarianceStamped topic")]
+OdomTopic = Annotated[str | None, typer.Option(
+    help="rosbag2: nav_msgs/Odometry topic of the wheel odometry, written to odometry.csv")]
 MinDistance = Annotated[float, typer.Option(
     help="rosbag2: keep an image every this many metres travelled (0: all)")]
 
 
 def _convert_bag(bag: Path, image_topic: str | None, out: Path, gps_topic: str | None,
-                 pose_topic: str | None, min_distance: float) -> None:
+                 pose_topic: str | None, min_distance: float, odom_topic: str | None = None
+                 ) -> None:
     """Convert a rosbag2 recording to a round, or exit with what is wrong."""
     if not image_topic:
         _fail("a rosbag2 needs --image-topic (and --gps-topic or --pose-topic)")
     from client.bag import BagError, convert_bag
 
     try:
-        c = convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance)
+        c = convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance,
+                        odom_topic)
     except BagError as exc:
         _fail(str(exc))
     except ImportError as exc:
@@ -198,9 +204,10 @@ def dataset_from_bag(
     gps_topic: GpsTopic = None,
     pose_topic: PoseTopic = None,
     min_distance: MinDistance = 0.0,
+    odom_topic: OdomTopic = None,
 ) -> None:
     """Convert a rosbag2 recording (sqlite3 or MCAP) into a round of the dataset format."""
-    _convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance)
+    _convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance, odom_topic)
 
 
 # ---- maps -------------------------------------------------------------------------------
@@ -493,6 +500,8 @@ def replay_cmd(
     = False,
     repeat: Annotated[int, typer.Option(help="runs from evenly spaced start images")] = 1,
     length: Annotated[int | None, typer.Option(help="iterations per run")] = None,
+    odometry: Annotated[bool, typer.Option(help="send the round's odometry.csv with the "
+                                                "frames, where it has one")] = True,
     out: Annotated[Path, typer.Option(help="report directory")] = Path("report"),
     baseline: Annotated[Path | None, typer.Option(help="earlier report.json to compare")]
     = None,
@@ -503,6 +512,7 @@ def replay_cmd(
     gps_topic: GpsTopic = None,
     pose_topic: PoseTopic = None,
     min_distance: MinDistance = 0.0,
+    odom_topic: OdomTopic = None,
 ) -> None:
     """Replay a round (or a rosbag2) against a map; write report.json, report.md and plots;
     compare with a baseline."""
@@ -523,23 +533,24 @@ def replay_cmd(
                 write_dataset_meta(tmp, {"origin": {"lat": origin[0], "lon": origin[1]}})
             bag_round = Path(tmp) / round_dir.stem
             _convert_bag(round_dir, image_topic, bag_round, gps_topic, pose_topic,
-                         min_distance)
+                         min_distance, odom_topic)
             round_dir = bag_round
         _replay(round_dir, map_name, via, estimator, param, seed, start, speed, kidnap,
-                repeat, length, out, baseline, tolerance, token, robot_id)
+                repeat, length, out, baseline, tolerance, token, robot_id, odometry)
 
 
 def _replay(round_dir: Path, map_name: str | None, via: str, estimator: str,
             param: list[str] | None, seed: int, start: int, speed: float, kidnap: bool,
             repeat: int, length: int | None, out: Path, baseline: Path | None,
-            tolerance: float, token: str | None, robot_id: str) -> None:
+            tolerance: float, token: str | None, robot_id: str, odometry: bool = True
+            ) -> None:
     from client.replay import ReplayConfig, replay
     from client.report import build_report, compare, write_report
     from client.transports import SwarmlocError, connect
 
     rnd = _read_round(round_dir)
     cfg = ReplayConfig(map_name, estimator, _parse_params(param), seed, start, speed, kidnap,
-                       length, repeat)
+                       length, repeat, odometry)
     try:
         client = connect(via, token)
     except ValueError as exc:

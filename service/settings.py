@@ -116,6 +116,15 @@ class Settings(BaseSettings):
     ros2_initialpose_topic: str = Field(
         "{robot}/initialpose",
         description="geometry_msgs/PoseWithCovarianceStamped in: reset near it ('' disables)")
+    ros2_odom_topic: str = Field(
+        "{robot}/odom", description="nav_msgs/Odometry in: each frame takes the message "
+        "nearest its stamp as its odometry ('' disables)")
+    ros2_odom_max_age_s: float = Field(
+        0.5, gt=0, description="an Odometry message farther than this from a frame's stamp "
+        "is not used for it, s")
+    ros2_tf_topic: str = Field(
+        "tf", description="tf2_msgs/TFMessage out: map->odom (as AMCL) for frames that "
+        "carry odometry ('' disables)")
     ros2_default_robot: str = Field("robot", description="robot id when a topic template "
                                     "has no {robot}")
     ros2_frame_id: str | None = Field(None, description="frame_id of the poses "

@@ -6,10 +6,19 @@ from typing import Any, cast
 
 import numpy as np
 
-from service.api.models import Estimate, EstimatorName, Hypothesis
+from service.api.errors import InvalidParameters
+from service.api.models import (
+    MAX_ODOM_STEP_M,
+    Estimate,
+    EstimatorName,
+    HeadingSource,
+    Hypothesis,
+    Odometry,
+)
 from service.api.params import DPSOParams
 from service.estimators.base import StepResult
 from service.estimators.fitness import LocateFn
+from service.estimators.odometry import OdomStep, body_step
 from service.estimators.registry import make_estimator
 from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
@@ -38,6 +47,8 @@ class Localizer:
                        if route_map.place_index is not None and k > 0 else None)
         self.seq = 0
         self.last: Estimate | None = None
+        # the previous frame's odometry pose (x, y, yaw); None: that frame had none
+        self.odom_prev: tuple[float, float, float] | None = None
 
     @property
     def params(self) -> dict[str, Any]:
@@ -45,23 +56,50 @@ class Localizer:
 
     def reset(self, near: tuple[float, float] | None = None, radius: float | None = None) -> None:
         self.estimator.reset(near, radius)
+        self.odom_prev = None
 
     def extract(self, image: np.ndarray) -> Features:
         return extract(image, self.map.feature_params)
 
     def localize(self, image: np.ndarray, t: float | None = None,
-                 prior: tuple[float, float, float] | None = None) -> Estimate:
-        return self.step(self.extract(image), t, prior)
+                 prior: tuple[float, float, float] | None = None,
+                 odom: Odometry | None = None) -> Estimate:
+        return self.step(self.extract(image), t, prior, odom)
+
+    def take_odometry(self, odom: Odometry | None) -> OdomStep | None:
+        """The robot's motion since the previous frame from its odometry pose (None without
+        one, or after a frame without one), and ``odom`` kept for the next frame;
+        InvalidParameters for a step longer than MAX_ODOM_STEP_M, before anything changes."""
+        step = self._odom_step(odom)
+        self.odom_prev = None if odom is None else (odom.x, odom.y, odom.yaw)
+        return step
+
+    def _odom_step(self, odom: Odometry | None) -> OdomStep | None:
+        if odom is None or self.odom_prev is None:
+            return None
+        p = self.estimator.params
+        step = body_step(self.odom_prev, (odom.x, odom.y, odom.yaw),
+                         p.odom_var_xy if odom.var_xy is None else odom.var_xy,
+                         p.odom_var_yaw if odom.var_yaw is None else odom.var_yaw)
+        if not step.distance <= MAX_ODOM_STEP_M:
+            raise InvalidParameters(
+                f"odometry moved {step.distance:.4g} m since the robot's previous frame, more "
+                f"than {MAX_ODOM_STEP_M:g} m: a glitch or a reset odometry; send the frame "
+                "without odometry (or reset the session) to start it again")
+        return step
 
     def step(self, features: Features, t: float | None = None,
-             prior: tuple[float, float, float] | None = None) -> Estimate:
-        """One frame: optional pose prior (x, y, radius), estimator step, Estimate."""
+             prior: tuple[float, float, float] | None = None,
+             odom: Odometry | None = None) -> Estimate:
+        """One frame: optional pose prior (x, y, radius), optional odometry pose, estimator
+        step, Estimate."""
+        motion = self.take_odometry(odom)
         if prior is not None:
             self.estimator.constrain((prior[0], prior[1]), prior[2])
         codes = features.codes
         self.seed_places(codes)
         res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t,
-                                  self.locator(features))
+                                  self.locator(features), motion)
         self.seq += 1
         self.last = self._estimate(res, t)
         return self.last
@@ -94,10 +132,13 @@ class Localizer:
         cov = res.covariance
         pose_cov = np.diag([0.0, 0.0, _UNKNOWN_VAR, _UNKNOWN_VAR, _UNKNOWN_VAR, _UNKNOWN_VAR])
         pose_cov[:2, :2] = cov
+        if res.heading_sigma is not None:
+            pose_cov[5, 5] = res.heading_sigma ** 2
         return Estimate(
             seq=self.seq, stamp=t, frame_id=self.map.name,
             estimator=cast(EstimatorName, self.estimator_name),
-            x=x, y=y, lat=lat, lon=lon, heading=float(res.heading), speed=float(res.speed_mps),
+            x=x, y=y, lat=lat, lon=lon, heading=float(res.heading),
+            heading_source=cast(HeadingSource, res.heading_source), speed=float(res.speed_mps),
             status=res.status.value, lost=bool(res.lost), score=float(res.score),
             comparisons=int(res.comparisons), covariance=cov.tolist(),
             pose_covariance=pose_cov.ravel().tolist(), accuracy_m=res.accuracy_m,
