@@ -16,10 +16,11 @@ local maxima) and the reliability map at 1/8. The host does what upstream's
 quantised to int8 codes (x127), which is what a map stores.
 
 Similarity m(A, B): mutual nearest neighbours whose cosine exceeds ``min_cos`` (upstream's
-matcher) and that pass Lowe's ratio test at ``max_ratio`` (0.9), divided by min(|A|, |B|), the
+matcher) and that pass Lowe's ratio test at ``max_ratio`` (0.93), divided by min(|A|, |B|), the
 papers' normalisation of m. The ratio test is ours: without it unrelated images share about a
 quarter of their features by chance (KITTI at 320x240: 0.23), so a right place stood out only
-2.3x from the rest; with it 6.4x at the least (docs/research/lighting.md). A map built before
+2.3x from the far images (median 2.7x); with it 4.5x at the least (median 6.1x;
+docs/research/lighting.md). A map built before
 the test (format 4 without ``max_ratio``) gets it on load: its descriptors are the same.
 """
 
