@@ -53,6 +53,11 @@ class Settings(BaseSettings):
                               "works; it sleeps the rest so robots keep their frame rate")
     auth_token: str | None = Field(None, description="if set, HTTP needs 'Bearer <token>'")
     workers: int = Field(0, description="frame-processing threads (0: 2 x number of CPUs)")
+    numba_cache_dir: Path | None = Field(
+        None, description="where the matcher's compiled kernels are kept between starts "
+        "(default: $XDG_CACHE_HOME/swarmloc/numba, else ~/.cache/swarmloc/numba; never the "
+        "installed package). Unwritable: they compile at each start (seconds, before the "
+        "service reports ready)")
     opencv_threads: int = Field(1, ge=0, description="OpenCV's own threads per call (0: its "
                                 "default, all CPUs); frames already run in parallel threads")
     # ---- hardening: cost ceilings, input bounds, shutdown (README "Hardening")
