@@ -377,6 +377,7 @@ def map_build_remote(
     new: Annotated[bool, typer.Option(help="fail if the map exists (If-None-Match: *)")]
     = False,
     token: Token = None,
+    features: FeaturesOpt = "clahe-rootsift",
 ) -> None:
     """Zip a round, build its map on the service, follow the job with a progress bar."""
     import tempfile
@@ -392,7 +393,8 @@ def map_build_remote(
     with tempfile.TemporaryDirectory() as tmp:
         archive = zip_round(round_dir, Path(tmp) / "round.zip")
         try:
-            job = client.build_map_remote(name or round_dir.name, archive, "*" if new else None)
+            job = client.build_map_remote(name or round_dir.name, archive, "*" if new else None,
+                                          features)
             with tqdm(total=job.total, desc=f"build {job.map}", unit="img") as bar:
                 def show(j: JobInfo) -> None:
                     bar.update(j.done - bar.n)
@@ -629,6 +631,7 @@ def eval_split(
     height: int = 240,
     estimator: str = "dpso",
     seed: int = 0,
+    features: FeaturesOpt = "clahe-rootsift",
 ) -> None:
     """One traversal: map from the even frames, localize the odd frames (real-data check).
 
@@ -640,10 +643,10 @@ def eval_split(
     from client.lab.experiments import SimilarityTable, run
     from client.runs import run_metrics
     from service.maps.route_map import build_map_from_rounds
-    from service.vision.features import SiftParams, extract
+    from service.vision.features import extract
 
     rnd = _read_round(round_dir)
-    params = SiftParams(width=width, height=height)
+    params = feature_params(features, width, height)
     even = list(range(0, len(rnd), 2))
     odd = list(range(1, len(rnd), 2))
     m = build_map_from_rounds([rnd.subset(even, use_truth=True)], params=params)
@@ -655,8 +658,9 @@ def eval_split(
     query = rnd.subset(odd)
     res = run(m, SimilarityTable(m, feats), query, estimator, None, seed=seed)
     pr = m.meta["pruning"]
-    typer.echo(f"{rnd.name}: map of {m.n_images} even frames ({width}x{height}, pruning removed "
-               f"{100 * pr['removed_fraction']:.0f} %), {len(odd)} odd query frames")
+    typer.echo(f"{rnd.name}: map of {m.n_images} even frames ({features}, {width}x{height}, "
+               f"pruning removed {100 * pr['removed_fraction']:.0f} %), {len(odd)} odd query "
+               "frames")
     typer.echo(f"best match is an adjacent even frame for {adjacent}/{len(odd)} query frames")
     e = res.errors
     typer.echo(f"{estimator} replay of the odd frames: mean error {e.mean():.2f} m, median "

@@ -205,15 +205,18 @@ class HttpClient:
         return MapDeleted(**resp.json())
 
     def build_map_remote(self, name: str, archive: str | Path | bytes,
-                         if_none_match: str | None = None) -> JobInfo:
-        """Post a zip/tar(.gz) of a round; the service builds the map as a job."""
+                         if_none_match: str | None = None,
+                         features: str = "clahe-rootsift") -> JobInfo:
+        """Post a zip/tar(.gz) of a round; the service builds the map (of feature type
+        ``features``) as a job."""
         headers = {"Content-Type": "application/octet-stream",
                    **_conditions(None, if_none_match)}
+        url, params = f"/maps/{name}/build", {"features": features}
         if isinstance(archive, bytes):
-            resp = self._call("POST", f"/maps/{name}/build", content=archive, headers=headers)
+            resp = self._call("POST", url, content=archive, headers=headers, params=params)
         else:
             with Path(archive).open("rb") as fh:
-                resp = self._call("POST", f"/maps/{name}/build", content=fh, headers=headers)
+                resp = self._call("POST", url, content=fh, headers=headers, params=params)
         return JobInfo(**resp.json())
 
     def job(self, job_id: str) -> JobInfo:
@@ -369,9 +372,11 @@ class ZenohClient:
         return MapDeleted(**self._maps(name, action="delete", force=force, if_match=if_match))
 
     def build_map_remote(self, name: str, archive: str | Path | bytes,
-                         if_none_match: str | None = None) -> JobInfo:
+                         if_none_match: str | None = None,
+                         features: str = "clahe-rootsift") -> JobInfo:
         data = archive if isinstance(archive, bytes) else Path(archive).read_bytes()
-        return JobInfo(**self._maps(name, data, action="build", if_none_match=if_none_match))
+        return JobInfo(**self._maps(name, data, action="build", if_none_match=if_none_match,
+                                    features=features))
 
     def job(self, job_id: str) -> JobInfo:
         return JobInfo(**self._query(f"@jobs/{job_id}", b""))

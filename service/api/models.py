@@ -287,6 +287,9 @@ class MapDetail(MapSummary):
 
 
 JobState = Literal["queued", "running", "done", "failed"]
+FeatureTypeName = Literal["clahe-rootsift", "sift", "xfeat"]
+"""A map's feature type: CLAHE + RootSIFT (the default), the papers' SIFT, or XFeat (learned,
+holds at night)."""
 
 
 class JobInfo(BaseModel):
@@ -300,6 +303,7 @@ class JobInfo(BaseModel):
     error: str | None = Field(None, description="why a failed job failed")
     status: int | None = Field(None, description="HTTP status of that failure")
     checksum: str | None = Field(None, description="version of the map a done job installed")
+    features: FeatureTypeName = Field("clahe-rootsift", description="the map's feature type")
     created: float
     started: float | None = None
     finished: float | None = None
