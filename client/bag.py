@@ -8,7 +8,9 @@ NO_FIX are dropped) or from a ``nav_msgs/msg/Odometry``, ``geometry_msgs/msg/Pos
 ``geometry_msgs/msg/PoseWithCovarianceStamped`` topic (x/y metres), linearly interpolated to
 each image's stamp; images outside the positions' time span are left out (no extrapolation).
 Optionally only an image every ``min_distance`` metres of travelled path is kept (the papers
-record one about every 0.6 m).
+record one about every 0.6 m). With an ``odom_topic`` (``nav_msgs/msg/Odometry``, the
+robot's wheel odometry), each written image also gets the odometry pose (x, y, yaw)
+interpolated to its stamp (clamped at the ends of the topic's span) in ``odometry.csv``.
 
 A geographic round is written as ``image,lat,lon,t``. Rounds of one dataset must share a local
 frame, so the dataset's ``dataset.json`` ``origin`` is used, and written from the first fix
@@ -27,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from client.dataset import DATASET_FILE, write_dataset_meta, write_round
+from client.dataset import DATASET_FILE, write_dataset_meta, write_odometry, write_round
 from service.api.geo import LocalFrame
 
 NAVSATFIX = "sensor_msgs/msg/NavSatFix"
@@ -103,6 +105,27 @@ def _positions(reader: Any, store: Any, topic: str) -> tuple[np.ndarray, np.ndar
     return t[keep], vals[keep], geographic
 
 
+def _odometry(reader: Any, store: Any, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """(times, (N, 3) x, y, unwrapped yaw) of a nav_msgs/Odometry topic."""
+    from service.zenoh.ros2 import quaternion_yaw
+
+    conns = _connections(reader, topic, ("nav_msgs/msg/Odometry",))
+    times, values = [], []
+    for conn, t_ns, raw in reader.messages(connections=conns):
+        msg = store.deserialize_cdr(raw, conn.msgtype)
+        pose = msg.pose.pose
+        v = (pose.position.x, pose.position.y, quaternion_yaw(pose.orientation))
+        if np.all(np.isfinite(v)):
+            times.append(_stamp(msg, t_ns))
+            values.append(v)
+    if not times:
+        raise BagError(f"topic '{topic}' has no usable odometry message")
+    order = np.argsort(times, kind="stable")
+    t, vals = np.asarray(times)[order], np.asarray(values, float)[order]
+    vals[:, 2] = np.unwrap(vals[:, 2])
+    return t, vals
+
+
 def _dataset_meta(dataset_dir: Path) -> dict:
     meta_path = dataset_dir / DATASET_FILE
     if not meta_path.is_file():
@@ -143,8 +166,9 @@ def _encoded(msg: Any, msgtype: str) -> tuple[bytes, str]:
 
 def convert_bag(bag: str | Path, image_topic: str, out: str | Path,
                 gps_topic: str | None = None, pose_topic: str | None = None,
-                min_distance: float = 0.0) -> Conversion:
-    """Write the round ``out`` (which must not exist) from a rosbag2 recording."""
+                min_distance: float = 0.0, odom_topic: str | None = None) -> Conversion:
+    """Write the round ``out`` (which must not exist) from a rosbag2 recording; with
+    ``odom_topic``, its ``odometry.csv`` too."""
     from rosbags.rosbag2 import Reader
 
     from service.zenoh.ros2 import COMPRESSED_IMAGE, IMAGE, make_typestore
@@ -167,6 +191,7 @@ def convert_bag(bag: str | Path, image_topic: str, out: str | Path,
     try:
         with Reader(bag) as reader:
             pt, pv, geographic = _positions(reader, store, gps_topic or pose_topic or "")
+            odom = _odometry(reader, store, odom_topic) if odom_topic else None
             origin = None
             if geographic:  # the dataset's shared frame, else one around the first fix
                 o = meta.get("origin")
@@ -209,6 +234,10 @@ def convert_bag(bag: str | Path, image_topic: str, out: str | Path,
                         geographic=True)
         else:
             write_round(tmp, names, xy_arr, np.asarray(times))
+        if odom is not None:
+            ot, ov = odom
+            write_odometry(tmp, names, np.column_stack(
+                [np.interp(times, ot, ov[:, k]) for k in range(3)]))
         if origin is not None and "origin" not in meta:
             meta["origin"] = {"lat": origin[0], "lon": origin[1]}
             write_dataset_meta(out.parent, meta)

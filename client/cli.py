@@ -17,6 +17,7 @@ from client.lab.bench_experience_cli import register as register_experience_benc
 from client.lab.bench_features_cli import register as register_feature_benches
 from client.lab.bench_frame_cli import register as register_frame_bench
 from client.lab.bench_load_cli import register as register_load_bench
+from client.lab.bench_odometry import register as register_odometry_bench
 from client.lab.experiment_cli import experiment, sweep
 from client.lab.scale_map_cli import register as register_scale_map
 from service.cli import DebugOpt, run_cli, serve
@@ -45,6 +46,7 @@ app.add_typer(bench_app, name="bench")
 register_load_bench(bench_app)  # bench load, bench fuzz (client/lab/bench_load_cli.py)
 register_frame_bench(bench_app)  # bench frame (client/lab/bench_frame_cli.py)
 register_experience_bench(bench_app)  # bench experiences (client/lab/bench_experience_cli.py)
+register_odometry_bench(bench_app)  # bench odometry (client/lab/bench_odometry.py)
 # bench webcam-night, bench extract (client/lab/bench_features_cli.py)
 register_feature_benches(bench_app)
 register_scale_map(world_app, bench_app)  # world long-route, bench scale-map
@@ -168,19 +170,23 @@ ImageTopic = Annotated[str | None, typer.Option(
 GpsTopic = Annotated[str | None, typer.Option(help="rosbag2: sensor_msgs/NavSatFix topic")]
 PoseTopic = Annotated[str | None, typer.Option(
     help="rosbag2: nav_msgs/Odometry, PoseStamped or PoseWithCovarianceStamped topic")]
+OdomTopic = Annotated[str | None, typer.Option(
+    help="rosbag2: nav_msgs/Odometry topic of the wheel odometry, written to odometry.csv")]
 MinDistance = Annotated[float, typer.Option(
     help="rosbag2: keep an image every this many metres travelled (0: all)")]
 
 
 def _convert_bag(bag: Path, image_topic: str | None, out: Path, gps_topic: str | None,
-                 pose_topic: str | None, min_distance: float) -> None:
+                 pose_topic: str | None, min_distance: float, odom_topic: str | None = None
+                 ) -> None:
     """Convert a rosbag2 recording to a round, or exit with what is wrong."""
     if not image_topic:
         _fail("a rosbag2 needs --image-topic (and --gps-topic or --pose-topic)")
     from client.bag import BagError, convert_bag
 
     try:
-        c = convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance)
+        c = convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance,
+                        odom_topic)
     except BagError as exc:
         _fail(str(exc))
     except ImportError as exc:
@@ -200,9 +206,10 @@ def dataset_from_bag(
     gps_topic: GpsTopic = None,
     pose_topic: PoseTopic = None,
     min_distance: MinDistance = 0.0,
+    odom_topic: OdomTopic = None,
 ) -> None:
     """Convert a rosbag2 recording (sqlite3 or MCAP) into a round of the dataset format."""
-    _convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance)
+    _convert_bag(bag, image_topic, out, gps_topic, pose_topic, min_distance, odom_topic)
 
 
 # ---- maps -------------------------------------------------------------------------------
@@ -372,6 +379,7 @@ def map_build_remote(
     new: Annotated[bool, typer.Option(help="fail if the map exists (If-None-Match: *)")]
     = False,
     token: Token = None,
+    features: FeaturesOpt = "clahe-rootsift",
 ) -> None:
     """Zip a round, build its map on the service, follow the job with a progress bar."""
     import tempfile
@@ -387,7 +395,8 @@ def map_build_remote(
     with tempfile.TemporaryDirectory() as tmp:
         archive = zip_round(round_dir, Path(tmp) / "round.zip")
         try:
-            job = client.build_map_remote(name or round_dir.name, archive, "*" if new else None)
+            job = client.build_map_remote(name or round_dir.name, archive, "*" if new else None,
+                                          features)
             with tqdm(total=job.total, desc=f"build {job.map}", unit="img") as bar:
                 def show(j: JobInfo) -> None:
                     bar.update(j.done - bar.n)
@@ -495,6 +504,8 @@ def replay_cmd(
     = False,
     repeat: Annotated[int, typer.Option(help="runs from evenly spaced start images")] = 1,
     length: Annotated[int | None, typer.Option(help="iterations per run")] = None,
+    odometry: Annotated[bool, typer.Option(help="send the round's odometry.csv with the "
+                                                "frames, where it has one")] = True,
     out: Annotated[Path, typer.Option(help="report directory")] = Path("report"),
     baseline: Annotated[Path | None, typer.Option(help="earlier report.json to compare")]
     = None,
@@ -510,6 +521,7 @@ def replay_cmd(
     gps_topic: GpsTopic = None,
     pose_topic: PoseTopic = None,
     min_distance: MinDistance = 0.0,
+    odom_topic: OdomTopic = None,
 ) -> None:
     """Replay a round (or a rosbag2) against a map; write report.json, report.md and plots;
     compare with a baseline."""
@@ -530,24 +542,25 @@ def replay_cmd(
                 write_dataset_meta(tmp, {"origin": {"lat": origin[0], "lon": origin[1]}})
             bag_round = Path(tmp) / round_dir.stem
             _convert_bag(round_dir, image_topic, bag_round, gps_topic, pose_topic,
-                         min_distance)
+                         min_distance, odom_topic)
             round_dir = bag_round
         _replay(round_dir, map_name, via, estimator, param, seed, start, speed, kidnap,
-                repeat, length, out, baseline, tolerance, token, robot_id, learn, condition)
+                repeat, length, out, baseline, tolerance, token, robot_id, odometry, learn,
+                condition)
 
 
 def _replay(round_dir: Path, map_name: str | None, via: str, estimator: str,
             param: list[str] | None, seed: int, start: int, speed: float, kidnap: bool,
             repeat: int, length: int | None, out: Path, baseline: Path | None,
-            tolerance: float, token: str | None, robot_id: str, learn: bool = False,
-            condition: str | None = None) -> None:
+            tolerance: float, token: str | None, robot_id: str, odometry: bool = True,
+            learn: bool = False, condition: str | None = None) -> None:
     from client.replay import ReplayConfig, replay
     from client.report import build_report, compare, write_report
     from client.transports import SwarmlocError, connect
 
     rnd = _read_round(round_dir)
     cfg = ReplayConfig(map_name, estimator, _parse_params(param), seed, start, speed, kidnap,
-                       length, repeat, learn, condition)
+                       length, repeat, odometry, learn, condition)
     try:
         client = connect(via, token)
     except ValueError as exc:
@@ -645,6 +658,7 @@ def eval_split(
     height: int = 240,
     estimator: str = "dpso",
     seed: int = 0,
+    features: FeaturesOpt = "clahe-rootsift",
 ) -> None:
     """One traversal: map from the even frames, localize the odd frames (real-data check).
 
@@ -656,10 +670,10 @@ def eval_split(
     from client.lab.experiments import SimilarityTable, run
     from client.runs import run_metrics
     from service.maps.route_map import build_map_from_rounds
-    from service.vision.features import SiftParams, extract
+    from service.vision.features import extract
 
     rnd = _read_round(round_dir)
-    params = SiftParams(width=width, height=height)
+    params = feature_params(features, width, height)
     even = list(range(0, len(rnd), 2))
     odd = list(range(1, len(rnd), 2))
     m = build_map_from_rounds([rnd.subset(even, use_truth=True)], params=params)
@@ -671,8 +685,9 @@ def eval_split(
     query = rnd.subset(odd)
     res = run(m, SimilarityTable(m, feats), query, estimator, None, seed=seed)
     pr = m.meta["pruning"]
-    typer.echo(f"{rnd.name}: map of {m.n_images} even frames ({width}x{height}, pruning removed "
-               f"{100 * pr['removed_fraction']:.0f} %), {len(odd)} odd query frames")
+    typer.echo(f"{rnd.name}: map of {m.n_images} even frames ({features}, {width}x{height}, "
+               f"pruning removed {100 * pr['removed_fraction']:.0f} %), {len(odd)} odd query "
+               "frames")
     typer.echo(f"best match is an adjacent even frame for {adjacent}/{len(odd)} query frames")
     e = res.errors
     typer.echo(f"{estimator} replay of the odd frames: mean error {e.mean():.2f} m, median "

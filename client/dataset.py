@@ -4,8 +4,11 @@ A dataset is a directory with one sub-directory per traversal ("round"). Each ro
 ``poses.csv`` (header ``image,x,y[,t]`` in local metres east/north, or ``image,lat,lon[,t]`` in
 WGS84 degrees) and the PNG/JPEG images it names by relative path. An optional ``truth.csv``
 beside it (same header, same images, same order) holds exact positions; ``poses.csv`` then holds
-the GPS-like ones. An optional ``dataset.json`` at the top carries a name, a description and,
-for geographic data, the ``origin`` ({"lat": .., "lon": ..}) of the shared local frame.
+the GPS-like ones. An optional ``odometry.csv`` (header ``image,x,y,yaw``, same images, same
+order) holds the robot's wheel-odometry pose at each image (m, m, rad in its own odometry
+frame), which a replay sends with the frames. An optional ``dataset.json`` at the top
+carries a name, a description and, for geographic data, the ``origin``
+({"lat": .., "lon": ..}) of the shared local frame.
 """
 
 from __future__ import annotations
@@ -23,11 +26,13 @@ from service.api.round_format import (
     CALIB_FILE,
     DATASET_FILE,
     IMAGE_SUFFIXES,
+    ODOMETRY_FILE,
     POSES_FILE,
     TRUTH_FILE,
     DatasetError,
     dataset_camera,
     dataset_origin,
+    parse_odometry,
     parse_positions,
     read_meta,
 )
@@ -58,6 +63,7 @@ class Round:
     origin: tuple[float, float] | None  # (lat0, lon0) when the round was geographic
     # intrinsics as fractions of the image size {fx, fy, cx, cy}: dataset.json or calib.txt
     camera: dict[str, float] | None = None
+    odometry: np.ndarray | None = None  # (N, 3) x, y (m), yaw (rad) from odometry.csv
 
     def __len__(self) -> int:
         return len(self.images)
@@ -74,7 +80,7 @@ class Round:
                      (self.reference_xy if use_truth else self.xy)[i],
                      self.t[i] if self.t is not None else None,
                      self.truth_xy[i] if self.truth_xy is not None else None, self.origin,
-                     self.camera)
+                     self.camera, self.odometry[i] if self.odometry is not None else None)
 
     def image_path(self, i: int) -> Path:
         return self.path / self.images[i]
@@ -134,6 +140,8 @@ def read_round(
                 f"{path / TRUTH_FILE}: must list the same images in the same order as {POSES_FILE}"
             )
     camera = dataset_camera(path, _image_size(path / names[0]))
+    odometry = parse_odometry(path / ODOMETRY_FILE, names) \
+        if (path / ODOMETRY_FILE).is_file() else None
     return Round(
         name=path.name,
         path=path,
@@ -143,6 +151,7 @@ def read_round(
         truth_xy=truth_xy,
         origin=origin,
         camera=camera,
+        odometry=odometry,
     )
 
 
@@ -212,6 +221,20 @@ def write_round(
     _write_csv(path / POSES_FILE, names, np.asarray(xy, float), t, geographic)
     if truth_xy is not None:
         _write_csv(path / TRUTH_FILE, names, np.asarray(truth_xy, float), t)
+
+
+def write_odometry(path: str | Path, names: Sequence[str], poses: np.ndarray) -> None:
+    """Write ``odometry.csv`` (image,x,y,yaw) of a round, atomically."""
+    path = Path(path) / ODOMETRY_FILE
+    tmp = path.with_suffix(".csv.tmp")
+    with tmp.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["image", "x", "y", "yaw"])
+        for name, (x, y, yaw) in zip(names, np.asarray(poses, float), strict=True):
+            w.writerow([name, f"{x:.4f}", f"{y:.4f}", f"{yaw:.6f}"])
+        fh.flush()
+        os.fsync(fh.fileno())
+    tmp.replace(path)
 
 
 def write_dataset_meta(path: str | Path, meta: dict) -> None:

@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 
 from client.dataset import Round
-from client.runs import Run, frame_sequence
+from client.runs import Run, frame_sequence, odometry_along
 from client.transports import Client
-from service.api.models import Estimate
+from service.api.models import Estimate, Odometry
 
 
 @dataclass(frozen=True)
@@ -26,6 +26,7 @@ class ReplayConfig:
     kidnap: bool = False  # jump by n/2 images at the middle of the run (Sec. 7.1)
     length: int | None = None  # iterations per run (default: one round)
     repeat: int = 1  # runs from evenly spaced start images (seed + run index)
+    odometry: bool = True  # send the round's odometry.csv with the frames, where it has one
     learn: bool = False  # the runs teach the map an experience (service/maps/experiences.py)
     condition: str | None = None  # the light of the round: the experience's tag
 
@@ -41,6 +42,8 @@ def replay(client: Client, rnd: Round, cfg: ReplayConfig, *, robot_id: str = "re
     starts = [(cfg.start + k * n // cfg.repeat) % n for k in range(cfg.repeat)]
     for k, start in enumerate(starts):
         seq = frame_sequence(n, start, cfg.speed, cfg.kidnap, cfg.length)
+        odom = odometry_along(rnd.odometry, seq) \
+            if cfg.odometry and rnd.odometry is not None else None
         seed = cfg.seed + k
         client.create_session(robot_id, cfg.map_name, cfg.estimator, cfg.params, seed,
                               learn=cfg.learn, condition=cfg.condition)
@@ -56,7 +59,9 @@ def replay(client: Client, rnd: Round, cfg: ReplayConfig, *, robot_id: str = "re
             if q not in cache:
                 cache[q] = rnd.image_path(q).read_bytes()
             t0 = time.perf_counter()
-            est = client.localize(robot_id, cache[q], t=i * dt, seq=i)
+            est = client.localize(robot_id, cache[q], t=i * dt, seq=i, odom=None if odom is None
+                                  else Odometry(x=float(odom[i, 0]), y=float(odom[i, 1]),
+                                                yaw=float(odom[i, 2])))
             latency.append(1e3 * (time.perf_counter() - t0))
             estimates.append(est)
             if on_frame:

@@ -43,6 +43,44 @@ def frame_sequence(n: int, start: int = 0, speed: float = 1.0, kidnap: bool = Fa
     return seq
 
 
+def odometry_along(odom: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """The odometry poses (x, y, yaw) a robot sends along a run's ``frames``, from a round's
+    odometry poses ``odom`` (N, 3): each frame's step is the round's step into its image from
+    the previous frame's; where the run jumps (the kidnap, the loop's wrap) the wheels saw
+    only the round's ordinary step into the new image (from the image one stride before it;
+    at the loop's start, the last step of the round), never the jump."""
+    n = len(odom)
+    frames = np.asarray(frames)
+    out = np.zeros((len(frames), 3))
+    diffs = np.diff(frames)
+    forward = diffs[(diffs > 0) & (diffs < n // 4)]
+    stride = int(np.median(forward)) if len(forward) else 1
+    for k in range(1, len(frames)):
+        q, a = int(frames[k]), int(frames[k - 1])
+        if q == a:  # the same image again: standing
+            out[k] = out[k - 1]
+            continue
+        if not 0 < q - a < n // 4:  # a jump: the wheels saw an ordinary step
+            a = q - stride
+            if a < 0:
+                a, q = n - 1 - stride, n - 1
+        out[k] = _compose(out[k - 1], _relative(odom[a], odom[q]))
+    return out
+
+
+def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pose ``b`` in the body frame of pose ``a`` (x, y, yaw)."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    d = b[:2] - a[:2]
+    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], b[2] - a[2]])
+
+
+def _compose(a: np.ndarray, step: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([a[0] + c * step[0] - s * step[1], a[1] + s * step[0] + c * step[1],
+                     a[2] + step[2]])
+
+
 def true_speed(xy: np.ndarray, dt: float) -> np.ndarray:
     """Speed (m/s) between consecutive iterations; the first repeats the second."""
     step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
@@ -83,6 +121,8 @@ class Run:
     # feature extraction excluded (in process)
     latency_ms: np.ndarray
     estimates: list[Estimate] = field(default_factory=list)  # as received (replay only)
+    located: np.ndarray | None = None  # (N,) bool: located by two-view geometry (in process)
+    heading_sources: list[str] | None = None  # (N,) what each heading is (in process)
 
     @classmethod
     def from_estimates(cls, estimates: Sequence[Estimate], *, estimator: str, start: int,

@@ -26,6 +26,7 @@ from service.api.models import (
     MapDeleted,
     MapDetail,
     MapSummary,
+    Odometry,
     PosePrior,
     SessionConfig,
     SessionInfo,
@@ -79,7 +80,8 @@ class Client(Protocol):
     def reset(self, robot_id: str, near: PosePrior | None = None) -> SessionInfo: ...
 
     def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
-                 seq: int | None = None, prior: PosePrior | None = None) -> Estimate: ...
+                 seq: int | None = None, prior: PosePrior | None = None,
+                 odom: Odometry | None = None) -> Estimate: ...
 
     def close(self) -> None: ...
 
@@ -100,7 +102,8 @@ def _conditions(if_match: str | None, if_none_match: str | None) -> dict[str, st
     return {k: v if v == "*" else f'"{v.strip(chr(34))}"' for k, v in h.items() if v}
 
 
-def _frame_params(t: float | None, seq: int | None, prior: PosePrior | None) -> dict:
+def _frame_params(t: float | None, seq: int | None, prior: PosePrior | None,
+                  odom: Odometry | None = None) -> dict:
     q: dict[str, Any] = {}
     if t is not None:
         q["t"] = t
@@ -108,6 +111,12 @@ def _frame_params(t: float | None, seq: int | None, prior: PosePrior | None) -> 
         q["seq"] = seq
     if prior is not None:
         q.update(prior_x=prior.x, prior_y=prior.y, prior_radius=prior.radius)
+    if odom is not None:
+        q.update(odom_x=odom.x, odom_y=odom.y, odom_yaw=odom.yaw)
+        if odom.var_xy is not None:
+            q["odom_var_xy"] = odom.var_xy
+        if odom.var_yaw is not None:
+            q["odom_var_yaw"] = odom.var_yaw
     return q
 
 
@@ -153,11 +162,13 @@ class HttpClient:
         return SessionInfo(**self._call("POST", f"/sessions/{robot_id}/reset", json=body).json())
 
     def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
-                 seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
+                 seq: int | None = None, prior: PosePrior | None = None,
+                 odom: Odometry | None = None) -> Estimate:
         data = _frame_bytes(image)
         ctype = "image/jpeg" if data[:2] == b"\xff\xd8" else "image/png"
         resp = self._call("POST", f"/sessions/{robot_id}/frames", content=data,
-                          params=_frame_params(t, seq, prior), headers={"Content-Type": ctype})
+                          params=_frame_params(t, seq, prior, odom),
+                          headers={"Content-Type": ctype})
         return Estimate(**resp.json())
 
     # ---- map lifecycle (PUT/DELETE /maps/NAME, POST /maps/NAME/build, GET /jobs/ID) ------
@@ -207,15 +218,18 @@ class HttpClient:
         return MapSummary(**resp.json())
 
     def build_map_remote(self, name: str, archive: str | Path | bytes,
-                         if_none_match: str | None = None) -> JobInfo:
-        """Post a zip/tar(.gz) of a round; the service builds the map as a job."""
+                         if_none_match: str | None = None,
+                         features: str = "clahe-rootsift") -> JobInfo:
+        """Post a zip/tar(.gz) of a round; the service builds the map (of feature type
+        ``features``) as a job."""
         headers = {"Content-Type": "application/octet-stream",
                    **_conditions(None, if_none_match)}
+        url, params = f"/maps/{name}/build", {"features": features}
         if isinstance(archive, bytes):
-            resp = self._call("POST", f"/maps/{name}/build", content=archive, headers=headers)
+            resp = self._call("POST", url, content=archive, headers=headers, params=params)
         else:
             with Path(archive).open("rb") as fh:
-                resp = self._call("POST", f"/maps/{name}/build", content=fh, headers=headers)
+                resp = self._call("POST", url, content=fh, headers=headers, params=params)
         return JobInfo(**resp.json())
 
     def job(self, job_id: str) -> JobInfo:
@@ -269,11 +283,12 @@ class AsyncHttpClient:
         return SessionInfo(**resp.json())
 
     async def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
-                       seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
+                       seq: int | None = None, prior: PosePrior | None = None,
+                 odom: Odometry | None = None) -> Estimate:
         data = _frame_bytes(image)
         ctype = "image/jpeg" if data[:2] == b"\xff\xd8" else "image/png"
         resp = await self._call("POST", f"/sessions/{robot_id}/frames", content=data,
-                                params=_frame_params(t, seq, prior),
+                                params=_frame_params(t, seq, prior, odom),
                                 headers={"Content-Type": ctype})
         return Estimate(**resp.json())
 
@@ -339,10 +354,13 @@ class ZenohClient:
         return SessionInfo(**self._control(robot_id, body))
 
     def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
-                 seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
+                 seq: int | None = None, prior: PosePrior | None = None,
+                 odom: Odometry | None = None) -> Estimate:
         meta: dict[str, Any] = {"t": t, "seq": seq}
         if prior is not None:
             meta["prior"] = prior.model_dump()
+        if odom is not None:
+            meta["odom"] = odom.model_dump(exclude_none=True)
         body = self._query(f"{robot_id}/localize", _frame_bytes(image), json.dumps(meta).encode())
         return Estimate(**body)
 
@@ -369,9 +387,11 @@ class ZenohClient:
         return MapDeleted(**self._maps(name, action="delete", force=force, if_match=if_match))
 
     def build_map_remote(self, name: str, archive: str | Path | bytes,
-                         if_none_match: str | None = None) -> JobInfo:
+                         if_none_match: str | None = None,
+                         features: str = "clahe-rootsift") -> JobInfo:
         data = archive if isinstance(archive, bytes) else Path(archive).read_bytes()
-        return JobInfo(**self._maps(name, data, action="build", if_none_match=if_none_match))
+        return JobInfo(**self._maps(name, data, action="build", if_none_match=if_none_match,
+                                    features=features))
 
     def job(self, job_id: str) -> JobInfo:
         return JobInfo(**self._query(f"@jobs/{job_id}", b""))
@@ -427,10 +447,11 @@ class LocalClient:
         return self._wrap(self.service.reset_session, robot_id, near)
 
     def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
-                 seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
+                 seq: int | None = None, prior: PosePrior | None = None,
+                 odom: Odometry | None = None) -> Estimate:
         data = _frame_bytes(image)
         return self._wrap(lambda: self.service.process_frame(
-            robot_id, data, t=t, prior=prior, transport="local", input_seq=seq))
+            robot_id, data, t=t, prior=prior, transport="local", input_seq=seq, odom=odom))
 
     def close(self) -> None:
         pass

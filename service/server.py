@@ -71,19 +71,42 @@ def limit_native_threads(settings: Settings) -> None:
 
 def run(settings: Settings) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    from service.vision.matcher import warm_up
-
     if settings.zenoh_enabled:
         check_security(settings)  # before the kernels compile: the refusal comes at once
     limit_native_threads(settings)
-    warm_up()  # compile (or load) the matcher's kernels before the first frame
     app = build_app(settings)
     service: LocalizationService = app.state.service
-    print(startup_banner(settings, sorted(service.maps), service.load_errors), flush=True)
+    kernels = warm_kernels(settings, service)
+    print(startup_banner(settings, sorted(service.maps), service.load_errors, kernels),
+          flush=True)
     _Server(_uvicorn_config(app, settings, "info"), service).run()
 
 
-def startup_banner(settings: Settings, maps: list[str], load_errors: dict[str, str]) -> str:
+def warm_kernels(settings: Settings, service: LocalizationService) -> str:
+    """Compile (or load from the cache directory) the matcher's kernels and run each loaded
+    map's feature type once, before the service reports ready: the first frame then costs
+    what a later one does. Returns the banner's line on where the kernels are cached."""
+    import numpy as np
+
+    from service.vision.features import extract
+    from service.vision.matcher import cache_kernels_in, default_cache_dir, warm_up
+
+    wanted = settings.numba_cache_dir or default_cache_dir()
+    used = cache_kernels_in(wanted)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(0)
+    for p in dict.fromkeys(m.feature_params for m in service.maps.values()):
+        extract(rng.integers(0, 256, (p.height, p.width), dtype=np.uint8), p)  # XFeat: ONNX
+    warm_up()
+    took = f"ready in {time.perf_counter() - t0:.1f} s"
+    if used is None:
+        return (f"{took}, compiled at each start: {wanted} is not writable "
+                "(SWARMLOC_NUMBA_CACHE_DIR)")
+    return f"{took}, cached in {used}"
+
+
+def startup_banner(settings: Settings, maps: list[str], load_errors: dict[str, str],
+                   kernels: str | None = None) -> str:
     """What a new operator needs at start-up: where to point a robot, a browser and a Zenoh
     peer, and whether the service is open to anyone who reaches it."""
     from service import __version__
@@ -115,6 +138,8 @@ def startup_banner(settings: Settings, maps: list[str], load_errors: dict[str, s
         ("maps", loaded),
         ("sessions", session_store_name(settings)),
     ]
+    if kernels is not None:
+        rows.append(("kernels", kernels))
     width = max(len(k) for k, _ in rows)
     return "\n".join([f"swarmloc {__version__}"] +
                      [f"  {k:<{width}}  {v}" for k, v in rows])

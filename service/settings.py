@@ -66,6 +66,11 @@ class Settings(BaseSettings):
         "well its consecutive images match each other)")
     auth_token: str | None = Field(None, description="if set, HTTP needs 'Bearer <token>'")
     workers: int = Field(0, description="frame-processing threads (0: 2 x number of CPUs)")
+    numba_cache_dir: Path | None = Field(
+        None, description="where the matcher's compiled kernels are kept between starts "
+        "(default: $XDG_CACHE_HOME/swarmloc/numba, else ~/.cache/swarmloc/numba; never the "
+        "installed package). Unwritable: they compile at each start (seconds, before the "
+        "service reports ready)")
     opencv_threads: int = Field(1, ge=0, description="OpenCV's own threads per call (0: its "
                                 "default, all CPUs); frames already run in parallel threads")
     # ---- hardening: cost ceilings, input bounds, shutdown (README "Hardening")
@@ -124,6 +129,15 @@ class Settings(BaseSettings):
     ros2_initialpose_topic: str = Field(
         "{robot}/initialpose",
         description="geometry_msgs/PoseWithCovarianceStamped in: reset near it ('' disables)")
+    ros2_odom_topic: str = Field(
+        "{robot}/odom", description="nav_msgs/Odometry in: each frame takes the message "
+        "nearest its stamp as its odometry ('' disables)")
+    ros2_odom_max_age_s: float = Field(
+        0.5, gt=0, description="an Odometry message farther than this from a frame's stamp "
+        "is not used for it, s")
+    ros2_tf_topic: str = Field(
+        "tf", description="tf2_msgs/TFMessage out: map->odom (as AMCL) for frames that "
+        "carry odometry ('' disables)")
     ros2_default_robot: str = Field("robot", description="robot id when a topic template "
                                     "has no {robot}")
     ros2_frame_id: str | None = Field(None, description="frame_id of the poses "

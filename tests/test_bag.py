@@ -179,6 +179,16 @@ def test_subsampling_by_distance_and_a_new_dataset_origin(tmp_path: Path, bags,
     assert 0.25 * 44 < len(rnd) < 0.55 * 44
 
 
+def test_the_odometry_topic_fills_odometry_csv(tmp_path: Path, bags) -> None:
+    bag, _ = bags["odom_mcap"]
+    _cli("dataset", "from-bag", bag, "--image-topic", "/robot1/camera/image_raw",
+         "--pose-topic", "/odom", "--odom-topic", "/odom", "--out", tmp_path / "r")
+    rnd = read_round(tmp_path / "r")
+    assert rnd.odometry is not None and rnd.odometry.shape == (len(rnd), 3)
+    assert np.allclose(rnd.odometry[:, :2], rnd.xy, atol=1e-3)  # the same topic, same stamps
+    assert np.allclose(rnd.odometry[:, 2], 0.0)  # the bag's orientation is the identity
+
+
 def test_bag_errors_say_what_is_wrong(tmp_path: Path, bags) -> None:
     bag, _ = bags["odom_mcap"]
     cases = [

@@ -117,3 +117,35 @@ def test_cli_extract_bench_times_an_image_alone_and_refuses_bad_sizes(
         assert bad.exit_code != 0 and "--sizes" in bad.output, sizes
     none = CliRunner().invoke(app, ["bench", "extract"])
     assert none.exit_code != 0 and "DATASET" in none.output
+
+
+def test_cli_extract_bench_sweeps_features_per_frame(rounds_dir: Path) -> None:
+    """The sweep caps the features of map and frames at each count: a larger cap gives more
+    features (the detector's threshold is low enough) and every row has its step."""
+    out = CliRunner().invoke(app, ["bench", "extract", str(rounds_dir), "--map", "sunny1",
+                                   "--query", "sunny1", "--sweep", "100,300",
+                                   "--sweep-size", "320x240", "--skip-sizes",
+                                   "--features", "clahe-rootsift", "--repeats", "1",
+                                   "--frames", "4", "--warmup", "10"])
+    assert out.exit_code == 0, out.output
+    rows = _rows(out.output, "clahe-rootsift")
+    assert [r[1] for r in rows] == ["100", "300"]
+    assert float(rows[0][2]) <= 100 < float(rows[1][2]) <= 300
+    assert all(float(r[4]) > 0 for r in rows) and rows[0][6] == "1.00"
+    bad = CliRunner().invoke(app, ["bench", "extract", "--image", str(rounds_dir / "x.png"),
+                                   "--sweep", "100"])
+    assert bad.exit_code != 0 and "DATASET" in bad.output
+
+
+def test_cli_approx_bench_prints_both_matchers_side_by_side(rounds_dir: Path) -> None:
+    out = CliRunner().invoke(app, ["bench", "approx", str(rounds_dir), "--map", "sunny1",
+                                   "--query", "sunny2", "--words", "16", "--frames", "4",
+                                   "--warmup", "6", "--exact-geometry"])
+    assert out.exit_code == 0, out.output
+    [row] = _rows(out.output, "sunny2")
+    steps = [float(v) for v in row[3].split(" / ")]
+    assert len(steps) == 2 and min(steps) > 0
+    assert 0.5 < float(row[6]) < 1.5  # the inverted file's counts near the exact ones
+    assert "similarity only" in out.output
+    bad = CliRunner().invoke(app, ["bench", "approx", str(rounds_dir), "--query", "nope"])
+    assert bad.exit_code != 0

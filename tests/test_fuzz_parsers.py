@@ -216,7 +216,7 @@ def test_attachment_parsers(raw: bytes) -> None:
         assert isinstance(out, dict)
     try:
         meta = parse_attachment(raw)
-        t, _seq, prior = _frame_args(meta)
+        t, _seq, prior, _odom = _frame_args(meta)
     except ServiceError as exc:
         assert exc.status in (400, 422)
         return
@@ -260,7 +260,7 @@ frame_meta = st.fixed_dictionaries({}, optional={
 @given(meta=frame_meta)
 def test_frame_attachment_fields(meta: dict) -> None:
     try:
-        t, _seq, prior = _frame_args(meta)
+        t, _seq, prior, _odom = _frame_args(meta)
     except ServiceError as exc:
         assert exc.status == 422 and exc.message.startswith("invalid attachment")
         return

@@ -25,6 +25,7 @@ from service.engine.localization_service import LocalizationService
 from service.maps.route_map import build_map, save_map
 from service.server import free_port, running_server
 from service.settings import Settings
+from service.vision.xfeat import XFeatParams
 
 
 def _start(tmp: Path, small_map, zenoh: bool = True, **kw):
@@ -226,6 +227,27 @@ def test_build_job_progress_and_map_appears_complete(srv, small_round, sunny2) -
     assert not list(srv.maps.glob(".swarmloc-*"))  # the extracted round is gone
 
 
+def test_a_build_makes_the_feature_type_asked_for(srv, small_round, sunny2) -> None:
+    archive = zip_round(small_round, small_round.parent / "part-x.zip")
+    r = httpx.post(f"{srv.url}/maps/xbuilt/build", content=archive.read_bytes(),
+                   params={"features": "surf"}, headers={"content-type": "application/zip"})
+    assert r.status_code == 422 and "features" in r.text  # refused before anything is staged
+    assert httpx.get(f"{srv.url}/maps/xbuilt").status_code == 404
+    job = srv.http.build_map_remote("xbuilt", archive, features="xfeat")
+    assert job.features == "xfeat"
+    deadline = time.monotonic() + 240
+    while job.state not in ("done", "failed") and time.monotonic() < deadline:
+        time.sleep(0.1)
+        job = srv.http.job(job.id)
+    assert job.state == "done", job
+    m = srv.service.get_map("xbuilt")
+    assert isinstance(m.feature_params, XFeatParams)
+    srv.http.create_session("xfeat-bot", "xbuilt")
+    est = srv.http.localize("xfeat-bot", sunny2.image_path(10).read_bytes(), t=0.0)
+    assert est.frame_id == "xbuilt"
+    srv.http.delete_map("xbuilt", force=True)
+
+
 def test_build_fails_cleanly_when_the_map_changed_meanwhile(srv, map_files, small_round
                                                             ) -> None:
     etag1 = _etag(_put(srv.url, "alt", map_files["v1"].read_bytes()))
@@ -365,6 +387,9 @@ def test_zenoh_map_operations_match_http(srv, map_files, small_round) -> None:
         buf = io.BytesIO()  # a .tar.gz this time
         with tarfile.open(fileobj=buf, mode="w:gz") as tf:
             tf.add(small_round, arcname="part")
+        with pytest.raises(SwarmlocError) as ez:
+            z.build_map_remote("zbad", buf.getvalue(), features="surf")
+        assert ez.value.status == 400 and "xfeat" in ez.value.message
         job = z.build_map_remote("zbuilt", buf.getvalue())
         deadline = time.monotonic() + 120
         while job.state not in ("done", "failed") and time.monotonic() < deadline:

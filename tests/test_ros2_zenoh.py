@@ -22,8 +22,10 @@ from service.settings import Settings
 from service.zenoh.ros2 import (
     COMPRESSED_IMAGE,
     IMAGE,
+    ODOMETRY,
     POSE,
     STATUS,
+    TF,
     Codec,
     Ros2Endpoints,
     Stamp,
@@ -401,3 +403,52 @@ def test_rosbags_is_imported_only_when_ros2_is_used() -> None:
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert res.stdout.split() == ["False", "False"]
+
+
+def odometry_msg(x: float, y: float, yaw: float, t: float) -> bytes:
+    pose = T["geometry_msgs/msg/Pose"](
+        position=T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+        orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2),
+                                                      w=math.cos(yaw / 2)))
+    twist = T["geometry_msgs/msg/Twist"](linear=T["geometry_msgs/msg/Vector3"](x=0, y=0, z=0),
+                                         angular=T["geometry_msgs/msg/Vector3"](x=0, y=0, z=0))
+    msg = T[ODOMETRY](
+        header=_header(t, "odom"), child_frame_id="base_link",
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+        twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)))
+    return bytes(TS.serialize_cdr(msg, ODOMETRY))
+
+
+def test_odometry_in_gives_map_to_odom_on_tf(ros_server, peer, sunny2) -> None:
+    """An Odometry message and a frame in, a TFMessage out: map->odom composed with the
+    odometry pose of the frame is the Estimate's pose (issue 33)."""
+    robot = "odombot"
+    assert sunny2.odometry is not None
+    tf_l, json_l = _listen(peer, "tf", f"swarmloc/{robot}/estimate")
+    t0 = 1_700_000_100.0
+    try:
+        for k, i in enumerate(range(30, 36)):
+            x, y, yaw = (float(v) for v in sunny2.odometry[i])
+            peer.put(f"{robot}/odom", odometry_msg(x - 5.0, y + 2.0, yaw, t0 + k - 0.02))
+            time.sleep(0.2)  # the odometry is there before the frame
+            peer.put(f"{robot}/camera/image_raw/compressed",
+                     compressed(_jpeg(sunny2, i), t0 + k))
+            est = json.loads(json_l.get()[0])
+            tf = TS.deserialize_cdr(tf_l.get()[0], TF).transforms[0]
+            assert "error" not in est
+            assert (tf.header.frame_id, tf.child_frame_id) == ("small", "odom")
+            tx, ty = tf.transform.translation.x, tf.transform.translation.y
+            r = tf.transform.rotation
+            th = 2 * math.atan2(r.z, r.w)
+            ox, oy = x - 5.0, y + 2.0
+            mx = tx + math.cos(th) * ox - math.sin(th) * oy
+            my = ty + math.sin(th) * ox + math.cos(th) * oy
+            assert (mx, my) == (pytest.approx(est["x"], abs=1e-9),
+                                pytest.approx(est["y"], abs=1e-9))
+            assert math.isclose(math.remainder(th + yaw - est["heading"], math.tau), 0,
+                                abs_tol=1e-9)
+    finally:
+        for lis in (tf_l, json_l):
+            lis.close()
+    loc = ros_server["service"].session(robot).localizer
+    assert loc.odom_prev == pytest.approx((x - 5.0, y + 2.0, yaw))

@@ -28,6 +28,7 @@ from service.vision.xfeat import (
     XFeatModel,
     XFeatParams,
     file_sha256,
+    mnn_pairs,
 )
 
 
@@ -111,9 +112,53 @@ def test_the_geometry_locates_frames_with_xfeat_matches(xfeat_map: RouteMap, sun
     assert located >= 5
 
 
+def test_the_ratio_test_drops_ambiguous_mutual_neighbours() -> None:
+    """A mutual nearest neighbour whose second candidate is almost as near is chance: the
+    ratio test drops it, a clear match stays, and ratio 1 is upstream's plain MNN."""
+    rng = np.random.default_rng(5)
+    b = rng.normal(size=(3, 64))
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    clear = b[0] + 0.05 * rng.normal(size=64)
+    # halfway between b[1] and a slightly perturbed copy of it: two candidates equally near
+    b[2] = b[1] + 0.3 * rng.normal(size=64)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    ambiguous = b[1] + b[2]
+    a = np.stack([clear, ambiguous])
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    plain = mnn_pairs(a, b, 0.5, 1.0)
+    assert sorted(plain[0].tolist()) == [0, 1]  # both are mutual neighbours above the gate
+    ia, ib = mnn_pairs(a, b, 0.5, 0.95)
+    assert ia.tolist() == [0] and ib.tolist() == [0]
+
+
+def test_a_right_place_stands_out_across_light(xfeat_map: RouteMap, cloudy1: Round) -> None:
+    """Across light the right place's similarity stands out from the far images by more than
+    DPSO's distinct_ratio (3): without the ratio test unrelated images shared a quarter of their
+    features by chance and DPSO reported recovering at the right place (issue 28)."""
+    ratios = []
+    for i in range(5, len(cloudy1) - 5, 8):
+        f = extract(cloudy1.load_image(i), xfeat_map.feature_params)
+        scores = xfeat_map.similarity(f.codes, range(xfeat_map.n_images))
+        d = np.linalg.norm(xfeat_map.positions - np.asarray(cloudy1.xy[i]), axis=1)
+        ratios.append(scores[d <= 3.0].max() / max(float(np.median(scores[d > 15.0])), 1e-3))
+    assert np.median(ratios) >= 3.0
+
+
+def test_dpso_tracks_across_light_on_an_xfeat_map(xfeat_map: RouteMap, cloudy1: Round
+                                                  ) -> None:
+    loc = Localizer(xfeat_map, "dpso", {}, seed=3)
+    errors, tracking = [], []
+    for i in range(len(cloudy1)):
+        est = loc.localize(cloudy1.load_image(i), t=float(i))
+        if i >= 15:
+            errors.append(np.hypot(est.x - cloudy1.xy[i][0], est.y - cloudy1.xy[i][1]))
+            tracking.append(est.status == "tracking")
+    assert np.median(errors) < 2.0
+    assert np.mean(tracking) >= 0.7
+
+
 def test_dpso_localizes_on_an_xfeat_map(xfeat_map: RouteMap, sunny2: Round) -> None:
-    """Same light; across light the lost detection, tuned on RootSIFT's similarity levels,
-    still reports recovering where XFeat's background matches are higher (issue 28, open)."""
+    """Same light."""
     loc = Localizer(xfeat_map, "dpso", {}, seed=2)
     errors = []
     for i in range(len(sunny2)):

@@ -13,14 +13,21 @@ service's default session) and BLAS on one thread (as ``swarmloc serve`` runs it
   ``map`` round; when the query round is the map round, the map takes its even frames and the
   query its odd frames (KITTI's protocol).
 
-The ratio XFeat / RootSIFT of each is printed beside them.
+The ratio step / extraction of each row (issue 29's target: at most 0.5) and the ratio
+XFeat / RootSIFT of each are printed beside them.
+
+The sweep (``caps``; ``--sweep 500,1000,2000,4000``): the same step on maps and frames capped at N
+features per frame (SIFT's ``n_features`` with a low contrast threshold, XFeat's ``top_k``
+with a low detection threshold, so that the cap, not the detector, sets the count), at one
+size; the step's growth from the first count on is printed beside the growth of the count
+(linear: equal; the target is at most linear from 1,000 to 4,000).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -30,7 +37,7 @@ import numpy as np
 from client.dataset import Round, read_round
 from service.engine.localizer import Localizer
 from service.maps.route_map import build_map_from_rounds
-from service.vision.features import extract, named_params
+from service.vision.features import SiftParams, extract, named_params
 
 if TYPE_CHECKING:
     from service.vision.features import FeatureParams
@@ -47,6 +54,11 @@ class ExtractRow:
     extract_ms: float  # median
     step_ms: float | None  # median of the tracked frames; None: not measured
     tracked: int  # frames whose step was timed
+
+    @property
+    def step_ratio(self) -> float | None:
+        """step / extraction (medians)."""
+        return None if self.step_ms is None else self.step_ms / self.extract_ms
 
 
 def time_extract(image: np.ndarray, params: FeatureParams, repeats: int) -> tuple[float, int]:
@@ -91,9 +103,11 @@ def time_steps(map_rnd: Round, query: Round, params: FeatureParams, frames: int,
 def bench_extract(image: np.ndarray, sizes: Sequence[tuple[int, int]] = SIZES,
                   kinds: Sequence[str] = KINDS, repeats: int = 15,
                   rounds: tuple[Round, Round] | None = None, frames: int = 60,
-                  warmup: int = 20, seed: int = 0) -> list[ExtractRow]:
+                  warmup: int = 20, seed: int = 0, caps: Sequence[int] = ()
+                  ) -> list[ExtractRow]:
     """Extraction (and, given the map and query ``rounds``, the localizer step) per feature
-    type and size; OpenCV, ONNX Runtime and BLAS on one thread."""
+    type and size, or per cap of features per frame (``caps``, the module docstring); OpenCV, ONNX
+    Runtime and BLAS on one thread."""
     from threadpoolctl import threadpool_limits
 
     threads = cv2.getNumThreads()
@@ -103,25 +117,43 @@ def bench_extract(image: np.ndarray, sizes: Sequence[tuple[int, int]] = SIZES,
         with threadpool_limits(1, "blas"):
             for size in sizes:
                 for kind in kinds:
-                    params = named_params(kind, *size)
-                    ms, n = time_extract(image, params, repeats)
-                    steps = time_steps(*rounds, params, frames, warmup, seed) if rounds else []
-                    rows.append(ExtractRow(kind, size, n, ms, float(np.median(steps))
-                                           if steps else None, len(steps)))
+                    for cap in caps or (0,):
+                        params = capped_params(kind, size, cap) if cap else \
+                            named_params(kind, *size)
+                        rows.append(_row(image, params, kind, size, repeats, rounds, frames,
+                                         warmup, seed))
     finally:
         cv2.setNumThreads(threads)
     return rows
 
 
+def _row(image: np.ndarray, params: FeatureParams, kind: str, size: tuple[int, int],
+         repeats: int, rounds: tuple[Round, Round] | None, frames: int, warmup: int,
+         seed: int) -> ExtractRow:
+    ms, n = time_extract(image, params, repeats)
+    steps = time_steps(*rounds, params, frames, warmup, seed) if rounds else []
+    return ExtractRow(kind, size, n, ms, float(np.median(steps)) if steps else None, len(steps))
+
+
+def capped_params(kind: str, size: tuple[int, int], n: int) -> FeatureParams:
+    """Feature parameters of ``kind`` at ``size`` keeping the ``n`` strongest features, with
+    a detector threshold low enough that most frames have that many."""
+    params = named_params(kind, *size)
+    if isinstance(params, SiftParams):
+        return replace(params, n_features=n, contrast_threshold=0.005)
+    return replace(params, top_k=n, detection_threshold=0.005)
+
+
 def report(rows: Sequence[ExtractRow], say: Callable[[str], object] = print) -> None:
     """One line per feature type and size, then the ratio XFeat / RootSIFT per size."""
     say("| features | size | features/frame | extract ms (median) | step ms (median, "
-        "tracking) | tracked frames |")
-    say("|---|---|---|---|---|---|")
+        "tracking) | tracked frames | step / extract |")
+    say("|---|---|---|---|---|---|---|")
     for r in rows:
         step = "n/a" if r.step_ms is None else f"{r.step_ms:.1f}"
+        ratio = "n/a" if r.step_ratio is None else f"{r.step_ratio:.2f}"
         say(f"| {r.kind} | {r.size[0]}x{r.size[1]} | {r.features:.0f} | {r.extract_ms:.1f} | "
-            f"{step} | {r.tracked} |")
+            f"{step} | {r.tracked} | {ratio} |")
     by = {(r.kind, r.size): r for r in rows}
     for size in dict.fromkeys(r.size for r in rows):
         a, b = by.get(("clahe-rootsift", size)), by.get(("xfeat", size))
@@ -131,3 +163,22 @@ def report(rows: Sequence[ExtractRow], say: Callable[[str], object] = print) -> 
             f"x{b.step_ms / a.step_ms:.2f}"
         say(f"ratio xfeat / clahe-rootsift at {size[0]}x{size[1]}: extract "
             f"x{b.extract_ms / a.extract_ms:.2f}, step {step}")
+
+
+def report_sweep(rows: Sequence[ExtractRow], counts: Sequence[int],
+                 say: Callable[[str], object] = print) -> None:
+    """The sweep: per feature type, the step's growth against the features' growth."""
+    say("| features | cap | features/frame | extract ms | step ms | step / extract | "
+        "step growth / feature growth (from the first cap) |")
+    say("|---|---|---|---|---|---|---|")
+    for kind in dict.fromkeys(r.kind for r in rows):
+        mine = [r for r in rows if r.kind == kind]
+        first = mine[0]
+        for cap, r in zip(counts, mine, strict=True):
+            step = "n/a" if r.step_ms is None else f"{r.step_ms:.1f}"
+            ratio = "n/a" if r.step_ratio is None else f"{r.step_ratio:.2f}"
+            growth = "n/a" if r.step_ms is None or first.step_ms is None else \
+                f"{(r.step_ms / first.step_ms) / (r.features / first.features):.2f}"
+            say(f"| {kind} | {cap} | {r.features:.0f} | {r.extract_ms:.1f} | {step} | "
+                f"{ratio} | {growth} |")
+    say("(growth 1.00: the step grows as the features do, linearly; above 1: faster)")

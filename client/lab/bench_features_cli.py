@@ -19,6 +19,17 @@ def _kinds(features: str) -> list[str]:
     return kinds
 
 
+def _sizes(text: str, option: str) -> list[tuple[int, int]]:
+    """``WxH,WxH...`` as (width, height) pairs of at least 32x32."""
+    try:
+        wh = [tuple(int(v) for v in s.lower().split("x")) for s in text.split(",") if s]
+    except ValueError:
+        raise typer.BadParameter(f"{option} takes WxH,WxH..., got {text!r}") from None
+    if not wh or any(len(s) != 2 or min(s) < 32 for s in wh):
+        raise typer.BadParameter(f"{option} takes WxH,WxH... of at least 32x32, got {text!r}")
+    return [(s[0], s[1]) for s in wh]
+
+
 def register(bench_app: typer.Typer) -> None:
     """``bench webcam-night`` and ``bench extract`` on the CLI's bench group."""
 
@@ -49,6 +60,47 @@ def register(bench_app: typer.Typer) -> None:
             raise typer.BadParameter(str(exc)) from None
         report(b, typer.echo)
 
+    @bench_app.command("approx")
+    def approx_cmd(
+        dataset: Annotated[Path, typer.Argument(help="dataset with the rounds")],
+        map_round: Annotated[str, typer.Option("--map", help="round used as the map")]
+        = "sunny1",
+        query: Annotated[str, typer.Option(help="comma-separated query rounds (the map "
+                                                "round: its odd frames on a map of its even "
+                                                "frames)")] = "cloudy1",
+        size: Annotated[str, typer.Option(help="working size WxH")] = "320x240",
+        words: Annotated[int, typer.Option(min=1, help="visual words of the map (k)")] = 256,
+        probes: Annotated[int, typer.Option(min=1, help="words a frame feature is compared "
+                                                        "in (w)")] = 3,
+        frames: Annotated[int, typer.Option(min=1, help="frames after the warm-up")] = 60,
+        warmup: Annotated[int, typer.Option(min=0, help="frames of global convergence not "
+                                                        "scored")] = 20,
+        seed: int = 0,
+        max_features: Annotated[int, typer.Option(
+            min=0, help="features per frame capped at N with a low detector threshold (rich "
+                        "frames); 0: the default features")] = 0,
+        exact_geometry: Annotated[bool, typer.Option(
+            help="the two-view geometry on the exact matcher's pairs")] = False,
+    ) -> None:
+        """The inverted-file matcher against the exact one on the same frames: localizer
+        step, step / extraction, mean error, match counts and the best image per frame."""
+        from client.dataset import DatasetError
+        from client.lab.bench_approx import bench_approx, report
+        from client.lab.bench_extract import split_rounds
+
+        try:
+            pairs = [(q, *split_rounds(dataset, map_round, q)) for q in query.split(",") if q]
+        except DatasetError as exc:
+            raise typer.BadParameter(str(exc)) from None
+        wh = _sizes(size, "--size")[0]
+        typer.echo(f"{dataset} map {map_round} at {wh[0]}x{wh[1]}"
+                   + (f", at most {max_features} features" if max_features else "")
+                   + f"; inverted file k={words}, w={probes}"
+                   + (" (similarity only, exact geometry)" if exact_geometry else "")
+                   + f"; DPSO seed {seed}; one thread")
+        report(bench_approx(pairs, wh, frames, warmup, seed, words, probes, max_features,
+                            exact_geometry), typer.echo)
+
     @bench_app.command("extract")
     def extract_cmd(
         dataset: Annotated[Path | None, typer.Argument(
@@ -72,20 +124,27 @@ def register(bench_app: typer.Typer) -> None:
         warmup: Annotated[int, typer.Option(min=0, help="frames of global convergence not "
                                                         "timed")] = 20,
         seed: int = 0,
+        sweep: Annotated[str, typer.Option(
+            help="features-per-frame caps, e.g. 500,1000,2000,4000: the step's growth with "
+                 "the features (needs DATASET), at --sweep-size")] = "",
+        sweep_size: Annotated[str, typer.Option(help="working size WxH of the sweep")]
+        = "1226x370",
+        skip_sizes: Annotated[bool, typer.Option(
+            help="only the sweep (not the table per size)")] = False,
     ) -> None:
         """Extraction ms per frame (median, OpenCV and ONNX Runtime on one thread) of each
         feature type at each size, the localizer step (median ms while tracking) on a map of
         that type beside it, and the ratio XFeat / RootSIFT, measured in one run."""
         from client.dataset import DatasetError, imread_gray
-        from client.lab.bench_extract import bench_extract, report, split_rounds
+        from client.lab.bench_extract import bench_extract, report, report_sweep, split_rounds
 
+        wh = _sizes(sizes, "--sizes")
         try:
-            wh = [tuple(int(v) for v in s.lower().split("x")) for s in sizes.split(",") if s]
+            caps = [int(c) for c in sweep.split(",") if c.strip()]
         except ValueError:
-            raise typer.BadParameter(f"--sizes takes WxH,WxH..., got {sizes!r}") from None
-        if not wh or any(len(s) != 2 or min(s) < 32 for s in wh):
-            raise typer.BadParameter(f"--sizes takes WxH,WxH... of at least 32x32, got "
-                                     f"{sizes!r}")
+            raise typer.BadParameter(f"--sweep takes N,N,..., got {sweep!r}") from None
+        if any(c < 2 for c in caps) or (caps and dataset is None):
+            raise typer.BadParameter("--sweep takes counts of at least 2 and needs a DATASET")
         if dataset is None and image is None:
             raise typer.BadParameter("give a DATASET (and rounds) or an --image to time")
         try:
@@ -98,6 +157,14 @@ def register(bench_app: typer.Typer) -> None:
             raise typer.BadParameter(f"{path} does not decode as an image")
         typer.echo(f"extraction timed on {path} resized to each size; step: "
                    + (f"{dataset} map {map_round}, query {query}" if rounds else "not measured"))
-        rows = bench_extract(img, [(s[0], s[1]) for s in wh], _kinds(features), repeats,
-                             rounds, frames, warmup, seed)
-        report(rows, typer.echo)
+        if not skip_sizes:
+            rows = bench_extract(img, wh, _kinds(features), repeats, rounds, frames, warmup,
+                                 seed)
+            report(rows, typer.echo)
+        if caps:
+            size = _sizes(sweep_size, "--sweep-size")[0]
+            typer.echo(f"sweep at {size[0]}x{size[1]}: features per frame capped at {caps} "
+                       "(map and frames); features/frame counted on the timed image")
+            swept = bench_extract(img, [size], _kinds(features), repeats, rounds, frames,
+                                  warmup, seed, caps)
+            report_sweep(swept, caps, typer.echo)

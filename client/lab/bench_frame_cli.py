@@ -33,6 +33,19 @@ def register(bench_app: typer.Typer) -> None:
             raise typer.BadParameter(f"unknown transport(s) {unknown}: use http and/or zenoh")
         report(bench_frame(maps_dir, round_dir, frames, warmup, seed, transports))
 
+    @bench_app.command("first-frame")
+    def first_frame_cmd(
+        frames: Annotated[int, typer.Option(min=2, help="frames sent by the robot")] = 20,
+        unwritable: Annotated[bool, typer.Option(
+            help="a kernel cache directory that cannot be made (compiled at each start)")]
+        = False,
+    ) -> None:
+        """The first frame after a fresh install and start (``swarmloc serve`` from a copy of
+        the package, an empty kernel cache) beside the later ones, over HTTP."""
+        from client.lab.bench_first_frame import bench_first_frame, report
+
+        report(bench_first_frame(frames, unwritable), typer.echo)
+
     @bench_app.command("geometry")
     def geometry_cmd(
         dataset: Annotated[Path, typer.Argument(help="dataset with the rounds (and the "

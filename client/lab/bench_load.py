@@ -20,7 +20,7 @@ import numpy as np
 
 from client.lab.stats import percentile
 from client.transports import Client, HttpClient, LocalClient, SwarmlocError, ZenohClient
-from service.api.models import Estimate, PosePrior
+from service.api.models import Estimate, Odometry, PosePrior
 
 FUZZ_SUITE_S = 35.0  # seconds per unit of scale the fuzz tests take on the 2-core machine
 
@@ -173,9 +173,10 @@ class _PooledLocal(LocalClient):
         self._pool = pool
 
     def localize(self, robot_id: str, image: np.ndarray | bytes, t: float | None = None,
-                 seq: int | None = None, prior: PosePrior | None = None) -> Estimate:
+                 seq: int | None = None, prior: PosePrior | None = None,
+                 odom: Odometry | None = None) -> Estimate:
         parent = super().localize
-        return self._pool.submit(parent, robot_id, image, t, seq, prior).result()
+        return self._pool.submit(parent, robot_id, image, t, seq, prior, odom).result()
 
 
 @contextlib.contextmanager

@@ -24,21 +24,24 @@ if TYPE_CHECKING:
     from service.maps.route_map import RouteMap
 
 
-def map_for(dataset: Path, rounds: str, papers: bool) -> RouteMap:
-    """The map of one round (or rounds joined by '+'), built once and kept in DATASET/.maps."""
+def map_for(dataset: Path, rounds: str, papers: bool, features: str = "clahe-rootsift"
+            ) -> RouteMap:
+    """The map of one round (or rounds joined by '+'), built once and kept in DATASET/.maps;
+    ``features``: the feature type of our maps (the papers' maps are always the papers' SIFT)."""
     from client.dataset import read_round
     from service.maps.route_map import build_map_from_rounds, load_map, save_map
-    from service.vision.features import SiftParams
+    from service.vision.features import SiftParams, named_params
 
     names = [r for r in rounds.split("+") if r]
-    path = dataset / ".maps" / f"{'+'.join(names)}{'-papers' if papers else ''}.swmap"
+    kind = "-papers" if papers else ("" if features == "clahe-rootsift" else f"-{features}")
+    path = dataset / ".maps" / f"{'+'.join(names)}{kind}.swmap"
     rnds = [read_round(dataset / r) for r in names]
     if path.is_file():
         kept = load_map(path)
         if kept.meta.get("camera") == rnds[0].camera:  # else built before the camera was known
             return kept
     m = build_map_from_rounds(rnds,
-                              params=SiftParams.papers() if papers else SiftParams(),
+                              params=SiftParams.papers() if papers else named_params(features),
                               prune_features=papers)
     return load_map(save_map(m, path))  # loaded: with its checksum, memory-mapped
 
@@ -121,18 +124,25 @@ def experiment(
     warmup: Annotated[int, typer.Option(help="frames of global convergence not scored")] = 20,
     kidnap: Annotated[bool, typer.Option(help="also run the kidnapping experiment")] = True,
     seed: int = 0,
+    features: Annotated[str, typer.Option(
+        help="feature type of the map for our estimators: clahe-rootsift or xfeat (the "
+             "papers' variants always use the papers' SIFT)")] = "clahe-rootsift",
 ) -> None:
     """Every estimator's error (mean, median, within 5 m), comparisons, share of frames in
     recovery, accuracy_m calibration (tracked frames within it), honesty (frames with error
     > 10 m reported lost or recovering), speed error and kidnap recovery (back within 5 m
     for 5 frames)."""
     from client.dataset import read_round
+    from service.vision.features import FEATURE_TYPES
 
     chosen = [x for x in methods.split(",") if x]
     unknown = [x for x in chosen if x not in METHODS]
     if unknown:
         raise typer.BadParameter(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
-    maps = {papers: map_for(dataset, map_round, papers)
+    if features not in FEATURE_TYPES:
+        raise typer.BadParameter(f"unknown feature type {features!r}; choose from "
+                                 f"{list(FEATURE_TYPES)}")
+    maps = {papers: map_for(dataset, map_round, papers, features)
             for papers in {METHODS[c].papers_map for c in chosen}}
     for q in [x for x in query.split(",") if x]:
         rnd = read_round(dataset / q)

@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 
 from client.dataset import Round
-from client.runs import Run, frame_sequence
+from client.runs import Run, frame_sequence, odometry_along
+from service.api.models import Odometry
 from service.engine.localizer import Localizer
 from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
@@ -45,22 +46,32 @@ class SimilarityTable:
 
 def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str = "dpso",
         params: dict[str, Any] | None = None, *, seed: int = 0, start: int = 0,
-        speed: float = 1.0, kidnap: bool = False, length: int | None = None) -> Run:
-    """Replay one run of the protocol in process (``latency_ms``: the estimator's step)."""
+        speed: float = 1.0, kidnap: bool = False, length: int | None = None,
+        odometry: bool = False) -> Run:
+    """Replay one run of the protocol in process (``latency_ms``: the estimator's step);
+    with ``odometry``, each frame carries the round's odometry (``odometry.csv``, sent as
+    ``client.runs.odometry_along`` gives it)."""
     import time
 
     n = len(rnd)
     seq = frame_sequence(n, start, speed, kidnap, length)
+    odom = None
+    if odometry:
+        if rnd.odometry is None:
+            raise ValueError(f"round {rnd.name} has no odometry.csv")
+        odom = odometry_along(rnd.odometry, seq)
     dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and n > 1 else 1.0
     loc = Localizer(route_map, estimator, params, seed)
     est: list[np.ndarray] = []
     status: list[str] = []
-    comps, spd, head, scores, ms, acc, lost = ([] for _ in range(7))  # floats (and bools)
+    comps, spd, head, scores, ms, acc, lost, located, source = ([] for _ in range(9))
     for it, q in enumerate(seq):
         t0 = time.perf_counter()
+        motion = loc.take_odometry(None if odom is None else Odometry(
+            x=float(odom[it, 0]), y=float(odom[it, 1]), yaw=float(odom[it, 2])))
         loc.seed_places(table.queries[q].codes)  # the place index, while searching
         e = loc.estimator.step(partial(table.scores, int(q)), it * dt,
-                               loc.locator(table.queries[q]))
+                               loc.locator(table.queries[q]), motion)
         ms.append(1e3 * (time.perf_counter() - t0))
         est.append(e.position)
         comps.append(e.comparisons)
@@ -70,9 +81,12 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
         scores.append(e.score)
         acc.append(e.accuracy_m)
         lost.append(e.lost)
+        located.append(e.located)
+        source.append(e.heading_source)
     return Run(estimator=estimator, start=start, seed=seed, frames=seq,
                true_xy=rnd.reference_xy[seq], dt=dt, kidnap=kidnap,
                est_xy=np.array(est).reshape(-1, 2), status=status,
                comparisons=np.array(comps, np.int64), speed=np.array(spd),
                heading=np.array(head), scores=np.array(scores), accuracy_m=np.array(acc),
-               lost=np.array(lost, bool), latency_ms=np.array(ms))
+               lost=np.array(lost, bool), latency_ms=np.array(ms),
+               located=np.array(located, bool), heading_sources=source)

@@ -32,6 +32,8 @@ StatusName = Literal["initializing", "tracking", "recovering", "lost"]
 #: every estimator's name, listed once (``service.estimators.registry`` dispatches each to its
 #: class)
 EstimatorName = Literal["dpso", "pf-g", "pf-l"]
+#: what an Estimate's heading is (service/estimators/odometry.py)
+HeadingSource = Literal["motion", "odometry", "camera"]
 #: search radius of a pose prior or a reset near a pose when the robot gives none, m
 DEFAULT_PRIOR_RADIUS_M = 5.0
 
@@ -57,7 +59,13 @@ class Estimate(BaseModel):
     y: float = Field(description="metres north in the map frame")
     lat: float | None = Field(None, description="WGS84 latitude when the map has an origin")
     lon: float | None = Field(None, description="WGS84 longitude when the map has an origin")
-    heading: float = Field(description="direction of motion, rad counter-clockwise from east")
+    heading: float = Field(description="the robot's heading, rad counter-clockwise from "
+                           "east; heading_source says what it is")
+    heading_source: HeadingSource = Field(
+        "motion", description="'odometry': the robot's wheel-odometry yaw turned into the map "
+        "(its variance in pose_covariance's yaw entry); 'camera': the camera's yaw located by "
+        "two-view geometry (likewise); 'motion': the direction of motion, whose yaw variance "
+        "is given as unknown (1e6)")
     speed: float = Field(description="speed estimate, m/s")
     status: StatusName
     lost: bool = Field(description="best match below the lost threshold for several frames")
@@ -198,6 +206,52 @@ class ResetRequest(BaseModel):
                          radius=self.radius if self.radius is not None else DEFAULT_PRIOR_RADIUS_M)
 
 
+# the longest odometry step between two frames (m): a longer one is a glitch or a reset
+# odometry, refused (reset the session, or send the frame without odometry, to restart it)
+MAX_ODOM_STEP_M = 100.0
+# |yaw| of an odometry pose at most (rad): a yaw that has wound this far is not a pose
+ODOM_YAW_LIMIT_RAD = 1e4
+# an odometry variance per metre travelled at most (m^2/m, rad^2/m)
+ODOM_VAR_LIMIT = 100.0
+
+
+class Odometry(BaseModel):
+    """The robot's pose in its own odometry frame at the frame's time (nav2's
+    ``odom->base_link``): the service uses the change between consecutive frames, so the
+    frame's origin and drift do not matter. Variances are per metre travelled."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
+
+    x: float = Field(description="m, odometry frame", ge=-COORD_LIMIT_M, le=COORD_LIMIT_M)
+    y: float = Field(description="m, odometry frame", ge=-COORD_LIMIT_M, le=COORD_LIMIT_M)
+    yaw: float = Field(description="rad counter-clockwise, odometry frame",
+                       ge=-ODOM_YAW_LIMIT_RAD, le=ODOM_YAW_LIMIT_RAD)
+    var_xy: float | None = Field(None, ge=0, le=ODOM_VAR_LIMIT,
+                                 description="position variance per metre travelled, m^2/m "
+                                 "(default: the estimator's odom_var_xy)")
+    var_yaw: float | None = Field(None, ge=0, le=ODOM_VAR_LIMIT,
+                                  description="heading variance per metre travelled, "
+                                  "rad^2/m (default: the estimator's odom_var_yaw)")
+
+
+def odometry(x: float | None, y: float | None, yaw: float | None,
+             var_xy: float | None = None, var_yaw: float | None = None) -> Odometry | None:
+    """Odometry from separate values (frame query): x, y and yaw all or none."""
+    given = [v is not None for v in (x, y, yaw)]
+    if not any(given):
+        if var_xy is not None or var_yaw is not None:
+            raise InvalidParameters("odometry variances need odom_x, odom_y and odom_yaw")
+        return None
+    if not all(given):
+        missing = [n for n, g in zip(("odom_x", "odom_y", "odom_yaw"), given, strict=True)
+                   if not g]
+        raise InvalidParameters(f"odometry needs odom_x, odom_y and odom_yaw together; "
+                                f"missing {', '.join(missing)}")
+    data = {"x": x, "y": y, "yaw": yaw} | ({"var_xy": var_xy} if var_xy is not None else {}) \
+        | ({"var_yaw": var_yaw} if var_yaw is not None else {})
+    return validated(Odometry, data, "odometry")
+
+
 class FrameMeta(BaseModel):
     """A Zenoh frame's attachment ``{"t", "seq", "prior"}``: the HTTP frame query."""
 
@@ -207,6 +261,7 @@ class FrameMeta(BaseModel):
     seq: int | None = Field(None, ge=-(2**63), lt=2**63,
                             description="robot's frame sequence number")
     prior: PosePrior | None = None
+    odom: Odometry | None = None
 
 
 class SessionInfo(BaseModel):
@@ -260,6 +315,9 @@ class MapDetail(MapSummary):
 
 
 JobState = Literal["queued", "running", "done", "failed"]
+FeatureTypeName = Literal["clahe-rootsift", "sift", "xfeat"]
+"""A map's feature type: CLAHE + RootSIFT (the default), the papers' SIFT, or XFeat (learned,
+holds at night)."""
 
 
 class JobInfo(BaseModel):
@@ -273,6 +331,7 @@ class JobInfo(BaseModel):
     error: str | None = Field(None, description="why a failed job failed")
     status: int | None = Field(None, description="HTTP status of that failure")
     checksum: str | None = Field(None, description="version of the map a done job installed")
+    features: FeatureTypeName = Field("clahe-rootsift", description="the map's feature type")
     created: float
     started: float | None = None
     finished: float | None = None

@@ -89,6 +89,15 @@ class CommonParams(_Params):
         2.0, ge=0, le=1000, description="spread of the global start's particles around "
         "randomly drawn map images (m); 2 m because localization is only possible near map "
         "images, and a uniform placement would waste most particles off the route")
+    odom_var_xy: float = Field(
+        0.0025, ge=0, le=100, description="variance of a wheel-odometry step's position per "
+        "metre travelled (m^2/m) where the robot sends none; 0.0025 is a 5 cm std per "
+        "metre, above the lab's simulated 3 % scale error "
+        "(service/estimators/odometry.py)")
+    odom_var_yaw: float = Field(
+        0.0003, ge=0, le=100, description="variance of the odometry's heading per metre "
+        "travelled (rad^2/m) where the robot sends none: how fast the odometry's heading "
+        "drifts from the map's between fits; 0.0003 is 1 degree std per metre")
 
 
 class DPSOParams(CommonParams):
@@ -276,6 +285,18 @@ class DPSOParams(CommonParams):
     along_track_gate_m: float = Field(
         10.0, gt=0, le=1e5, description="a correction longer than this restarts the "
         "smoother at the swarm's estimate (m); 10 m, so a real jump is reported at once")
+    odom_alpha: float = Field(
+        0.3, ge=0, le=1, description="with wheel odometry, the share of the image "
+        "estimate's correction (along and across the path) the reported position takes "
+        "while tracking; the odometry's prediction carries the rest (an alpha filter whose "
+        "prediction is the odometry step; a correction beyond along_track_gate_m restarts "
+        "it at the estimate) (no unit)")
+    odom_alpha_weak: float = Field(
+        0.05, ge=0, le=1, description="with wheel odometry, the share of the correction "
+        "(along and across the path) the reported position takes from a frame the images "
+        "do not confirm (not located where the map's geometry runs; weak without it); the "
+        "odometry's prediction carries the rest, and such a frame farther than "
+        "along_track_gate_m from it is not taken at all (no unit)")
     metric_pose: bool = Field(
         True, description="while tracking, locate the camera between map images by two-view "
         "geometry against the best-matching map image near the estimate "

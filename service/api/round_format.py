@@ -19,6 +19,7 @@ from service.api.models import COORD_LIMIT_M
 
 POSES_FILE = "poses.csv"
 TRUTH_FILE = "truth.csv"
+ODOMETRY_FILE = "odometry.csv"  # optional: image,x,y,yaw (the robot's odometry pose)
 DATASET_FILE = "dataset.json"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -124,6 +125,30 @@ def _check_extent(csv_path: Path, xy: np.ndarray) -> None:
         raise DatasetError(f"{csv_path}, line {k + 2}: position ({xy[k, 0]:g}, {xy[k, 1]:g}) m "
                            f"is beyond +-{COORD_LIMIT_M:g} m; give local coordinates (metres "
                            "from a nearby origin) or lat,lon")
+
+
+def parse_odometry(csv_path: Path, names: list[str]) -> np.ndarray:
+    """The (N, 3) odometry poses (x, y m; yaw rad) of ``odometry.csv``, one row per image of
+    ``poses.csv`` in the same order; every problem named with the file and line."""
+    header, rows = read_table(csv_path)
+    want = ("image", "x", "y", "yaw")
+    if not set(want) <= set(header):
+        raise DatasetError(f"{csv_path}: header {header} needs the columns image,x,y,yaw")
+    cols = [header.index(c) for c in want]
+    if [r[cols[0]].strip() if len(r) > cols[0] else "" for r in rows] != names:
+        raise DatasetError(f"{csv_path}: must list the same images in the same order as "
+                           f"{POSES_FILE}")
+    out = np.empty((len(rows), 3))
+    for k, row in enumerate(rows):
+        try:
+            out[k] = [float(row[c]) for c in cols[1:]]
+        except (ValueError, IndexError):
+            raise DatasetError(f"{csv_path}, line {k + 2}: x, y and yaw must be numbers"
+                               ) from None
+        if not (np.isfinite(out[k]).all() and np.abs(out[k, :2]).max() <= COORD_LIMIT_M):
+            raise DatasetError(f"{csv_path}, line {k + 2}: x, y and yaw must be finite, "
+                               f"|x|, |y| <= {COORD_LIMIT_M:g} m")
+    return out
 
 
 def dataset_origin(round_dir: Path) -> tuple[float, float] | None:

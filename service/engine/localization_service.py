@@ -29,6 +29,7 @@ from service.api.models import (
     ExperienceInfo,
     MapDetail,
     MapSummary,
+    Odometry,
     PosePrior,
     SessionConfig,
     SessionInfo,
@@ -349,12 +350,14 @@ class LocalizationService:
                       content_type: str | None = None, t: float | None = None,
                       prior: PosePrior | None = None, transport: str = "http",
                       session: Session | None = None, input_seq: int | None = None,
-                      create: bool = False) -> Estimate:
+                      create: bool = False, odom: Odometry | None = None) -> Estimate:
         """Decode, validate, extract and step one frame; raises ServiceError on bad input.
 
         ``data`` is an encoded PNG/JPEG, or already validated 8-bit grayscale pixels (a ROS 2
         sensor_msgs/Image, checked by service/zenoh/ros2.py). With ``create`` a missing session is
-        created with the defaults, but only once the frame has passed every check."""
+        created with the defaults, but only once the frame has passed every check. ``odom``: the
+        robot's odometry pose at the frame (validated; its step from the previous frame's is
+        checked before the estimator steps)."""
         if self.draining:
             self.metrics.rejected.labels("shutting_down").inc()
             raise Unavailable("the service is shutting down; send the frame to another "
@@ -363,7 +366,7 @@ class LocalizationService:
             self._in_flight += 1
         try:
             return self._process_frame(robot_id, data, content_type, t, prior, transport,
-                                       session, input_seq, create)
+                                       session, input_seq, create, odom)
         finally:
             with self._idle:
                 self._in_flight -= 1
@@ -371,8 +374,8 @@ class LocalizationService:
 
     def _process_frame(self, robot_id: str, data: bytes | np.ndarray, content_type: str | None,
                        t: float | None, prior: PosePrior | None, transport: str,
-                       session: Session | None, input_seq: int | None, create: bool
-                       ) -> Estimate:
+                       session: Session | None, input_seq: int | None, create: bool,
+                       odom: Odometry | None = None) -> Estimate:
         t0 = time.perf_counter()
         s = session if session is not None or create else self.session(robot_id)
         try:
@@ -405,7 +408,8 @@ class LocalizationService:
                     check_timestamp(t, s.last_t)
                 try:
                     est = s.localizer.step(features, t,
-                                           (prior.x, prior.y, prior.radius) if prior else None)
+                                           (prior.x, prior.y, prior.radius) if prior else None,
+                                           odom)
                 except EstimatorStateError as exc:  # re-initialised: the next frame works
                     raise ServiceError(f"internal error: {exc}", 500) from None
                 if t is not None:

@@ -7,10 +7,19 @@ from typing import Any, cast
 
 import numpy as np
 
-from service.api.models import Estimate, EstimatorName, Hypothesis
+from service.api.errors import InvalidParameters
+from service.api.models import (
+    MAX_ODOM_STEP_M,
+    Estimate,
+    EstimatorName,
+    HeadingSource,
+    Hypothesis,
+    Odometry,
+)
 from service.api.params import DPSOParams
 from service.estimators.base import StepResult
 from service.estimators.fitness import LocateFn
+from service.estimators.odometry import OdomStep, body_step
 from service.estimators.registry import make_estimator
 from service.maps.experiences import LayerChoice, experience_layers
 from service.maps.route_map import RouteMap
@@ -41,6 +50,8 @@ class Localizer:
         self.seq = 0
         self.last: Estimate | None = None
         self.choice = LayerChoice()  # the layer frames are matched with (maps with experiences)
+        # the previous frame's odometry pose (x, y, yaw); None: that frame had none
+        self.odom_prev: tuple[float, float, float] | None = None
 
     @property
     def params(self) -> dict[str, Any]:
@@ -48,17 +59,44 @@ class Localizer:
 
     def reset(self, near: tuple[float, float] | None = None, radius: float | None = None) -> None:
         self.estimator.reset(near, radius)
+        self.odom_prev = None
 
     def extract(self, image: np.ndarray) -> Features:
         return extract(image, self.map.feature_params)
 
     def localize(self, image: np.ndarray, t: float | None = None,
-                 prior: tuple[float, float, float] | None = None) -> Estimate:
-        return self.step(self.extract(image), t, prior)
+                 prior: tuple[float, float, float] | None = None,
+                 odom: Odometry | None = None) -> Estimate:
+        return self.step(self.extract(image), t, prior, odom)
+
+    def take_odometry(self, odom: Odometry | None) -> OdomStep | None:
+        """The robot's motion since the previous frame from its odometry pose (None without
+        one, or after a frame without one), and ``odom`` kept for the next frame;
+        InvalidParameters for a step longer than MAX_ODOM_STEP_M, before anything changes."""
+        step = self._odom_step(odom)
+        self.odom_prev = None if odom is None else (odom.x, odom.y, odom.yaw)
+        return step
+
+    def _odom_step(self, odom: Odometry | None) -> OdomStep | None:
+        if odom is None or self.odom_prev is None:
+            return None
+        p = self.estimator.params
+        step = body_step(self.odom_prev, (odom.x, odom.y, odom.yaw),
+                         p.odom_var_xy if odom.var_xy is None else odom.var_xy,
+                         p.odom_var_yaw if odom.var_yaw is None else odom.var_yaw)
+        if not step.distance <= MAX_ODOM_STEP_M:
+            raise InvalidParameters(
+                f"odometry moved {step.distance:.4g} m since the robot's previous frame, more "
+                f"than {MAX_ODOM_STEP_M:g} m: a glitch or a reset odometry; send the frame "
+                "without odometry (or reset the session) to start it again")
+        return step
 
     def step(self, features: Features, t: float | None = None,
-             prior: tuple[float, float, float] | None = None) -> Estimate:
-        """One frame: optional pose prior (x, y, radius), estimator step, Estimate."""
+             prior: tuple[float, float, float] | None = None,
+             odom: Odometry | None = None) -> Estimate:
+        """One frame: optional pose prior (x, y, radius), optional odometry pose, estimator
+        step, Estimate."""
+        motion = self.take_odometry(odom)
         if prior is not None:
             self.estimator.constrain((prior[0], prior[1]), prior[2])
         codes = features.codes
@@ -66,12 +104,12 @@ class Localizer:
         learned = bool(experience_layers(self.map))
         if not learned:
             res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t,
-                                      self.locator(features))
+                                      self.locator(features), motion)
             comparisons = res.comparisons
         else:  # one layer per particle, then the layer probes (service/maps/experiences.py)
             similarity = _Memo(lambda ids: self.map.similarity(codes, ids))
-            res = self.estimator.step(similarity, t, self.locator(features),
-                                      self.choice.nearest(self.map))
+            res = self.estimator.step(similarity, t, self.locator(features), motion,
+                                      nearest=self.choice.nearest(self.map))
             if not res.lost:
                 self.choice.probe(self.map, similarity, res.position)
             comparisons = similarity.computed
@@ -108,10 +146,13 @@ class Localizer:
         cov = res.covariance
         pose_cov = np.diag([0.0, 0.0, _UNKNOWN_VAR, _UNKNOWN_VAR, _UNKNOWN_VAR, _UNKNOWN_VAR])
         pose_cov[:2, :2] = cov
+        if res.heading_sigma is not None:
+            pose_cov[5, 5] = res.heading_sigma ** 2
         return Estimate(
             seq=self.seq, stamp=t, frame_id=self.map.name,
             estimator=cast(EstimatorName, self.estimator_name),
-            x=x, y=y, lat=lat, lon=lon, heading=float(res.heading), speed=float(res.speed_mps),
+            x=x, y=y, lat=lat, lon=lon, heading=float(res.heading),
+            heading_source=cast(HeadingSource, res.heading_source), speed=float(res.speed_mps),
             status=res.status.value, lost=bool(res.lost), score=float(res.score),
             comparisons=comparisons, covariance=cov.tolist(),
             pose_covariance=pose_cov.ravel().tolist(), accuracy_m=res.accuracy_m,

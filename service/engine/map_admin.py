@@ -32,7 +32,7 @@ import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Protocol, cast
 
 import numpy as np
 
@@ -45,7 +45,7 @@ from service.api.errors import (
     PreconditionFailed,
     ServiceError,
 )
-from service.api.models import JobInfo, JobState, MapDeleted, MapSummary
+from service.api.models import FeatureTypeName, JobInfo, JobState, MapDeleted, MapSummary
 from service.maps.experiences import (
     NewImage,
     add_experience,
@@ -63,6 +63,7 @@ from service.maps.route_map import (
     load_map,
     save_map,
 )
+from service.vision.features import FEATURE_TYPES, named_params
 
 if TYPE_CHECKING:
     from service.engine.learning import Learner
@@ -120,6 +121,7 @@ class Job:
     workdir: Path
     if_match: str | None
     if_none_match: str | None
+    features: FeatureTypeName = "clahe-rootsift"
     state: JobState = "queued"
     done: int = 0
     error: str | None = None
@@ -132,7 +134,8 @@ class Job:
     def info(self) -> JobInfo:
         return JobInfo(id=self.id, map=self.map, state=self.state, done=self.done,
                        total=len(self.round), error=self.error, status=self.status,
-                       checksum=self.checksum, created=self.created, started=self.started,
+                       checksum=self.checksum, features=self.features, created=self.created,
+                       started=self.started,
                        finished=self.finished)
 
 
@@ -370,12 +373,17 @@ class MapAdmin:
                              s.max_pixels)
 
     def submit_build(self, name: str, archive: Path, if_match: str | None = None,
-                     if_none_match: str | None = None) -> JobInfo:
-        """Extract and validate a round archive, queue its build; the archive is removed."""
+                     if_none_match: str | None = None,
+                     features: str = "clahe-rootsift") -> JobInfo:
+        """Extract and validate a round archive, queue its build with the feature type
+        ``features``; the archive is removed."""
         metrics = self.service.metrics
         workdir: Path | None = None
         try:
             check_map_name(name)
+            if features not in FEATURE_TYPES:
+                raise BadRequest(f"unknown feature type '{features[:40]}'; choose one of "
+                                 f"{', '.join(FEATURE_TYPES)}")
             self.check_preconditions(name, if_match, if_none_match)
             workdir = Path(tempfile.mkdtemp(prefix=f"{TEMP_PREFIX}build-", dir=self.directory))
             rnd = extract_round(archive, workdir / "round", self.limits())
@@ -390,7 +398,8 @@ class MapAdmin:
             raise
         finally:
             archive.unlink(missing_ok=True)
-        job = Job(uuid.uuid4().hex[:12], name, rnd, workdir, if_match, if_none_match)
+        job = Job(uuid.uuid4().hex[:12], name, rnd, workdir, if_match, if_none_match,
+                  cast(FeatureTypeName, features))
         with self._lock:
             self._jobs[job.id] = job
             self._trim_jobs()
@@ -441,6 +450,7 @@ class MapAdmin:
         rnd = job.round
         try:
             m = build_map_from_rounds([rnd], name=job.map, images=self._paced_images(job),
+                                      params=named_params(job.features),
                                       source={"name": rnd.name, "uploaded": True, "job": job.id})
             with self._lock:
                 self.check_preconditions(job.map, job.if_match, job.if_none_match)

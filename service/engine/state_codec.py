@@ -50,9 +50,16 @@ REBUILT: dict[str, frozenset[str]] = {
                             "_x_sorted"}),
 }
 
-# attributes added since states were first stored: a state without them gets the fresh
-# object's value (a session stored before maps had experiences matches the map's own images)
-ADDED: dict[str, frozenset[str]] = {"localizer": frozenset({"choice"})}
+# Attributes added after states were first stored: a state written before one existed lacks
+# it, and the freshly built object's value (its constructor's start value) is kept. Every
+# other missing attribute is still refused. (Odometry, issue 33: the previous frame's
+# odometry pose and the map heading fitted from odometry, both empty at the start; experience
+# maps, issue 34: the layer choice, so a session stored before maps had experiences matches
+# the map's own images.)
+ADDED: dict[str, frozenset[str]] = {
+    "localizer": frozenset({"odom_prev", "choice"}),
+    "estimator": frozenset({"odometry"}),
+}
 
 # classes an object in a state may be rebuilt as (a blob names its classes: never import
 # anything outside the service from it)
@@ -266,10 +273,12 @@ def loads(blob: bytes) -> dict[str, Any]:
     return tree
 
 
-def apply_object(obj: object, state: dict[str, Any], skip: frozenset[str], where: str) -> None:
-    """Set the stored attributes on a freshly built ``obj``; the attribute sets must agree."""
+def apply_object(obj: object, state: dict[str, Any], skip: frozenset[str], where: str,
+                 added: frozenset[str] = frozenset()) -> None:
+    """Set the stored attributes on a freshly built ``obj``; the attribute sets must agree,
+    except that attributes in ``added`` may be missing (they keep the fresh value)."""
     have = set(vars(obj)) - skip
-    missing = sorted(have - set(state))
+    missing = sorted(have - set(state) - added)
     extra = sorted(set(state) - have - skip)
     if missing or extra:
         raise StateError(f"{where}: stored state does not fit this version (missing "
@@ -318,10 +327,10 @@ def decode_session(blob: bytes, resolve_map: MapResolver) -> SessionState:
     try:
         route_map = resolve_map(d["map"], d["map_checksum"])
         loc = Localizer(route_map, d["estimator_name"], d["params"], d["seed"])
-        added = {k: getattr(loc, k) for k in ADDED["localizer"]}
-        apply_object(loc, added | d["localizer"], REBUILT["localizer"] | {"last"},
-                     "localizer")
-        apply_object(loc.estimator, d["estimator"], REBUILT["estimator"], "estimator")
+        apply_object(loc, d["localizer"], REBUILT["localizer"] | {"last"}, "localizer",
+                     ADDED["localizer"])
+        apply_object(loc.estimator, d["estimator"], REBUILT["estimator"], "estimator",
+                     ADDED["estimator"])
         loc.last = Estimate.model_validate(d["last"]) if d["last"] is not None else None
         return SessionState(d["robot_id"], loc, d["created"], d["last_used"], d["last_t"],
                             d["last_input_seq"], bool(d.get("learn", False)),

@@ -49,19 +49,27 @@ class AlongTrackSmoother:
         self.velocity = np.zeros(2)
 
     def update(self, z: np.ndarray, tangent: np.ndarray | None, alpha: float, gate_m: float,
-               velocity: np.ndarray | None = None) -> np.ndarray:
+               velocity: np.ndarray | None = None, motion: np.ndarray | None = None,
+               across: float = 1.0, hold: bool = False) -> np.ndarray:
         """The smoothed position for measurement ``z`` (m); ``tangent``: the path's unit
         direction there (None: no path, the measurement is taken in full); ``velocity``:
-        the tracked velocity (m per frame) a restart starts from (None: standing)."""
+        the tracked velocity (m per frame) a restart starts from (None: standing).
+        ``motion``: the step measured by odometry (m), which predicts instead of the
+        filter's own velocity; ``across``: the share of the correction across the path
+        taken; ``hold``: a correction beyond the gate is not taken (the prediction stands)
+        instead of restarting at the measurement."""
         z = np.asarray(z, float)
         if self.position is None or tangent is None:
             return self._restart(z, velocity)
-        predicted = self.position + self.velocity
+        predicted = self.position + (self.velocity if motion is None else motion)
         r = z - predicted
         if float(np.linalg.norm(r)) > gate_m:
+            if hold:
+                self.position = predicted
+                return predicted.copy()
             return self._restart(z, velocity)
         along = float(r @ tangent) * tangent
-        self.position = predicted + alpha * along + (r - along)
+        self.position = predicted + alpha * along + across * (r - along)
         self.velocity = self.velocity + alpha * alpha / (2.0 - alpha) * r
         return self.position.copy()
 

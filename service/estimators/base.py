@@ -17,6 +17,7 @@ from service.estimators.fitness import (
     NearestFn,
     SimilarityFn,
 )
+from service.estimators.odometry import OdomHeading, OdomStep
 
 # radius of the 68 % confidence disc of a 2-D Gaussian in units of sigma: sqrt(chi2_2(0.68))
 _R68 = math.sqrt(-2.0 * math.log(1.0 - 0.68))
@@ -59,6 +60,11 @@ class StepResult:
     comparisons: int  # distinct map images compared for this frame
     spread_m: float  # mean distance of particles to their centre (swarm diversity)
     hypotheses: tuple[Hypothesis, ...] = ()  # sub-swarms, best first (multi-swarm DPSO)
+    # where the heading comes from: "motion" (direction of motion), "odometry" (the
+    # odometry's yaw turned into the map, service/estimators/odometry.py) or "camera"
+    heading_source: str = "motion"
+    heading_sigma: float | None = None  # std of the heading, rad (None: not estimated)
+    located: bool = False  # the frame was located by two-view geometry (multi-swarm DPSO)
 
     @property
     def accuracy_m(self) -> float:
@@ -104,6 +110,9 @@ class Estimator:
         self._converged = False
         self._last_t: float | None = None
         self._dt_ema: float | None = None
+        # the map heading from wheel odometry: made by the first odometry step (a session
+        # without odometry stores nothing of it)
+        self.odometry: OdomHeading | None = None
         self.reset_motion()
 
     # ---- placement ----------------------------------------------------------------------
@@ -120,6 +129,7 @@ class Estimator:
         self._converged = False
         self._last_t = None
         self._dt_ema = None
+        self.odometry = None
         self.reset_motion()
 
     def sample_positions(self, n: int) -> np.ndarray:
@@ -212,6 +222,41 @@ class Estimator:
         speed = float(np.linalg.norm(self.ema_step)) / (self._dt_ema or dt)
         return speed, math.atan2(self.ema_step[1], self.ema_step[0])
 
+    # ---- odometry (service/estimators/odometry.py) -------------------------------------
+    def odom_move(self, odom: OdomStep) -> tuple[np.ndarray, float]:
+        """The odometry step in the map frame (m) and the std (m, per axis) of where it
+        ends, turned by the map heading at the previous frame; advances the dead reckoning."""
+        motion_heading = self.motion(1.0)[1] if self.ema_step is not None else None
+        if self.odometry is None:
+            self.odometry = OdomHeading()
+        d, sigma = self.odometry.displacement(odom, motion_heading)
+        self.odometry.advance(odom)
+        return d, sigma
+
+    def odom_observe(self, odom: OdomStep | None, xy: np.ndarray, trusted: bool,
+                     lost: bool) -> None:
+        """After a frame: an image estimate ``trusted`` to be the place teaches the map
+        heading; a lost place, or a frame without odometry, forgets the pairs (they may
+        belong to a wrong place, or the dead reckoning missed a step)."""
+        if self.odometry is None:
+            return
+        if odom is None or lost:
+            if len(self.odometry.pairs):
+                self.odometry.forget()
+            return
+        if trusted:
+            self.odometry.observe(xy)
+
+    def odom_heading(self, odom: OdomStep | None, heading: float
+                     ) -> tuple[float, str, float | None]:
+        """(heading, its source, its std): the odometry's where it has a map heading, the
+        direction of motion ``heading`` otherwise."""
+        if odom is not None and self.odometry is not None and self.odometry.offset is not None:
+            h, sigma = self.odometry.heading(None)
+            assert h is not None
+            return h, "odometry", sigma
+        return heading, "motion", None
+
     def update_status(self, best_m: float) -> tuple[Status, bool]:
         p = self.params
         if best_m < p.lost_threshold:
@@ -228,15 +273,17 @@ class Estimator:
         return (Status.TRACKING if self._converged else Status.INITIALIZING), False
 
     def step(self, similarity: SimilarityFn, t: float | None = None,
-             locate: LocateFn | None = None, nearest: NearestFn | None = None) -> StepResult:
+             locate: LocateFn | None = None, odom: OdomStep | None = None,
+             nearest: NearestFn | None = None) -> StepResult:
         """One frame: ``similarity`` compares it with map images; ``locate``, where given,
-        places its camera relative to one (two-view geometry, for an estimator that uses it);
+        places its camera relative to one (two-view geometry, for an estimator that uses
+        it); ``odom``, where given, is the robot's motion since the previous frame;
         ``nearest``, where given, names the images each particle is compared with (default:
         the nearest of every layer)."""
         fitness = FrameFitness(self.index, similarity, self.params.penalty_sigma_m, locate,
                                nearest)
         try:
-            result = self._step(fitness, t)
+            result = self._step(fitness, t, odom)
         except ValueError:  # e.g. a KD-tree query refusing non-finite particles
             if self._particles_finite():
                 raise
@@ -261,7 +308,8 @@ class Estimator:
             raise EstimatorStateError("the estimator's state became non-finite; it was "
                                       "re-initialised (global placement)")
 
-    def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
+    def _step(self, fitness: FrameFitness, t: float | None, odom: OdomStep | None
+              ) -> StepResult:
         raise NotImplementedError
 
 

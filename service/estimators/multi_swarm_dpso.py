@@ -70,6 +70,7 @@ from service.estimators.base import Hypothesis, Status, StepResult, weighted_cov
 from service.estimators.fitness import FrameFitness, MapIndex
 from service.estimators.located_noise import LocatedNoise
 from service.estimators.lost_detection import DistinctnessMonitor
+from service.estimators.odometry import OdomStep
 from service.estimators.paper_dpso import DPSO
 
 
@@ -126,12 +127,16 @@ class MultiSwarmDPSO(DPSO):
         self.level: float | None = None  # EMA of the best match in good, non-weak frames
         self.weak_frames = 0  # weak frames in a row (their estimates do not feed ema_step)
 
-    def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
+    def _step(self, fitness: FrameFitness, t: float | None, odom: OdomStep | None
+              ) -> StepResult:
         if self._needs_init:
             self._initialize()
         p = self.params
         dt = self.frame_dt(t)
-        if p.motion_prior and self.ema_step is not None and self._converged \
+        odom_d = None
+        if odom is not None:  # every sub-swarm moves with the robot (the odometry step)
+            odom_d = self.odometry_prediction(odom)
+        elif p.motion_prior and self.ema_step is not None and self._converged \
                 and not self.recovering:
             self.x = np.clip(self.x + self.ema_step, self.lower, self.upper)  # motion prior
         elif self._coasting():  # carried through weak frames by the kept velocity
@@ -208,12 +213,27 @@ class MultiSwarmDPSO(DPSO):
             sigma = self.noise.sigma(p.metric_map_sigma_m, p.metric_jitter_gain,
                                      p.metric_jitter_prior_m)
             cov = np.eye(2) * sigma ** 2
+        geometry = self._geometry_runs(fitness)
+        # the images confirm the place: a located frame, or a strong one without geometry
+        confirmed = located is not None if geometry else self.weak_frames == 0
         reported = self._reported(pos, status, ids, compared_xy,
-                                  self._along_alpha(self._geometry_runs(fitness),
-                                                    located is not None))
+                                  self._along_alpha(geometry, located is not None), odom_d,
+                                  confirmed)
+        self.odom_observe(odom, pos, status is Status.TRACKING and confirmed,
+                          lost or self.recovering)
+        heading, source, h_sigma = self.odom_heading(odom, heading)
         return StepResult(reported, cov, heading, speed, status,
                           lost or self.recovering, ev.best_m, fitness.comparisons, spread,
-                          hypotheses)
+                          hypotheses, source, h_sigma, located is not None)
+
+    def odometry_prediction(self, odom: OdomStep) -> np.ndarray:
+        """Move every particle by the odometry step in the map frame, with its noise
+        (service/estimators/odometry.py); the step (m) for the reported position's
+        prediction."""
+        d, sigma = self.odom_move(odom)
+        noise = self.rng.normal(0.0, sigma, self.x.shape) if sigma > 0 else 0.0
+        self.x = np.clip(self.x + d + noise, self.lower, self.upper)
+        return d
 
     def _geometry_runs(self, fitness: FrameFitness) -> bool:
         """Whether frames are located by two-view geometry: ``metric_pose`` is on and the
@@ -287,7 +307,8 @@ class MultiSwarmDPSO(DPSO):
         return None
 
     def _reported(self, pos: np.ndarray, status: Status, ids: np.ndarray,
-                  compared_xy: np.ndarray, alpha: float) -> np.ndarray:
+                  compared_xy: np.ndarray, alpha: float, odom_d: np.ndarray | None = None,
+                  confirmed: bool = True) -> np.ndarray:
         """The position reported for the estimate ``pos``: smoothed along the map's path
         while tracking (service/estimators/along_track.py; ``alpha`` of the along-path correction),
         ``pos`` itself otherwise. The path's
@@ -300,6 +321,11 @@ class MultiSwarmDPSO(DPSO):
         nearest = int(ids[np.argmin(np.einsum("ij,ij->i", compared_xy - pos,
                                               compared_xy - pos))])
         tangent = path_tangent(self._map_positions, nearest, self._spacing)
+        if odom_d is not None:  # the odometry predicts, the images correct a share of it
+            gain = p.odom_alpha if confirmed else p.odom_alpha_weak
+            return self.smoother.update(pos, tangent, gain, p.along_track_gate_m,
+                                        self.ema_step, motion=odom_d, across=gain,
+                                        hold=not confirmed)
         return self.smoother.update(pos, tangent, alpha, p.along_track_gate_m, self.ema_step)
 
     def mean_evidence(self) -> np.ndarray:

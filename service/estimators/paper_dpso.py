@@ -15,6 +15,7 @@ import numpy as np
 from service.api.params import DPSOParams
 from service.estimators.base import Estimator, Status, StepResult, weighted_covariance
 from service.estimators.fitness import FrameFitness, MapIndex
+from service.estimators.odometry import OdomStep
 
 
 class DPSO(Estimator):
@@ -66,10 +67,13 @@ class DPSO(Estimator):
         self._init_adaptive()
         self._needs_init = False
 
-    def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
+    def _step(self, fitness: FrameFitness, t: float | None, odom: OdomStep | None
+              ) -> StepResult:
         if self._needs_init:
             self._initialize()
         dt = self.frame_dt(t)
+        if odom is not None:  # the swarm (and with it p^n's neighbourhood) moves with the robot
+            self.move_by_odometry(odom)
         f, m, _ = fitness(self.x)
         best = int(np.argmax(f))
         p_n = self.x[best].copy()
@@ -89,8 +93,17 @@ class DPSO(Estimator):
             status = Status.RECOVERING
         self._move(p_n)
         speed, heading = self.motion(dt)
+        self.odom_observe(odom, p_n, status is Status.TRACKING, lost or self.recovering)
+        heading, source, h_sigma = self.odom_heading(odom, heading)
         return StepResult(p_n, cov, heading, speed, status, lost, best_m, fitness.comparisons,
-                          spread)
+                          spread, heading_source=source, heading_sigma=h_sigma)
+
+    def move_by_odometry(self, odom: OdomStep) -> None:
+        """Every particle moves by the odometry step turned into the map, plus its noise
+        (service/estimators/odometry.py); the walls of the search space clip them."""
+        d, sigma = self.odom_move(odom)
+        noise = self.rng.normal(0.0, sigma, self.x.shape) if sigma > 0 else 0.0
+        self.x = np.clip(self.x + d + noise, self.lower, self.upper)
 
     def recovery_phase(self, lost: bool) -> bool:
         """Sec. 5's recovery state machine; True while recovering. Entering it keeps v0;

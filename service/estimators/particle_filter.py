@@ -13,8 +13,9 @@ import math
 import numpy as np
 
 from service.api.params import PFParams
-from service.estimators.base import Estimator, StepResult, weighted_covariance
+from service.estimators.base import Estimator, Status, StepResult, weighted_covariance
 from service.estimators.fitness import FrameFitness, MapIndex
+from service.estimators.odometry import OdomStep
 
 
 def low_variance_resample(rng: np.random.Generator, w: np.ndarray) -> np.ndarray:
@@ -65,10 +66,24 @@ class ParticleFilter(Estimator):
         self.v = scale[:, None] * np.column_stack([c * vx - s * vy, s * vx + c * vy])
         self.x = self.x + self.v * dt  # Eq. 8 (velocity in m/s, one frame interval)
 
-    def _step(self, fitness: FrameFitness, t: float | None) -> StepResult:
+    def _predict_odometry(self, odom: OdomStep) -> None:
+        """The odometry motion model (Thrun et al., Probabilistic Robotics, Sec. 5.4, on the
+        papers' 2-D state): each particle moves by the step turned into the map by the
+        heading, drawn with the step's and the heading's noise; the velocity that PF-l
+        carries becomes the step per frame interval."""
+        d, sigma = self.odom_move(odom)
+        n = self.params.n_particles
+        self.x = self.x + d + self.rng.normal(0.0, sigma, (n, 2)) if sigma > 0 else self.x + d
+        if self.motion_model == "linear":
+            self.v = np.broadcast_to(d / (self._dt_ema or 1.0), (n, 2)).copy()
+
+    def _step(self, fitness: FrameFitness, t: float | None, odom: OdomStep | None
+              ) -> StepResult:
         dt = self.frame_dt(t)
         if self._needs_init:
             self._initialize()
+        elif odom is not None:
+            self._predict_odometry(odom)
         else:
             self._predict(dt)
         f, m, _ = fitness(self.x)
@@ -82,5 +97,8 @@ class ParticleFilter(Estimator):
         idx = low_variance_resample(self.rng, w)
         self.x, self.v = self.x[idx], self.v[idx]
         speed, heading = self.motion(dt)
+        self.odom_observe(odom, est, status is Status.TRACKING, lost)
+        heading, source, h_sigma = self.odom_heading(odom, heading)
         return StepResult(est, cov, heading, speed, status, lost,
-                          float(m.max()), fitness.comparisons, spread)
+                          float(m.max()), fitness.comparisons, spread,
+                          heading_source=source, heading_sigma=h_sigma)

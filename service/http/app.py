@@ -31,6 +31,7 @@ from service.api.models import (
     ResetRequest,
     SessionConfig,
     SessionInfo,
+    odometry,
     pose_prior,
 )
 from service.engine.localization_service import LocalizationService
@@ -282,19 +283,29 @@ async def send_frame(
     prior_y: Annotated[float | None, Query(description="pose prior, m north")] = None,
     prior_radius: Annotated[float | None, Query(
         gt=0, le=MAX_PRIOR_RADIUS_M, description="prior radius, m")] = None,
+    odom_x: Annotated[float | None, Query(description="odometry pose (odom->base_link), m; "
+                                          "with odom_y and odom_yaw")] = None,
+    odom_y: Annotated[float | None, Query(description="odometry pose, m")] = None,
+    odom_yaw: Annotated[float | None, Query(description="odometry pose, rad")] = None,
+    odom_var_xy: Annotated[float | None, Query(description="odometry position variance per "
+                                               "metre travelled, m^2/m")] = None,
+    odom_var_yaw: Annotated[float | None, Query(description="odometry heading variance per "
+                                                "metre travelled, rad^2/m")] = None,
 ) -> Response:
-    """Localize one frame of the robot's camera: the estimate."""
+    """Localize one frame of the robot's camera: the estimate. With odometry (the robot's
+    pose in its odom frame), the estimate moves with the robot between frames."""
     if service.draining:
         raise Unavailable("the service is shutting down; retry after the restart")
     session = service.session(robot_id)
     prior = pose_prior(prior_x, prior_y, prior_radius)
+    odom = odometry(odom_x, odom_y, odom_yaw, odom_var_xy, odom_var_yaw)
     body = await _read_body(request, service.settings.max_body_bytes, service)
     async with workers.gate(robot_id):
         lim = workers.heavy if service.is_heavy(robot_id) else workers.light
         return await anyio.to_thread.run_sync(
             lambda: Response(estimate_json(service.process_frame(
                 robot_id, body, content_type=request.headers.get("content-type"), t=t,
-                prior=prior, transport="http", session=session, input_seq=seq)),
+                prior=prior, transport="http", session=session, input_seq=seq, odom=odom)),
                 media_type="application/json"),
             limiter=lim)
 

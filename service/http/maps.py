@@ -18,7 +18,7 @@ from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.responses import StreamingResponse
 
 from service.api.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
-from service.api.models import ErrorBody, JobInfo, MapDeleted, MapSummary
+from service.api.models import ErrorBody, FeatureTypeName, JobInfo, MapDeleted, MapSummary
 from service.engine.localization_service import LocalizationService
 from service.engine.map_admin import check_map_name
 from service.http.auth import require_token
@@ -148,7 +148,10 @@ async def delete_experience(name: str, exp_id: str, response: Response, service:
 @map_router.post("/maps/{name}/build", tags=["maps"], status_code=202,
                  openapi_extra=binary_body(ARCHIVE_TYPES, "a zip or tar(.gz) of a round"))
 async def build_map(name: str, request: Request, response: Response, service: ServiceDep,
-                    if_match: IfMatch = None, if_none_match: IfNoneMatch = None
+                    if_match: IfMatch = None, if_none_match: IfNoneMatch = None,
+                    features: Annotated[FeatureTypeName, Query(
+                        description="feature type: clahe-rootsift (default), sift (the "
+                        "papers') or xfeat (learned, holds at night)")] = "clahe-rootsift",
                     ) -> JobInfo:
     """Build a map from a zip/tar(.gz) of a round (poses.csv + images) in the background;
     follow GET /jobs/{id}. The map appears (or is replaced) when the build is done."""
@@ -159,7 +162,7 @@ async def build_map(name: str, request: Request, response: Response, service: Se
     async with _staged(request, service, "archive", service.settings.max_archive_bytes,
                        "round archive") as path:
         job = await anyio.to_thread.run_sync(
-            admin.submit_build, name, path, if_match, if_none_match)
+            admin.submit_build, name, path, if_match, if_none_match, features)
     response.headers["Location"] = f"/jobs/{job.id}"
     return job
 

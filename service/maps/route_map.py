@@ -287,7 +287,8 @@ class RouteMap:
         p = self.feature_params
         if isinstance(p, XFeatParams):
             return mnn_scores(unit_descriptors(frame_codes),
-                              [self.features_of(int(i)) for i in image_ids], p.min_cos)
+                              [self.features_of(int(i)) for i in image_ids], p.min_cos,
+                              p.max_ratio)
         sets = [self.prepared(int(i)) for i in image_ids]
         return match_batch_u8(frame_codes, sets, self.delta).scores
 
@@ -298,7 +299,8 @@ class RouteMap:
         neighbours (XFeat)."""
         p = self.feature_params
         if isinstance(p, XFeatParams):
-            return mnn_pairs(unit_descriptors(codes), self.features_of(image_id), p.min_cos)
+            return mnn_pairs(unit_descriptors(codes), self.features_of(image_id), p.min_cos,
+                             p.max_ratio)
         return match_pairs(codes, self.prepared(image_id), delta)
 
     def codes_of(self, image_id: int) -> np.ndarray:

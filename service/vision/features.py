@@ -26,10 +26,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, get_args
 
 import cv2
 import numpy as np
+
+from service.api.models import FeatureTypeName
 
 if TYPE_CHECKING:
     from typing import TypeAlias
@@ -126,7 +128,7 @@ def feature_params(d: dict[str, Any]) -> FeatureParams:
     raise ValueError(f"unknown feature type '{kind}' (this swarmloc knows sift and xfeat)")
 
 
-FEATURE_TYPES = ("clahe-rootsift", "sift", "xfeat")  # the names the CLI and the lab use
+FEATURE_TYPES: tuple[str, ...] = get_args(FeatureTypeName)  # the CLI's, the API's and the lab's
 
 
 def named_params(name: str, width: int = 320, height: int = 240) -> FeatureParams:

@@ -24,9 +24,12 @@ integers and float64, so the result equals the reference's.
 from __future__ import annotations
 
 import math
+import os
+import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -36,15 +39,54 @@ _TOL = 1e-6  # relative; the float32 key error is at most ~2.5e-7
 _TILE = 256  # rows of A per GEMM tile (the uint32 tile stays in L2)
 
 
-def _jit(fn: Callable) -> Callable:
-    """numba ``njit(cache=True, nogil=True)``; without the on-disk cache where it cannot be
-    written (read-only install and no writable user cache): compiled per process instead."""
+def _jit(fn: Callable) -> Any:
+    """numba ``njit(nogil=True)``, compiled on first use; ``cache_kernels_in`` gives it an
+    on-disk cache (this module gives every kernel the default one at import)."""
     import numba
 
+    return numba.njit(nogil=True)(fn)
+
+
+def default_cache_dir() -> Path:
+    """Where the kernels are cached by default: ``$XDG_CACHE_HOME/swarmloc/numba`` (else
+    ``~/.cache/swarmloc/numba``), never the installed package (site-packages may be
+    read-only, and a cache written there on the first frame made it take seconds)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "swarmloc" / "numba"
+
+
+def _writable_dir(path: Path) -> bool:
     try:
-        return numba.njit(cache=True, nogil=True)(fn)
-    except RuntimeError:  # "cannot cache function ...: no locator available"
-        return numba.njit(nogil=True)(fn)
+        path.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=path).close()
+    except OSError:
+        return False
+    return True
+
+
+def cache_kernels_in(path: Path | None, kernels: Sequence[Any] | None = None) -> Path | None:
+    """Keep the compiled numba kernels (``kernels``, default this module's) in ``path``;
+    returns the directory used, or None where ``path`` is None or cannot be written: the
+    kernels then compile in each process (a few seconds, in ``warm_up``)."""
+    import numba
+    from numba.core.caching import NullCache
+
+    config: Any = numba.config
+    used = path if path is not None and _writable_dir(path) else None
+    saved = config.CACHE_DIR
+    config.CACHE_DIR = str(used) if used is not None else ""
+    try:  # numba reads CACHE_DIR when a kernel's cache is made, not later
+        for kernel in _KERNELS if kernels is None else kernels:
+            try:
+                if used is not None:
+                    kernel.enable_caching()
+                    continue
+            except RuntimeError:  # "cannot cache function ...: no locator available"
+                used = None
+            kernel._cache = NullCache()  # numba's own "no cache" (njit without cache=True)
+    finally:
+        config.CACHE_DIR = saved
+    return used
 
 
 try:  # NumKong: exact packed uint8 GEMM (AMX / AVX-512 VNNI); optional, BLAS otherwise
@@ -320,6 +362,46 @@ def _decide(a, na, b, nb, inv_na, rm1, rj1, rm2, rd1, cm1, cm2, delta, tol, matc
     return count
 
 
+def _ivf_scan(a, na, words, b, nb, starts, rc1, rc2, rj, cc1, cc2, ci):
+    """Exact cosines of the candidate pairs (b's word among a's words): the two best of
+    every row (best column kept) and of every column (best row kept)."""
+    dims = a.shape[1]
+    for i in range(a.shape[0]):
+        for q in range(words.shape[1]):
+            w = words[i, q]
+            for j in range(starts[w], starts[w + 1]):
+                d = np.int64(0)
+                for t in range(dims):
+                    d += np.int32(a[i, t]) * np.int32(b[j, t])
+                c = min(d / (na[i] * nb[j]), 1.0)
+                if c > rc1[i]:
+                    rc2[i] = rc1[i]
+                    rc1[i] = c
+                    rj[i] = j
+                elif c > rc2[i]:
+                    rc2[i] = c
+                if c > cc1[j]:
+                    cc2[j] = cc1[j]
+                    cc1[j] = c
+                    ci[j] = i
+                elif c > cc2[j]:
+                    cc2[j] = c
+
+
+def _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, delta, matched):
+    """Rows in a symmetric ratio-test match among their candidates (a side with fewer than
+    two candidates never passes); returns the count and marks ``matched``."""
+    count = 0
+    for i in range(rc1.shape[0]):
+        j = rj[i]
+        if j < 0 or ci[j] != i or rc2[i] < -1.5 or cc2[j] < -1.5:
+            continue
+        if _passes(rc1[i], rc2[i], delta) and _passes(cc1[j], cc2[j], delta):
+            matched[i] = True
+            count += 1
+    return count
+
+
 _scan_columns = _jit(_scan_columns)
 _finish_row = _jit(_finish_row)
 _scan_rows = _jit(_scan_rows)
@@ -330,6 +412,11 @@ _exact_scan = _jit(_exact_scan)
 _passes = _jit(_passes)
 _ratio = _jit(_ratio)
 _decide = _jit(_decide)
+_ivf_scan = _jit(_ivf_scan)
+_ivf_decide = _jit(_ivf_decide)
+_KERNELS: tuple[Any, ...] = (_scan_columns, _finish_row, _scan_rows, _scan_tile, _dot, _cos,
+                             _exact_scan, _passes, _ratio, _decide, _ivf_scan, _ivf_decide)
+cache_kernels_in(default_cache_dir())
 
 
 # ---- public API -----------------------------------------------------------------------------
@@ -394,6 +481,68 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
     return BatchMatch(counts, scores, matched)
 
 
+class WordSorted(Protocol):
+    """A map image's uint8 descriptors sorted by visual word (service/vision/vocabulary.py):
+    ``desc`` (n, D) uint8 word by word, ``norms`` (n,) float64, ``starts`` (k + 1,) int64
+    (word q's rows are starts[q]:starts[q + 1])."""
+
+    @property
+    def desc(self) -> np.ndarray: ...
+    @property
+    def norms(self) -> np.ndarray: ...
+    @property
+    def starts(self) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class _Sorted:  # one word, for the warm-up
+    desc: np.ndarray
+    norms: np.ndarray
+    starts: np.ndarray
+
+
+def _ivf_one(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray, s: WordSorted,
+             delta: float, matched: np.ndarray) -> tuple[int, np.ndarray]:
+    """(count, each row's best candidate row of ``s``), marking ``matched``."""
+    na_rows, nb = len(a), len(s.desc)
+    rj = np.full(na_rows, -1, np.int64)
+    if nb < 2 or na_rows < 2:
+        return 0, rj
+    rc1 = np.full(na_rows, -2.0)
+    rc2 = np.full(na_rows, -2.0)
+    cc1 = np.full(nb, -2.0)
+    cc2 = np.full(nb, -2.0)
+    ci = np.full(nb, -1, np.int64)
+    _ivf_scan(a, norms_a, words_a, s.desc, s.norms, s.starts, rc1, rc2, rj, cc1, cc2, ci)
+    return _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, float(delta), matched), rj
+
+
+def pairs_ivf(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray, s: WordSorted,
+              delta: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (rows of ``a``, rows of ``s.desc``) of ``match_batch_ivf``'s matches."""
+    matched = np.zeros(len(a), bool)
+    _, rj = _ivf_one(a, norms_a, words_a, s, delta, matched)
+    rows = np.flatnonzero(matched)
+    return rows, rj[rows]
+
+
+def match_batch_ivf(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray,
+                    sets: Sequence[WordSorted], delta: float = DEFAULT_DELTA) -> BatchMatch:
+    """The symmetric ratio test of ``a`` (nA, D) uint8 against each word-sorted set, among
+    the candidate pairs only: b's word is one of ``words_a``'s (nA, w) words of a. Exact
+    cosines; with every word probed it equals ``match_batch_u8``."""
+    k = len(sets)
+    na_rows = len(a)
+    counts = np.zeros(k, np.int64)
+    matched = np.zeros((k, na_rows), bool)
+    nb_all = np.array([len(s.desc) for s in sets], np.int64)
+    for idx, s in enumerate(sets):
+        counts[idx] = _ivf_one(a, norms_a, words_a, s, delta, matched[idx])[0]
+    denom = np.minimum(na_rows, nb_all)
+    scores = np.where(denom > 0, counts / np.maximum(denom, 1), 0.0)
+    return BatchMatch(counts, scores, matched)
+
+
 def match_batch_u8_reference(a: np.ndarray, sets: Sequence[np.ndarray],
                              delta: float = DEFAULT_DELTA) -> BatchMatch:
     """The definition above, written plainly: float64 dot products (exact for uint8),
@@ -435,9 +584,24 @@ def _reference_side(cos: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarr
     return best, ok
 
 
+def compiled_signatures() -> int:
+    """How many type signatures the kernels have compiled (or loaded) in this process."""
+    return sum(len(k.signatures) for k in _KERNELS)
+
+
 def warm_up() -> None:
-    """Compile (or load from the cache) the numba kernels, outside any timed section."""
+    """Compile (or load from the cache) the numba kernels for every argument type a frame
+    meets, outside any timed section: writable and read-only descriptors on either side (a
+    loaded map's codes are read-only memory maps; a map image is the frame of the two-view
+    geometry's structure), NumKong's uint32 and BLAS's float32 dot products."""
     rng = np.random.default_rng(0)
     x = rng.integers(1, 255, (20, 128), dtype=np.uint8)
+    ro = x.copy()
+    ro.flags.writeable = False
     for backend in ("auto", "blas"):
-        match_batch_u8(x, [x[:19], prepare(x[1:], backend)], backend=backend)
+        for a in (x, ro):
+            match_batch_u8(a, [x[:19], prepare(ro[1:], backend), prepare(x[2:], backend)],
+                           backend=backend)
+    one_word = _Sorted(x.copy(), norms_u8(x), np.array([0, len(x)], np.int64))
+    for a in (x, ro):
+        match_batch_ivf(a, norms_u8(a), np.zeros((len(a), 1), np.int64), [one_word])

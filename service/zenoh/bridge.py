@@ -40,6 +40,7 @@ import zenoh
 from service.api.errors import BadRequest, ServiceError
 from service.api.models import (
     FrameMeta,
+    Odometry,
     PosePrior,
     ResetRequest,
     SessionConfig,
@@ -81,9 +82,10 @@ def parse_attachment(raw: bytes | None) -> dict[str, Any]:
     return parse_json_object(raw, "attachment", '{"t": 12.5, "seq": 3}')
 
 
-def _frame_args(meta: dict[str, Any]) -> tuple[float | None, int | None, PosePrior | None]:
+def _frame_args(meta: dict[str, Any]
+                ) -> tuple[float | None, int | None, PosePrior | None, Odometry | None]:
     m = validated(FrameMeta, meta, "attachment")
-    return m.t, m.seq, m.prior
+    return m.t, m.seq, m.prior, m.odom
 
 
 def _seq_of(meta: dict[str, Any]) -> int | None:
@@ -200,10 +202,11 @@ class ZenohBridge:
         seq = _seq_of(frame.meta)
         try:
             check_robot_id(robot)
-            t, seq, prior = _frame_args(frame.meta)
+            t, seq, prior, odom = _frame_args(frame.meta)
             est = self.service.process_frame(
                 robot, frame.data, content_type=frame.content_type, t=t, prior=prior,
-                transport="zenoh", input_seq=seq, create=self.settings.zenoh_creates_sessions)
+                transport="zenoh", input_seq=seq, create=self.settings.zenoh_creates_sessions,
+                odom=odom)
             return est.model_dump(mode="json")
         except ServiceError as exc:
             return error_body(exc, robot, seq)

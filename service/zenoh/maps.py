@@ -43,7 +43,7 @@ def _reply(query: zenoh.Query, fn: Callable[[], Any]) -> None:
 
 
 _OPTION_TYPES: dict[str, type] = {"action": str, "if_match": str, "if_none_match": str,
-                                   "force": bool}
+                                   "force": bool, "features": str}
 
 
 def _options(raw: bytes) -> dict[str, Any]:
@@ -83,7 +83,9 @@ def declare_map_queryables(session: zenoh.Session, prefix: str, service: Localiz
         if action == "build":
             admin.check_preconditions(name, match_, none_match)
             path = payload_to_file(admin, data, "archive", s.max_archive_bytes)
-            return admin.submit_build(name, path, match_, none_match).model_dump(mode="json")
+            job = admin.submit_build(name, path, match_, none_match,
+                                     opts.get("features") or "clahe-rootsift")
+            return job.model_dump(mode="json")
         raise BadRequest(f"unknown action '{action}'; use get, put, delete or build")
 
     def on_maps(query: zenoh.Query) -> None:

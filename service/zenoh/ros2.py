@@ -27,7 +27,9 @@ import itertools
 import math
 import os
 import struct
+import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -50,6 +52,8 @@ COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMAGE = "sensor_msgs/msg/Image"
 POSE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 STATUS = "diagnostic_msgs/msg/DiagnosticStatus"
+ODOMETRY = "nav_msgs/msg/Odometry"
+TF = "tf2_msgs/msg/TFMessage"
 
 KeyFormat = Literal["ros2dds", "rmw_zenoh"]
 _CHANNELS = {"mono8": 1, "rgb8": 3, "bgr8": 3}
@@ -170,6 +174,33 @@ class Codec:
                       pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov))
         return self.serialize(msg, POSE)
 
+    def odometry(self, payload: bytes) -> tuple[float, tuple[float, float, float], str]:
+        """(stamp s, (x, y, yaw) of odom->base_link, the odometry frame's id) of a
+        nav_msgs/Odometry; InvalidParameters for a non-finite pose."""
+        msg = self.deserialize(payload, ODOMETRY)
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        pose = (float(p.x), float(p.y), quaternion_yaw(q))
+        if not all(math.isfinite(v) for v in pose):
+            raise InvalidParameters("odometry pose must be finite")
+        st = msg.header.stamp
+        return Stamp(int(st.sec), int(st.nanosec)).seconds, pose, \
+            _text(msg.header.frame_id) or "odom"
+
+    def map_to_odom(self, est: Estimate, odom: tuple[float, float, float], stamp: Stamp,
+                    map_frame: str, odom_frame: str) -> bytes:
+        """TFMessage with map->odom = map->base_link o (odom->base_link)^-1, as AMCL
+        publishes it: the robot's odometry composed with it gives the estimate."""
+        x, y, yaw = map_to_odom((est.x, est.y, est.heading), odom)
+        t = self.types
+        half = 0.5 * yaw
+        tf = t["geometry_msgs/msg/TransformStamped"](
+            header=self._header(stamp, map_frame), child_frame_id=odom_frame,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](x=x, y=y, z=0.0),
+                rotation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(half),
+                                                           w=math.cos(half))))
+        return self.serialize(t[TF](transforms=[tf]), TF)
+
     def status(self, robot: str, body: dict[str, Any]) -> bytes:
         """DiagnosticStatus of one answer: level OK (tracking), WARN (initializing,
         recovering), ERROR (lost, or a rejected input); values carry the numbers."""
@@ -204,6 +235,51 @@ class Codec:
         prior = validated(PosePrior, {"x": float(p.x), "y": float(p.y), "radius": radius},
                           "initial pose")
         return prior, str(msg.header.frame_id)
+
+
+def quaternion_yaw(q: Any) -> float:
+    """Yaw (rad, about z) of a geometry_msgs/Quaternion."""
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+def map_to_odom(map_base: tuple[float, float, float], odom_base: tuple[float, float, float]
+                ) -> tuple[float, float, float]:
+    """(x, y, yaw) of map->odom = map->base_link o (odom->base_link)^-1 (planar)."""
+    yaw = map_base[2] - odom_base[2]
+    c, s = math.cos(yaw), math.sin(yaw)
+    return (map_base[0] - (c * odom_base[0] - s * odom_base[1]),
+            map_base[1] - (s * odom_base[0] + c * odom_base[1]),
+            math.atan2(math.sin(yaw), math.cos(yaw)))
+
+
+class OdometryBuffer:
+    """The last Odometry messages of each robot, for the frame stamped nearest to them."""
+
+    def __init__(self, keep: int = 256, max_robots: int = 10_000) -> None:
+        self.keep = keep
+        self.max_robots = max_robots
+        self._lock = threading.Lock()
+        self._by_robot: dict[str, deque[tuple[float, tuple[float, float, float], str]]] = {}
+
+    def add(self, robot: str, t: float, pose: tuple[float, float, float], frame: str) -> None:
+        with self._lock:
+            buf = self._by_robot.get(robot)
+            if buf is None:
+                if len(self._by_robot) >= self.max_robots:
+                    return
+                buf = self._by_robot[robot] = deque(maxlen=self.keep)
+            buf.append((t, pose, frame))
+
+    def nearest(self, robot: str, t: float, max_age_s: float
+                ) -> tuple[tuple[float, float, float], str] | None:
+        """The pose (and odometry frame) of the message nearest ``t``, within
+        ``max_age_s``; None where none is."""
+        with self._lock:
+            buf = list(self._by_robot.get(robot, ()))
+        if not buf:
+            return None
+        best = min(buf, key=lambda m: abs(m[0] - t))
+        return (best[1], best[2]) if abs(best[0] - t) <= max_age_s else None
 
 
 def compressed_content_type(fmt: str) -> str | None:
@@ -352,6 +428,9 @@ class Ros2Endpoints:
             if s.ros2_initialpose_topic else None
         self.pose_key = topic(s.ros2_pose_topic, POSE)
         self.status_key = topic(s.ros2_status_topic, STATUS)
+        self.odom_key = topic(s.ros2_odom_topic, ODOMETRY) if s.ros2_odom_topic else None
+        self.tf_key = topic(s.ros2_tf_topic, TF) if s.ros2_tf_topic else None
+        self.odometry = OdometryBuffer()
         self._session: Any = None
         self._gid = os.urandom(16)  # this publisher's rmw_zenoh GID
         self._seq = itertools.count(1)  # rmw_zenoh sequence numbers (thread-safe next)
@@ -363,6 +442,9 @@ class Ros2Endpoints:
         if self.initialpose is not None:
             decls.append(session.declare_subscriber(self.initialpose.subscription(),
                                                     self._on_initialpose))
+        if self.odom_key is not None:
+            decls.append(session.declare_subscriber(self.odom_key.subscription(),
+                                                    self._on_odometry))
         return decls
 
     # ---- publishing ---------------------------------------------------------------------
@@ -378,14 +460,20 @@ class Ros2Endpoints:
     def frame_id(self, est: Estimate) -> str:
         return self.settings.ros2_frame_id or est.frame_id
 
-    def publish(self, robot: str, body: dict[str, Any], stamp: Stamp | None) -> None:
-        """The ROS answer to one input: the pose (estimates only) and the status."""
+    def publish(self, robot: str, body: dict[str, Any], stamp: Stamp | None,
+                odom: tuple[tuple[float, float, float], str] | None = None) -> None:
+        """The ROS answer to one input: the pose (estimates only), map->odom on tf where
+        the frame carried odometry, and the status."""
         if "error" not in body:
             est = Estimate.model_validate(body)
             st = stamp or Stamp.from_seconds(est.stamp or 0.0)
             self._put(self.pose_key.key(robot),
                       self.codec.pose(est, st, self.frame_id(est),
                                       self.settings.ros2_speed_sigma_mps))
+            if odom is not None and self.tf_key is not None:
+                self._put(self.tf_key.key(robot),
+                          self.codec.map_to_odom(est, odom[0], st, self.frame_id(est),
+                                                 odom[1]))
         self._put(self.status_key.key(robot), self.codec.status(robot, body))
 
     def _reject(self, robot: str, exc: Any, seq: int | None = None) -> None:
@@ -413,11 +501,28 @@ class Ros2Endpoints:
             except ServiceError as exc:
                 self._reject(robot, exc, seq)
                 return
-            meta = {"t": frame.stamp.seconds, "seq": seq}
+            meta: dict[str, Any] = {"t": frame.stamp.seconds, "seq": seq}
+            odom = self.odometry.nearest(robot, frame.stamp.seconds,
+                                         self.settings.ros2_odom_max_age_s)
+            if odom is not None:
+                meta["odom"] = dict(zip(("x", "y", "yaw"), odom[0], strict=True))
             self.submit(robot, frame.data, meta, frame.content_type,
-                        lambda body: self.publish(robot, body, frame.stamp))
+                        lambda body: self.publish(robot, body, frame.stamp, odom))
 
         return on_frame
+
+    def _on_odometry(self, sample: Any) -> None:
+        from service.api.errors import ServiceError
+
+        assert self.odom_key is not None
+        robot = self.odom_key.robot(str(sample.key_expr))
+        try:
+            check_robot_id(robot)
+            t, pose, frame = self.codec.odometry(sample.payload.to_bytes())
+        except ServiceError as exc:  # not an Odometry message, or a non-finite pose
+            self._reject(robot, exc)
+            return
+        self.odometry.add(robot, t, pose, frame)
 
     def _on_initialpose(self, sample: Any) -> None:
         from service.api.errors import ServiceError

@@ -11,7 +11,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from client.dataset import write_round
+from client.dataset import write_odometry, write_round
 from client.lab.world.geometry import Camera, Pose, Route
 from client.lab.world.renderer import Renderer
 from client.lab.world.scene import MOVER_CARS, MOVER_PEOPLE, Mover, Scene
@@ -66,10 +66,59 @@ def round_movers(world: World, round_index: int) -> list[Mover]:
                   rng.uniform(-8, -3), 1.6, True) for _ in range(n_cars)]
     return people + cars
 
+@dataclass(frozen=True)
+class OdometryNoise:
+    """How the simulated wheel odometry errs: a scale error of ``scale`` (the wheels'
+    circumference: every step ``1 + scale`` too long or too short, sign drawn per round),
+    a heading drift of ``drift_deg_per_m`` (sign drawn per round), and per-step noise."""
+
+    scale: float = 0.03
+    drift_deg_per_m: float = 0.1
+    step_sigma: float = 0.01  # relative std of each step's length
+    turn_sigma_deg: float = 0.1  # std of each step's turn
+
+
+def simulate_odometry(poses: np.ndarray, rng: np.random.Generator,
+                      noise: OdometryNoise = OdometryNoise()) -> np.ndarray:
+    """(N, 3) odometry poses (x, y, yaw) of a trajectory ``poses`` (x, y, heading): each
+    true step in the body frame, with ``noise``, integrated from (0, 0, 0)."""
+    x, y, h = poses[:, 0], poses[:, 1], poses[:, 2]
+    dx, dy = np.diff(x), np.diff(y)
+    c, s = np.cos(h[:-1]), np.sin(h[:-1])
+    fwd, left = c * dx + s * dy, -s * dx + c * dy
+    turn = np.angle(np.exp(1j * np.diff(h)))
+    n = len(fwd)
+    sign_s, sign_d = rng.choice([-1.0, 1.0], 2)
+    gain = (1 + sign_s * noise.scale) * (1 + rng.normal(0, noise.step_sigma, n))
+    fwd, left = fwd * gain, left * gain
+    turn = turn + np.radians(sign_d * noise.drift_deg_per_m * np.hypot(fwd, left)
+                             + rng.normal(0, noise.turn_sigma_deg, n))
+    out = np.zeros((n + 1, 3))
+    for k in range(n):
+        ox, oy, oyaw = out[k]
+        co, so = math.cos(oyaw), math.sin(oyaw)
+        out[k + 1] = (ox + co * fwd[k] - so * left[k], oy + so * fwd[k] + co * left[k],
+                      oyaw + turn[k])
+    return out
+
+
+def write_round_odometry(world: World, out_dir: str | Path, round_index: int,
+                         n_frames: int | None = None,
+                         noise: OdometryNoise = OdometryNoise()) -> Path:
+    """Write ``odometry.csv`` of a round (deterministic by world seed and round index)."""
+    poses, _, _ = round_trajectory(world, round_index, n_frames)
+    odom = simulate_odometry(poses, np.random.default_rng([world.seed, 13, round_index]),
+                             noise)
+    write_odometry(out_dir, [f"{k:05d}.png" for k in range(len(poses))], odom)
+    return Path(out_dir)
+
+
 def render_round(world: World, out_dir: str | Path, round_index: int, condition: str,
                  day: str | None = None, n_frames: int | None = None,
-                 gps_noise_m: float = 0.3, progress: bool = False) -> Path:
-    """Render a round into ``out_dir`` (images, poses.csv with GPS-like noise, truth.csv)."""
+                 gps_noise_m: float = 0.3, progress: bool = False,
+                 odometry: OdometryNoise = OdometryNoise()) -> Path:
+    """Render a round into ``out_dir`` (images, poses.csv with GPS-like noise, truth.csv,
+    odometry.csv with ``odometry``'s noise)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     day = day or condition
@@ -91,6 +140,7 @@ def render_round(world: World, out_dir: str | Path, round_index: int, condition:
         cv2.imwrite(str(out_dir / names[k]), img)
     gps = poses[:, :2] + _correlated_noise(rng, len(poses), gps_noise_m)
     write_round(out_dir, names, gps, t, truth_xy=poses[:, :2])
+    write_round_odometry(world, out_dir, round_index, n_frames, odometry)
     return out_dir
 
 

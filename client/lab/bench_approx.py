@@ -1,0 +1,161 @@
+"""``swarmloc bench approx``: the inverted-file matcher (service/vision/vocabulary.py) against
+the exact one, side by side, on the same map, frames and seed.
+
+Per query round, two localizers with one map, one estimator (DPSO, the service's defaults)
+and one seed step through the same extracted frames: one with the exact similarity
+(``RouteMap.similarity``), one with the inverted file's, for the similarity and (unless
+``--exact-geometry``) for the two-view geometry's matches (every other part is the map's
+own). Printed per round:
+
+- ``step ms``: the median ``Localizer.step`` over the frames after the warm-up (one thread,
+  as ``swarmloc serve`` runs), and step / extraction;
+- ``error m``: the mean distance of the estimate to the frame's recorded position after the
+  warm-up (the lab's error), and its change;
+- ``counts``: over the map images nearest each frame's position (``images`` of them), the
+  inverted file's match counts over the exact ones, and how often both pick the same best
+  image.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, cast
+
+import cv2
+import numpy as np
+
+from client.dataset import Round
+from client.lab.bench_extract import capped_params
+from service.engine.localizer import Localizer
+from service.maps.route_map import RouteMap, build_map_from_rounds
+from service.vision.features import extract, named_params
+from service.vision.map_geometry import MapGeometry
+from service.vision.vocabulary import DEFAULT_PROBES, DEFAULT_WORDS, InvertedFileMatcher
+
+
+class _WithMatcher:
+    """The map, its similarity answered by an inverted file (everything else delegated)."""
+
+    def __init__(self, route_map: RouteMap, matcher: InvertedFileMatcher,
+                 exact_geometry: bool = False) -> None:
+        self._map = route_map
+        self._matcher = matcher
+        self._exact_geometry = exact_geometry
+
+    def similarity(self, codes: np.ndarray, image_ids: Any) -> np.ndarray:
+        return self._matcher.similarity(codes, np.asarray(list(image_ids)), self._map.delta)
+
+    def pairs(self, codes: np.ndarray, image_id: int, delta: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+        return self._matcher.pairs(codes, image_id, delta)
+
+    @functools.cached_property
+    def geometry(self) -> MapGeometry | None:
+        """The map's two-view geometry on the inverted file's matches."""
+        if self._exact_geometry:
+            return self._map.geometry
+        cam, p = self._map.camera, self._map.feature_params
+        return None if cam is None else MapGeometry(self, cam, p.width, p.height)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._map, name)
+
+
+def inverted_file(route_map: RouteMap, k: int = DEFAULT_WORDS,
+                  probes: int = DEFAULT_PROBES) -> InvertedFileMatcher:
+    return InvertedFileMatcher(route_map.codes_of, np.asarray(route_map.codes),
+                               route_map.n_images, k, probes)
+
+
+@dataclass(frozen=True)
+class ApproxRow:
+    query: str
+    features: float  # median per frame
+    extract_ms: float
+    step_ms: tuple[float, float]  # exact, inverted file
+    error_m: tuple[float, float]
+    count_ratio: float  # inverted file's counts / exact counts
+    best_same: float  # share of frames whose best image is the same
+
+
+def _run(loc: Localizer, feats: Sequence[Any], truth: np.ndarray, warmup: int
+         ) -> tuple[list[float], list[float]]:
+    ms, err = [], []
+    for i, f in enumerate(feats):
+        t0 = time.perf_counter()
+        est = loc.step(f, float(i))
+        took = 1e3 * (time.perf_counter() - t0)
+        if i >= warmup:
+            ms.append(took)
+            err.append(float(np.hypot(est.x - truth[i, 0], est.y - truth[i, 1])))
+    return ms, err
+
+
+def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], frames: int,
+            warmup: int, seed: int, k: int, probes: int, cap: int = 0,
+            exact_geometry: bool = False, images: int = 18) -> ApproxRow:
+    params = capped_params("clahe-rootsift", size, cap) if cap else \
+        named_params("clahe-rootsift", *size)
+    m = build_map_from_rounds([map_rnd], params=params)
+    ivf = inverted_file(m, k, probes)
+    n = min(len(query), frames + warmup)
+    ext_ms, feats = [], []
+    for i in range(n):
+        img = query.load_image(i)
+        t0 = time.perf_counter()
+        feats.append(extract(img, params))
+        ext_ms.append(1e3 * (time.perf_counter() - t0))
+    truth = query.reference_xy[:n]
+    exact = Localizer(m, "dpso", {}, seed)
+    approx = Localizer(cast(RouteMap, _WithMatcher(m, ivf, exact_geometry)), "dpso", {}, seed)
+    ms_e, err_e = _run(exact, feats, truth, warmup)
+    ms_a, err_a = _run(approx, feats, truth, warmup)
+    got, want, same = 0, 0, 0
+    for i, f in enumerate(feats):
+        ids = np.argsort(np.linalg.norm(m.positions - truth[i], axis=1))[:images]
+        ce = m.similarity(f.codes, ids)
+        ca = ivf.similarity(f.codes, ids, m.delta)
+        got += int(np.round(ca * np.minimum(len(f), [len(m.codes_of(int(j))) for j in ids]))
+                   .sum())
+        want += int(np.round(ce * np.minimum(len(f), [len(m.codes_of(int(j))) for j in ids]))
+                    .sum())
+        same += int(np.argmax(ce) == np.argmax(ca))
+    return ApproxRow(name, float(np.median([len(f) for f in feats])), float(np.median(ext_ms)),
+                     (float(np.median(ms_e)), float(np.median(ms_a))),
+                     (float(np.mean(err_e)), float(np.mean(err_a))),
+                     got / max(want, 1), same / n)
+
+
+def bench_approx(pairs: Sequence[tuple[str, Round, Round]], size: tuple[int, int],
+                 frames: int = 60, warmup: int = 20, seed: int = 0, k: int = DEFAULT_WORDS,
+                 probes: int = DEFAULT_PROBES, cap: int = 0, exact_geometry: bool = False
+                 ) -> list[ApproxRow]:
+    """One row per (name, map round, query round), OpenCV and BLAS on one thread; ``cap``:
+    at most that many features per frame, with a low detector threshold (``bench extract``'s
+    sweep), 0: the default features; ``exact_geometry``: the two-view geometry keeps the exact
+    matcher's pairs (only the similarity goes through the inverted file)."""
+    from threadpoolctl import threadpool_limits
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(1, "blas"):
+            return [compare(mr, q, name, size, frames, warmup, seed, k, probes, cap,
+                            exact_geometry) for name, mr, q in pairs]
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def report(rows: Sequence[ApproxRow], say: Callable[[str], object] = print) -> None:
+    say("| query | features/frame | extract ms | step ms exact / ivf | step / extract exact / "
+        "ivf | error m exact / ivf (change) | counts ivf / exact | same best image |")
+    say("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        (se, sa), (ee, ea) = r.step_ms, r.error_m
+        change = 100 * (ea - ee) / ee if ee > 0 else float("nan")
+        say(f"| {r.query} | {r.features:.0f} | {r.extract_ms:.1f} | {se:.1f} / {sa:.1f} | "
+            f"{se / r.extract_ms:.2f} / {sa / r.extract_ms:.2f} | {ee:.2f} / {ea:.2f} "
+            f"({change:+.1f} %) | {r.count_ratio:.3f} | {100 * r.best_same:.0f} % |")

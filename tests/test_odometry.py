@@ -1,0 +1,165 @@
+"""Wheel odometry (issue 33): the step between frames, its validation on HTTP, the fusion in
+the estimators (a kidnap is still recovered) and the session state that carries it."""
+
+from __future__ import annotations
+
+import math
+
+import httpx
+import numpy as np
+import pytest
+
+from client.dataset import Round, read_round
+from client.lab.experiments import SimilarityTable, run
+from client.lab.world import World
+from client.runs import frames_to_recover, odometry_along
+from service.api.errors import InvalidParameters
+from service.api.models import Odometry, odometry
+from service.api.round_format import DatasetError
+from service.engine.localizer import Localizer
+from service.engine.state_codec import SessionState, decode_session, encode_session
+from service.estimators.odometry import OdomHeading, OdomStep, body_step
+from service.maps.route_map import RouteMap
+
+
+def test_the_step_does_not_depend_on_the_odometry_origin() -> None:
+    a, b = (1.0, 2.0, 0.3), (1.5, 2.4, 0.5)
+    step = body_step(a, b, 0.0, 0.0)
+    # the same two poses in another odometry frame (rotated by 1 rad, shifted)
+    c, s = math.cos(1.0), math.sin(1.0)
+
+    def moved(p: tuple[float, float, float]) -> tuple[float, float, float]:
+        return (c * p[0] - s * p[1] + 7.0, s * p[0] + c * p[1] - 3.0, p[2] + 1.0)
+
+    other = body_step(moved(a), moved(b), 0.0, 0.0)
+    assert np.allclose([step.forward, step.left, step.turn],
+                       [other.forward, other.left, other.turn])
+    assert step.distance == pytest.approx(math.hypot(0.5, 0.4))
+
+
+def test_the_heading_fit_finds_the_rotation_and_scale_between_odometry_and_map() -> None:
+    h = OdomHeading()
+    h.min_span_m = 1.0
+    truth_offset, scale = 0.7, 1.03
+    for k in range(30):  # a gentle curve, in odometry steps of 0.6 m
+        h.advance(OdomStep(0.6, 0.0, 0.02, 0.0, 0.0))
+        x, y, _ = h.pose
+        c, s = math.cos(truth_offset), math.sin(truth_offset)
+        h.observe(scale * np.array([c * x - s * y, s * x + c * y]) + [100.0, 50.0])
+        assert k < 8 or h.offset is not None
+    assert h.offset == pytest.approx(truth_offset, abs=1e-6)
+    assert h.scale == pytest.approx(scale, abs=1e-6)
+    d, _ = h.displacement(OdomStep(1.0, 0.0, 0.0, 0.0, 0.0), None)
+    heading = truth_offset + h.pose[2]
+    assert np.allclose(d, scale * np.array([math.cos(heading), math.sin(heading)]))
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    ((1.0, 2.0, None), "missing odom_yaw"),
+    ((None, None, None, 0.1), "variances need"),
+    ((math.nan, 0.0, 0.0), "finite"),
+    ((1e9, 0.0, 0.0), "less than or equal"),
+    ((0.0, 0.0, 0.0, -1.0), "greater than or equal"),
+])
+def test_bad_odometry_is_refused_with_a_clear_message(args: tuple, message: str) -> None:
+    with pytest.raises(InvalidParameters, match=message):
+        odometry(*args)
+
+
+def test_a_jump_in_odometry_is_refused_before_anything_changes(small_map: RouteMap,
+                                                               sunny2: Round) -> None:
+    loc = Localizer(small_map, "dpso", seed=1)
+    f = [loc.extract(sunny2.load_image(i)) for i in range(3)]
+    loc.step(f[0], 0.0, odom=Odometry(x=0.0, y=0.0, yaw=0.0))
+    loc.step(f[1], 1.0, odom=Odometry(x=0.6, y=0.0, yaw=0.0))
+    before = encode_session(SessionState("r", loc, 0.0, 0.0))
+    with pytest.raises(InvalidParameters, match="more than 100 m"):
+        loc.step(f[2], 2.0, odom=Odometry(x=500.0, y=0.0, yaw=0.0))
+    assert encode_session(SessionState("r", loc, 0.0, 0.0)) == before
+
+
+def test_an_odometry_session_survives_the_store_bit_for_bit(small_map: RouteMap,
+                                                            sunny2: Round) -> None:
+    assert sunny2.odometry is not None
+    odom = [Odometry(x=float(x), y=float(y), yaw=float(a)) for x, y, a in sunny2.odometry]
+    frames = [Localizer(small_map).extract(sunny2.load_image(i)) for i in range(40)]
+    for est in ("dpso", "pf-l"):
+        loc = Localizer(small_map, est, seed=2)
+        for i in range(30):
+            loc.step(frames[i], float(i), odom=odom[i])
+        twin = decode_session(encode_session(SessionState("r", loc, 0.0, 0.0)),
+                              lambda name, checksum: small_map).localizer
+        odo = twin.estimator.odometry
+        assert twin.odom_prev == loc.odom_prev and odo is not None and odo.offset is not None
+        for i in range(30, 40):
+            a = loc.step(frames[i], float(i), odom=odom[i])
+            b = twin.step(frames[i], float(i), odom=odom[i])
+            assert a == b
+
+
+def test_the_kidnapped_robot_is_found_again_with_odometry(small_world: World,
+                                                          small_map: RouteMap, sunny2: Round,
+                                                          table: SimilarityTable) -> None:
+    """The wheels know nothing of the kidnap (their step at the jump is an ordinary one):
+    the images must win against the odometry. Headings come from the odometry once the
+    fit has seen enough travel, and follow the robot's."""
+    r = run(small_map, table, sunny2, "dpso", seed=0, start=0, kidnap=True, odometry=True)
+    assert frames_to_recover(r) is not None, "the kidnap was not recovered"
+    truth = small_world.round_trajectory(1, len(sunny2))[0][:, 2]
+    assert r.heading_sources is not None
+    half = len(r.frames) // 2
+    use = [k for k in range(20, half) if r.heading_sources[k] == "odometry"
+           and r.status[k] == "tracking"]
+    assert len(use) > half // 2
+    err = np.degrees(np.abs(np.angle(np.exp(1j * (r.heading[use] - truth[r.frames[use]])))))
+    assert np.median(err) < 10.0
+
+
+def test_the_wheels_see_an_ordinary_step_at_a_jump() -> None:
+    odom = np.column_stack([np.arange(10) * 0.6, np.zeros(10), np.zeros(10)])
+    poses = odometry_along(odom, np.array([2, 3, 4, 8, 9, 0, 1]))
+    steps = np.diff(poses[:, 0])
+    assert np.allclose(steps, 0.6)  # the kidnap 4 -> 8 and the wrap 9 -> 0 included
+
+
+def test_a_round_reads_its_odometry_and_refuses_a_mismatched_one(rounds_dir, tmp_path) -> None:
+    rnd = read_round(rounds_dir / "sunny2")
+    assert rnd.odometry is not None and rnd.odometry.shape == (len(rnd), 3)
+    bad = tmp_path / "r"
+    bad.mkdir()
+    for name in ("poses.csv", rnd.images[0], rnd.images[1]):
+        (bad / name).write_bytes((rnd.path / name).read_bytes())
+    (bad / "poses.csv").write_text(f"image,x,y\n{rnd.images[0]},0,0\n{rnd.images[1]},1,0\n")
+    (bad / "odometry.csv").write_text(f"image,x,y,yaw\n{rnd.images[1]},0,0,0\n")
+    with pytest.raises(DatasetError, match="same images in the same order"):
+        read_round(bad)
+
+
+def test_http_frames_carry_odometry_and_bad_odometry_is_refused(server, sunny2: Round
+                                                                ) -> None:
+    url, robot = server["url"], "odo-http"
+    assert sunny2.odometry is not None
+    with httpx.Client(base_url=url, timeout=60) as c:
+        assert c.put(f"/sessions/{robot}", json={"seed": 3}).status_code in (200, 201)
+
+        def frame(i: int, **q: object) -> httpx.Response:
+            return c.post(f"/sessions/{robot}/frames", params={"t": float(i), **q},
+                          content=sunny2.image_path(i).read_bytes(),
+                          headers={"Content-Type": "image/png"})
+
+        for i in range(4):
+            x, y, yaw = sunny2.odometry[i]
+            r = frame(i, odom_x=x, odom_y=y, odom_yaw=yaw, odom_var_xy=0.01)
+            assert r.status_code == 200, r.text
+            assert r.json()["heading_source"] in ("motion", "odometry")
+        frames = c.get(f"/sessions/{robot}").json()["frames"]
+        for q, words in [({"odom_x": 1.0, "odom_y": 2.0}, "missing odom_yaw"),
+                         ({"odom_x": "nan", "odom_y": 0, "odom_yaw": 0}, "finite"),
+                         ({"odom_x": 1e5, "odom_y": 0, "odom_yaw": 0}, "more than 100 m"),
+                         ({"odom_var_yaw": 0.1}, "variances need")]:
+            r = frame(4, **q)
+            assert r.status_code == 422 and words in r.text, (q, r.text)
+        assert c.get(f"/sessions/{robot}").json()["frames"] == frames  # untouched
+        x, y, yaw = sunny2.odometry[4]
+        assert frame(4, odom_x=x, odom_y=y, odom_yaw=yaw).json()["seq"] == frames + 1
+        c.delete(f"/sessions/{robot}")
