@@ -128,7 +128,7 @@ def test_state_is_compact(small_map: RouteMap, frames) -> None:
     # the rest is ~4 KB of names and small values (4.2 KB since a session carries its
     # odometry: two empty attributes and the Estimate's heading_source, ~65 bytes)
     n = int(loc.params["n_particles"])
-    assert len(blob) < n * 6 * 8 + 4200
+    assert len(blob) < n * 6 * 8 + 4300
 
 
 def test_bad_blobs_are_refused(small_map: RouteMap) -> None:
