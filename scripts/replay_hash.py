@@ -2,8 +2,9 @@
 
 Every estimator kind over a rendered cloudy round (seed 3, 90 m), and with a second
 dataset (a rendered world with sunny1 and cloudy1) DPSO and PF-l on a map with the camera
-(located frames). Each Estimate is hashed but for ``heading_source``, which did not exist
-before odometry. Run it on two checkouts and compare the lines:
+(located frames). Each Estimate is hashed but for ``heading_source`` and ``experience``,
+which did not exist before odometry and experience maps. Run it on two checkouts and
+compare the lines:
 
     PYTHONPATH=. python scripts/replay_hash.py /tmp/rh [/tmp/w23]
 """
@@ -25,6 +26,7 @@ def _hash(loc: Localizer, rnd, frames: range) -> str:
     for i in frames:
         d = loc.step(loc.extract(rnd.load_image(i)), t=float(i)).model_dump(mode="json")
         d.pop("heading_source", None)
+        d.pop("experience", None)
         h.update(repr(sorted(d.items())).encode())
     return h.hexdigest()[:16]
 
