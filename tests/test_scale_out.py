@@ -26,7 +26,7 @@ from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
 from service.engine.store import RedisOptions, RedisStore, Session
 from service.maps.route_map import RouteMap, save_map
-from service.server import free_port
+from service.server import free_ports
 from service.settings import Settings
 
 SEED = 7
@@ -43,15 +43,19 @@ def maps_dir(tmp_path_factory: pytest.TempPathFactory, small_map: RouteMap) -> P
 def replicas(tmp_path_factory: pytest.TempPathFactory, redis_srv: RedisServer,
              maps_dir: Path) -> Iterator[dict[str, Any]]:
     logs = tmp_path_factory.mktemp("replica_logs")
-    zenoh_ep = f"tcp/127.0.0.1:{free_port()}"
+    # three distinct ports: two free_port() calls in a row once gave both replicas one port
+    zenoh_port, port_a, port_b = free_ports(3)
+    zenoh_ep = f"tcp/127.0.0.1:{zenoh_port}"
     common = {"SWARMLOC_MAPS_DIR": str(maps_dir), "SWARMLOC_SESSION_STORE": redis_srv.url,
               "SWARMLOC_ZENOH_MULTICAST_SCOUTING": "false", "SWARMLOC_WORKERS": "2",
               "SWARMLOC_SESSION_LOCK_WAIT_S": "30"}
     a = ServiceProcess("replica-a", {**common, "SWARMLOC_ZENOH_MODE": "router",
-                                     "SWARMLOC_ZENOH_LISTEN": json.dumps([zenoh_ep])}, logs)
+                                     "SWARMLOC_ZENOH_LISTEN": json.dumps([zenoh_ep])}, logs,
+                       port=port_a)
     b = ServiceProcess("replica-b", {**common, "SWARMLOC_ZENOH_MODE": "peer",
                                      "SWARMLOC_ZENOH_LISTEN": "[]",
-                                     "SWARMLOC_ZENOH_CONNECT": json.dumps([zenoh_ep])}, logs)
+                                     "SWARMLOC_ZENOH_CONNECT": json.dumps([zenoh_ep])}, logs,
+                       port=port_b)
     a.start()
     b.start()
     try:
