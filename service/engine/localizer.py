@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any, cast
 
 import numpy as np
@@ -18,7 +17,7 @@ from service.api.models import (
 )
 from service.api.params import DPSOParams
 from service.estimators.base import StepResult
-from service.estimators.fitness import LocateFn
+from service.estimators.fitness import ComparisonCache, LocateFn
 from service.estimators.odometry import OdomStep, body_step
 from service.estimators.registry import make_estimator
 from service.maps.experiences import LayerChoice, experience_layers
@@ -107,12 +106,12 @@ class Localizer:
                                       self.locator(features), motion)
             comparisons = res.comparisons
         else:  # one layer per particle, then the layer probes (service/maps/experiences.py)
-            similarity = _Memo(lambda ids: self.map.similarity(codes, ids))
+            similarity = ComparisonCache(lambda ids: self.map.similarity(codes, ids))
             res = self.estimator.step(similarity, t, self.locator(features), motion,
                                       nearest=self.choice.nearest(self.map))
             if not res.lost:
                 self.choice.probe(self.map, similarity, res.position)
-            comparisons = similarity.computed
+            comparisons = similarity.comparisons
         self.seq += 1
         self.last = self._estimate(res, t, comparisons, learned)
         return self.last
@@ -163,23 +162,3 @@ class Localizer:
             experience=self.choice.experience() if learned else None,
         )
 
-
-class _Memo:
-    """A frame's similarity function that compares each map image once and counts them (the
-    estimator's comparisons plus the layer probes)."""
-
-    def __init__(self, similarity: Callable[[np.ndarray], np.ndarray]) -> None:
-        self._similarity = similarity
-        self._known: dict[int, float] = {}
-
-    @property
-    def computed(self) -> int:
-        return len(self._known)
-
-    def __call__(self, ids: np.ndarray) -> np.ndarray:
-        ids = np.asarray(ids, np.int64)
-        new = [int(i) for i in np.unique(ids) if int(i) not in self._known]
-        if new:
-            self._known.update(zip(new, (float(v) for v in self._similarity(
-                np.array(new, np.int64))), strict=True))
-        return np.array([self._known[int(i)] for i in ids], float)

@@ -38,16 +38,12 @@ class MapIndex(Protocol):
     def nearest_per_layer(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
-class FrameFitness:
-    """Eq. 3 for one frame, with a per-frame comparison cache and counter."""
+class ComparisonCache:
+    """A frame's similarity that compares each map image once, and counts them: the
+    papers' comparisons per image. Called like the similarity it wraps."""
 
-    def __init__(self, index: MapIndex, similarity: SimilarityFn, penalty_sigma_m: float,
-                 locate: LocateFn | None = None, nearest: NearestFn | None = None) -> None:
-        self._index = index
-        self._nearest = nearest or index.nearest_per_layer
+    def __init__(self, similarity: SimilarityFn) -> None:
         self._similarity = similarity
-        self.locate = locate  # None: the frame can only be placed at map images
-        self._inv_two_sigma2 = 1.0 / (2.0 * penalty_sigma_m**2)
         self._ids = np.zeros(0, np.int64)
         self._scores = np.zeros(0)
 
@@ -55,6 +51,9 @@ class FrameFitness:
     def comparisons(self) -> int:
         """Distinct map images compared for this frame so far."""
         return len(self._ids)
+
+    def __call__(self, ids: np.ndarray) -> np.ndarray:
+        return self.scores_of(ids)
 
     def scores_of(self, ids: np.ndarray) -> np.ndarray:
         """m(frame, image) for map image ids, comparing each distinct new id once."""
@@ -71,6 +70,32 @@ class FrameFitness:
     def compared(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids, m) of every map image compared in this frame so far."""
         return self._ids, self._scores
+
+
+class FrameFitness:
+    """Eq. 3 for one frame, with a per-frame comparison cache and counter."""
+
+    def __init__(self, index: MapIndex, similarity: SimilarityFn, penalty_sigma_m: float,
+                 locate: LocateFn | None = None, nearest: NearestFn | None = None) -> None:
+        self._index = index
+        self._nearest = nearest or index.nearest_per_layer
+        self._cache = ComparisonCache(similarity)
+        self.locate = locate  # None: the frame can only be placed at map images
+        self._inv_two_sigma2 = 1.0 / (2.0 * penalty_sigma_m**2)
+
+    @property
+    def comparisons(self) -> int:
+        """Distinct map images compared for this frame so far."""
+        return self._cache.comparisons
+
+    def scores_of(self, ids: np.ndarray) -> np.ndarray:
+        """m(frame, image) for map image ids, comparing each distinct new id once."""
+        return self._cache.scores_of(ids)
+
+    @property
+    def compared(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, m) of every map image compared in this frame so far."""
+        return self._cache.compared
 
     def __call__(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(fitness, similarity m, nearest image id) for each particle position."""
