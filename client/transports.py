@@ -442,6 +442,7 @@ class LocalClient:
 
     def delete_session(self, robot_id: str) -> None:
         self._wrap(self.service.delete_session, robot_id)
+        self.service.writer.wait()  # one run's service: what it learned is in the map now
 
     def reset(self, robot_id: str, near: PosePrior | None = None) -> SessionInfo:
         return self._wrap(self.service.reset_session, robot_id, near)

@@ -195,8 +195,10 @@ def learning_run(camera_maps: Path, tmp_path_factory: pytest.TempPathFactory,
     for i in range(LEARN_FRAMES):
         service.process_frame("r1", cloudy1.image_path(i).read_bytes(), t=float(i))
     stats = service.learner.stats("r1")
+    assert service.writer.wait(120)  # the full collections were handed to the writer
     during = str(service.map_summary("route").checksum)
     service.delete_session("r1")  # the images collected since the last commit are written
+    assert service.writer.wait(120)
     summary = service.map_summary("route")
     path = service.get_map("route").path
     assert path is not None
@@ -326,9 +328,9 @@ def test_http_lists_and_deletes_experiences(map_copy: RouteMap,
 def test_two_replicas_on_redis_one_writer_no_lost_update(
         map_copy: RouteMap, cloudy_images: list[NewImage], redis_srv, rdb, sunny2: Round
 ) -> None:
-    """Two replicas on one maps directory and one Redis learn from two robots at once: the
-    writes queue on the map's writer lock, each merges onto the newest file, and both
-    replicas serve the version that has both experiences."""
+    """Two replicas on one maps directory and one Redis learn from two robots at once: their
+    writers hand the batches over through Redis, one holds the map's writer lease and writes
+    both, each onto the newest file, and both replicas serve the version with both."""
     import threading
 
     assert map_copy.path is not None
@@ -342,8 +344,9 @@ def test_two_replicas_on_redis_one_writer_no_lost_update(
 
     def teach(k: int) -> None:
         go.wait()
-        replicas[k].admin.commit_experience("small", f"e{k}", cloudy_images[30 * k: 30 * k + 30],
-                                            "cloudy", f"robot{k}")
+        replicas[k].writer.submit("small", f"e{k}", cloudy_images[30 * k: 30 * k + 30],
+                                  "cloudy", f"robot{k}")
+        assert replicas[k].writer.wait(60)
 
     threads = [threading.Thread(target=teach, args=(k,)) for k in (0, 1)]
     for t in threads:
@@ -352,6 +355,7 @@ def test_two_replicas_on_redis_one_writer_no_lost_update(
         t.join()
     on_disk = load_map(map_copy.path, verify=True)
     assert sorted(experience_layers(on_disk)) == ["e0", "e1"]  # no lost update
+    assert rdb.llen("swarmloc:learn:small") == 0 and rdb.get("swarmloc:writer:small") is None
     for r in replicas:  # both serve the new version
         s = r.map_summary("small")
         assert s.checksum == on_disk.meta["checksum"] != old

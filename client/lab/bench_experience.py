@@ -103,6 +103,7 @@ def run_case(dataset: Path, seed: int, condition: str, work: Path, budget_mb: fl
     replay(base, first, _features(first, base, frames), teach=(service, condition))
     stats = service.learner.stats("teacher")
     service.learner.flush("teacher", end=True)  # the session ends: its images are written
+    service.writer.wait()
     learn_s = time.perf_counter() - t0
     m = service.get_map("sunny1")
     learned = replay(m, second, test_feats)

@@ -161,7 +161,7 @@ class Learner:
     def observe(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
                 features: Features, est: Estimate) -> None:
         """One estimate of a learning session: collect the frame if it passes the gates,
-        write the collection when it is full."""
+        hand the collection to the writer when it is full (no map write here)."""
         with self._lock:
             t = self._trails.get(robot_id)
             if t is None or t.map_name != m.name:
@@ -255,7 +255,7 @@ class Learner:
         return None
 
     def flush(self, robot_id: str, end: bool = False) -> None:
-        """Write the robot's collected images into its map (and with ``end`` forget it)."""
+        """Hand the robot's collected images to the writer (and with ``end`` forget it)."""
         with self._lock:
             t = self._trails.pop(robot_id, None) if end else self._trails.get(robot_id)
             if t is None:
@@ -265,6 +265,14 @@ class Learner:
             t.path.clear()
         if images:
             self._commit(t.map_name, t.exp_id, smoothed(images, seqs), t.condition, robot_id)
+
+    def flush_all(self) -> None:
+        """At shutdown: write every learning robot's collected images (they live in memory
+        only; a session that continues after a restart starts a new collection)."""
+        with self._lock:
+            robots = list(self._trails)
+        for rid in robots:
+            self.flush(rid, end=True)
 
     def forget(self, robot_id: str) -> None:
         with self._lock:

@@ -38,6 +38,7 @@ from service.api.models import (
 )
 from service.api.params import ParamError
 from service.engine.events import EventHub
+from service.engine.experience_writer import Batch, ExperienceWriter, RedisHandover
 from service.engine.learning import Learner, LearnGates
 from service.engine.localizer import Localizer
 from service.engine.map_admin import MapAdmin
@@ -75,12 +76,16 @@ class LocalizationService:
         self._in_flight = 0
         self._idle = threading.Condition(threading.Lock())
         self.admin = MapAdmin(self)  # upload / replace / delete / build without a restart
-        self.learner = Learner(LearnGates(settings.learn_accuracy_m, settings.learn_weak_ratio,
-                                          settings.learn_commit_images),
-                               self.admin.commit_experience)  # learning sessions
         if maps is None:
             self.load_maps(settings.maps_dir)
         self.store = open_store(settings, self.resolve_map)
+        # learning sessions hand their batches to a background writer (one writer per map
+        # fleet-wide with Redis): a frame never writes a map
+        handover = RedisHandover(self.store.r, self.store.opt.key_prefix) \
+            if isinstance(self.store, RedisStore) else None
+        self.writer = ExperienceWriter(self._write_batch, handover, lambda: list(self.maps))
+        self.learner = Learner(LearnGates(settings.learn_accuracy_m, settings.learn_weak_ratio,
+                                          settings.learn_commit_images), self.writer.submit)
         snap = settings.session_snapshot
         if isinstance(self.store, InProcessStore) and snap is not None and snap.exists():
             try:
@@ -96,9 +101,18 @@ class LocalizationService:
         self._update_gauge()
 
     def close(self) -> None:
-        """At shutdown: the in-process store writes its snapshot (if configured), the SQLite
-        store checkpoints and releases its file."""
+        """At shutdown: the learning robots' collected images are written (within
+        ``shutdown_deadline_s``; what does not make it is logged), the in-process store
+        writes its snapshot (if configured), the SQLite store checkpoints and releases its
+        file."""
+        self.learner.flush_all()
+        self.writer.close(self.settings.shutdown_deadline_s)
         self.store.close()
+
+    def _write_batch(self, batch: Batch) -> None:
+        """The background writer's write: one learned batch into its map."""
+        self.admin.commit_experience(batch.map, batch.exp_id, batch.images, batch.condition,
+                                     batch.robot)
 
     def _update_gauge(self) -> None:
         if not self.store.shared:  # Redis: each replica would count the fleet's sessions
@@ -425,7 +439,7 @@ class LocalizationService:
             raise
         if est.experience is not None:
             self.learner.used(ran_on.name, est.experience, time.time())
-        if learn:  # outside the session's lock: gates and a write touch only the map
+        if learn:  # outside the session's lock; a full collection is handed to the writer
             self.learner.observe(robot_id, created, condition, ran_on, features, est)
         self.metrics.frames.labels(transport).inc()
         self.metrics.comparisons.inc(est.comparisons)

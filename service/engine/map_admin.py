@@ -336,8 +336,9 @@ class MapAdmin:
     def commit_experience(self, name: str, exp_id: str, images: list[NewImage],
                           condition: str | None, robot: str) -> None:
         """Write a learning session's images into experience ``exp_id`` of map ``name``: a new
-        version (retiring the least used experiences beyond the budget). A failure is logged;
-        it never fails the frame that triggered it."""
+        version (retiring the least used experiences beyond the budget). Called by the
+        background writer (service/engine/experience_writer.py), never on a frame's path;
+        raises when the map cannot take them (the writer logs it, the map keeps serving)."""
         try:
             with self._writer(name) as m:
                 new, retired = add_experience(
@@ -347,11 +348,11 @@ class MapAdmin:
                     usage=self.service.learner.usage(name, clear=True))
                 if new is not m:
                     self._register(new, "experience")
-            if retired:
-                log.info("map %s: experiences %s retired (budget)", name, ", ".join(retired))
-        except Exception as exc:  # a map that cannot take it keeps serving as it is
+        except Exception:
             self.service.metrics.map_loads.labels("experience", "failed").inc()
-            log.error("map %s: experience %s not written: %s", name, exp_id, exc)
+            raise
+        if retired:
+            log.info("map %s: experiences %s retired (budget)", name, ", ".join(retired))
 
     def delete_experience(self, name: str, exp_id: str, if_match: str | None = None
                           ) -> MapSummary:
