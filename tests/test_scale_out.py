@@ -7,6 +7,7 @@ in-process service that sees the same frames: bit for bit, whichever replica mad
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import signal
 import threading
@@ -30,12 +31,14 @@ from service.server import free_ports
 from service.settings import Settings
 
 SEED = 7
+LEARN_FRAMES = 16  # cloudy frames each learning robot sends
 
 
 @pytest.fixture(scope="module")
 def maps_dir(tmp_path_factory: pytest.TempPathFactory, small_map: RouteMap) -> Path:
     d = tmp_path_factory.mktemp("replica_maps")
     save_map(small_map, d / "small")
+    save_map(dataclasses.replace(small_map, name="learn"), d / "learn")  # the robots teach it
     return d
 
 
@@ -48,7 +51,9 @@ def replicas(tmp_path_factory: pytest.TempPathFactory, redis_srv: RedisServer,
     zenoh_ep = f"tcp/127.0.0.1:{zenoh_port}"
     common = {"SWARMLOC_MAPS_DIR": str(maps_dir), "SWARMLOC_SESSION_STORE": redis_srv.url,
               "SWARMLOC_ZENOH_MULTICAST_SCOUTING": "false", "SWARMLOC_WORKERS": "2",
-              "SWARMLOC_SESSION_LOCK_WAIT_S": "30"}
+              "SWARMLOC_SESSION_LOCK_WAIT_S": "30", "SWARMLOC_DEFAULT_MAP": "small",
+              # learning: a batch every few taught frames, a gate 1 the short stretch passes
+              "SWARMLOC_LEARN_COMMIT_IMAGES": "3", "SWARMLOC_LEARN_ACCURACY_M": "2.0"}
     a = ServiceProcess("replica-a", {**common, "SWARMLOC_ZENOH_MODE": "router",
                                      "SWARMLOC_ZENOH_LISTEN": json.dumps([zenoh_ep])}, logs,
                        port=port_a)
@@ -291,3 +296,46 @@ def test_a_state_from_another_version_is_refused_with_a_way_out(
     _create(a, "older")  # the way out: start it over
     _est(_post(b, "older", frames[0], 0))
     assert _frames_of(a, "older") == 1
+
+
+def test_two_robots_learn_on_two_replicas_one_writer_both_serve_it(
+        replicas, rdb, cloudy1) -> None:
+    """Two learning robots, one on each replica, at once: the batches of both go through the
+    map's list in Redis to the one replica that holds the writer lease; no update is lost,
+    and both replicas serve the new version (the same ETag) without a restart."""
+    a, b = replicas["a"].url, replicas["b"].url
+    before = httpx.get(f"{a}/maps/learn", timeout=30).headers["ETag"]
+    robots = {"learner-a": a, "learner-b": b}
+    for robot, url in robots.items():
+        r = httpx.put(f"{url}/sessions/{robot}", timeout=30, json={
+            "map": "learn", "learn": True, "condition": "cloudy", "seed": SEED})
+        assert r.status_code == 201, r.text
+    frames = [cloudy1.image_path(i).read_bytes() for i in range(LEARN_FRAMES)]
+    answers: dict[str, list[int]] = defaultdict(list)
+
+    def drive(robot: str, url: str) -> None:
+        for k, data in enumerate(frames):
+            answers[robot].append(_post(url, robot, data, k).status_code)
+
+    threads = [threading.Thread(target=drive, args=item) for item in robots.items()]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(answers[r] == [200] * LEARN_FRAMES for r in robots), answers
+    for robot, url in robots.items():  # the end of a session hands its last images over
+        assert httpx.delete(f"{url}/sessions/{robot}", timeout=30).status_code == 204
+    deadline = time.monotonic() + 60
+    while True:
+        got = {n: httpx.get(f"{url}/maps/learn", timeout=30) for n, url in (("a", a), ("b", b))}
+        learned = {n: sorted(str(e["robot"]) for e in r.json()["experiences"])
+                   for n, r in got.items()}
+        same = got["a"].headers["ETag"] == got["b"].headers["ETag"]
+        if (same and learned["a"] == learned["b"] == sorted(robots)) or \
+                time.monotonic() > deadline:
+            break
+        time.sleep(0.2)
+    assert learned["a"] == learned["b"] == sorted(robots), learned  # no lost update
+    etag = got["a"].headers["ETag"]
+    assert got["b"].headers["ETag"] == etag != before  # both serve the new version
+    assert rdb.llen("swarmloc:learn:learn") == 0 and rdb.get("swarmloc:writer:learn") is None
