@@ -318,5 +318,5 @@ class ExperienceWriter:
             for name in self.handover.waiting(self._maps()):
                 self.handover.drain(name, self._write)
         except Exception as exc:
-            log.warning("learned batches in Redis not looked at: %s: %s",
-                        type(exc).__name__, exc)
+            log.debug("learned batches in Redis not looked at: %s: %s",
+                      type(exc).__name__, exc)
