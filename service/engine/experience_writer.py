@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from service.engine.state_codec import StateError, dumps, loads
+from service.engine.store import RELEASE_LEASE
 from service.maps.experiences import NewImage
 
 log = logging.getLogger("swarmloc")
@@ -97,10 +98,6 @@ _RENEW = """
 if redis.call('GET', KEYS[1]) == ARGV[1] then return redis.call('PEXPIRE', KEYS[1], ARGV[2]) end
 return 0
 """
-_RELEASE = """
-if redis.call('GET', KEYS[1]) == ARGV[1] then return redis.call('DEL', KEYS[1]) end
-return 0
-"""
 
 
 class RedisHandover:
@@ -112,7 +109,7 @@ class RedisHandover:
         self.lease_ms = max(1, round(lease_s * 1000))
         self._pop = r.register_script(_POP)
         self._renew = r.register_script(_RENEW)
-        self._release = r.register_script(_RELEASE)
+        self._release = r.register_script(RELEASE_LEASE)  # compare-and-delete
 
     def queue_key(self, name: str) -> str:
         return f"{self.prefix}:learn:{name}"

@@ -315,7 +315,7 @@ end
 if redis.call('GET', KEYS[1]) == ARGV[1] then redis.call('DEL', KEYS[1]) end
 return ok
 """
-_RELEASE = """
+RELEASE_LEASE = """  -- a lease (KEYS[1]) is deleted only by its holder (token ARGV[1])
 if redis.call('GET', KEYS[1]) == ARGV[1] then return redis.call('DEL', KEYS[1]) end
 return 0
 """
@@ -375,7 +375,7 @@ class RedisStore(SessionStore):
         self._acquire_load = self.r.register_script(_ACQUIRE_LOAD)
         self._load = self.r.register_script(_LOAD)
         self._save_release = self.r.register_script(_SAVE_RELEASE)
-        self._release = self.r.register_script(_RELEASE)
+        self._release = self.r.register_script(RELEASE_LEASE)
         self._create = self.r.register_script(_CREATE)
         self._claim = self.r.register_script(_CLAIM)
         self._cache: dict[str, Session] = {}
