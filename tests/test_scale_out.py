@@ -326,16 +326,21 @@ def test_two_robots_learn_on_two_replicas_one_writer_both_serve_it(
     for robot, url in robots.items():  # the end of a session hands its last images over
         assert httpx.delete(f"{url}/sessions/{robot}", timeout=30).status_code == 204
     deadline = time.monotonic() + 60
-    while True:
-        got = {n: httpx.get(f"{url}/maps/learn", timeout=30) for n, url in (("a", a), ("b", b))}
-        learned = {n: sorted(str(e["robot"]) for e in r.json()["experiences"])
-                   for n, r in got.items()}
-        same = got["a"].headers["ETag"] == got["b"].headers["ETag"]
-        if (same and learned["a"] == learned["b"] == sorted(robots)) or \
-                time.monotonic() > deadline:
-            break
+    while not _all_written(rdb, (a, b)) and time.monotonic() < deadline:
         time.sleep(0.2)
+    assert _all_written(rdb, (a, b))
+    got = {n: httpx.get(f"{url}/maps/learn", timeout=30) for n, url in (("a", a), ("b", b))}
+    learned = {n: sorted(str(e["robot"]) for e in r.json()["experiences"])
+               for n, r in got.items()}
     assert learned["a"] == learned["b"] == sorted(robots), learned  # no lost update
     etag = got["a"].headers["ETag"]
     assert got["b"].headers["ETag"] == etag != before  # both serve the new version
-    assert rdb.llen("swarmloc:learn:learn") == 0 and rdb.get("swarmloc:writer:learn") is None
+
+
+def _all_written(rdb, urls: tuple[str, ...]) -> bool:
+    """No learned batch waits in a replica, in the map's list or in a write (the lease)."""
+    for url in urls:
+        text = httpx.get(f"{url}/metrics", timeout=30).text
+        if "swarmloc_learned_batches_waiting 0.0" not in text:
+            return False
+    return rdb.llen("swarmloc:learn:learn") == 0 and rdb.get("swarmloc:writer:learn") is None

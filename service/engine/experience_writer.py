@@ -187,8 +187,10 @@ class ExperienceWriter:
     """The background writer of one service (module docstring)."""
 
     def __init__(self, write: Write, handover: RedisHandover | None = None,
-                 maps: Callable[[], list[str]] = list, sweep_s: float = SWEEP_S) -> None:
+                 maps: Callable[[], list[str]] = list, sweep_s: float = SWEEP_S,
+                 waiting: Callable[[int], None] | None = None) -> None:
         self._write = write
+        self._waiting = waiting  # told the number of batches not done after each change
         self.handover = handover
         self._maps = maps
         self._sweep_s = sweep_s
@@ -212,7 +214,12 @@ class ExperienceWriter:
                 log.warning("%s dropped: the service is shutting down", batch.describe())
                 return
             self._submitted += 1
+            self._report()
         self._queue.put(batch)
+
+    def _report(self) -> None:
+        if self._waiting is not None:
+            self._waiting(self._submitted - self._done)
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """Wait until every batch handed over so far is written (or, with Redis, handed to
@@ -254,6 +261,7 @@ class ExperienceWriter:
         with self._cond:
             self._done += n
             self._busy = None
+            self._report()
             self._cond.notify_all()
 
     def _work(self) -> None:

@@ -83,7 +83,8 @@ class LocalizationService:
         # fleet-wide with Redis): a frame never writes a map
         handover = RedisHandover(self.store.r, self.store.opt.key_prefix) \
             if isinstance(self.store, RedisStore) else None
-        self.writer = ExperienceWriter(self._write_batch, handover, lambda: list(self.maps))
+        self.writer = ExperienceWriter(self._write_batch, handover, lambda: list(self.maps),
+                                       waiting=self.metrics.learned_waiting.set)
         self.learner = Learner(LearnGates(settings.learn_accuracy_m, settings.learn_weak_ratio,
                                           settings.learn_commit_images), self.writer.submit)
         snap = settings.session_snapshot

@@ -32,6 +32,9 @@ class Metrics:
                                "Stale Zenoh frames dropped (a newer one arrived first)",
                                registry=r)
         self.maps = Gauge("swarmloc_maps_loaded", "Maps loaded", registry=r)
+        self.learned_waiting = Gauge(
+            "swarmloc_learned_batches_waiting", "Learned batches handed over and not yet "
+            "written (with Redis: not yet in the map's list)", registry=r)
         self.event_subscribers = Gauge("swarmloc_event_subscribers",
                                        "Viewers connected to GET /events", registry=r)
         self.events_published = Counter("swarmloc_events_published_total",
