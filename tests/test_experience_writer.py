@@ -92,12 +92,17 @@ def test_a_full_collection_is_handed_over_not_written_in_the_frame(
 def test_a_failed_write_is_logged_and_the_next_one_written(
         caplog: pytest.LogCaptureFixture) -> None:
     rec = Recorder(fail=("bad",))
-    w = ExperienceWriter(rec)
+    rec.gate.clear()
+    waiting: list[int] = []  # what the gauge swarmloc_learned_batches_waiting is told
+    w = ExperienceWriter(rec, waiting=waiting.append)
     with caplog.at_level(logging.ERROR, "swarmloc"):
         w.submit("m", "bad", _images(2), None, "r1")
         w.submit("m", "good", _images(2), None, "r1")
+        assert waiting[:2] == [1, 2]
+        rec.gate.set()
         assert w.wait(10)
     assert rec.written == [("r1", "good")]
+    assert waiting[-1] == 0  # a failed batch is done too (logged), not waiting forever
     assert "map m experience bad (2 images) not written: OSError: disk full" in caplog.text
     assert w.close(5) == []
 
