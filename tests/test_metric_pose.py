@@ -177,6 +177,28 @@ def test_the_geometry_reuses_the_matches_the_similarity_kept(
     assert len(tries) > 10 and again == []
 
 
+def test_structures_computed_beforehand_are_the_ones_a_frame_computes(
+        camera_map: RouteMap, sunny2: Round) -> None:
+    """``MapGeometry.warm`` keeps each image's structure ahead of the frames; the benchmark's
+    three ways (matching again, kept matches, structures beforehand) give the same estimates."""
+    from client.lab.bench_reuse import compare
+
+    assert camera_map.path is not None
+    fresh = _geometry(load_map(camera_map.path))
+    p = GeometryParams()
+    assert fresh.warm(range(20, 30)) > 5
+    assert all((i, p) in fresh._cache for i in range(20, 30)) and len(fresh._cache) == 10
+    for i in (20, 25):
+        want = _geometry(camera_map).structure(i, p)
+        got = fresh.structure(i, p)
+        assert want is not None and got is not None
+        np.testing.assert_array_equal(got.points, want.points)
+    fp = camera_map.feature_params
+    row = compare(camera_map.path, sunny2, "sunny2", (fp.width, fp.height), frames=4,
+                  warmup=4, seed=5)
+    assert all(row.identical.values()) and row.step_ms.keys() == row.error_m.keys()
+
+
 def test_the_camera_is_kept_and_checked_on_load(camera_map: RouteMap, sunny1: Round,
                                                 tmp_path: Path) -> None:
     assert camera_map.camera == Camera.from_dict(camera_map.meta["camera"])

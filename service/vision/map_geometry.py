@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -114,6 +115,16 @@ class MapGeometry:
             while len(self._cache) > self.max_cached:
                 self._cache.popitem(last=False)
         return st
+
+    def warm(self, image_ids: Iterable[int] | None = None, p: GeometryParams | None = None
+             ) -> int:
+        """Compute and keep the structures of ``image_ids`` (default: every image, up to the
+        cache's bound) ahead of the frames that need them; returns how many images have one.
+        They depend on the map alone: the same structures a frame would compute."""
+        p = GeometryParams() if p is None else p
+        ids = range(min(len(self.images.positions), self.max_cached)) if image_ids is None \
+            else image_ids
+        return sum(self.structure(int(i), p) is not None for i in ids)
 
     def locate(self, frame: Features, image_id: int, p: GeometryParams,
                kept: FramePairs | None = None) -> Offset | None:
