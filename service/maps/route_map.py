@@ -62,6 +62,7 @@ from service.vision.xfeat import (
     FeatureModelError,
     XFeatParams,
     check_map_model,
+    mnn_batch,
     mnn_pairs,
     mnn_scores,
 )
@@ -286,13 +287,17 @@ class RouteMap:
         (``Features.codes``): the exact uint8 matcher (service/vision/matcher.py) for
         RootSIFT, mutual nearest neighbours for XFeat (service/vision/xfeat.py). ``keep``
         (RootSIFT): the same pass also keeps the frame's matches at ``keep.delta`` with each
-        image, for the two-view geometry."""
+        image, for the two-view geometry (XFeat: its matches, whatever the delta)."""
         p = self.feature_params
-        if isinstance(p, XFeatParams):
-            return mnn_scores(unit_descriptors(frame_codes),
-                              [self.features_of(int(i)) for i in image_ids], p.min_cos,
-                              p.max_ratio)
         ids = [int(i) for i in image_ids]
+        if isinstance(p, XFeatParams):
+            unit = unit_descriptors(frame_codes)
+            feats = [self.features_of(i) for i in ids]
+            if keep is None:
+                return mnn_scores(unit, feats, p.min_cos, p.max_ratio)
+            scores, kept = mnn_batch(unit, feats, p.min_cos, p.max_ratio)
+            keep.keep(ids, kept)  # the geometry's matches are the similarity's (any delta)
+            return scores
         sets = [self.prepared(i) for i in ids]
         if keep is None:
             return match_batch_u8(frame_codes, sets, self.delta).scores
