@@ -13,6 +13,7 @@ from service.vision.features import ROOT_SCALE, extract, match_batch, unit_descr
 from service.vision.matcher import (
     _jit,
     match_batch_u8,
+    match_batch_u8_pairs,
     match_batch_u8_reference,
     norms_u8,
     prepare,
@@ -102,6 +103,36 @@ def test_ties_and_near_ties_follow_the_reference(backend) -> None:
         _same(match_batch_u8(a, sets, backend=backend), match_batch_u8_reference(a, sets))
 
 
+def _reference_pairs(a: np.ndarray, b: np.ndarray, delta: float) -> tuple[np.ndarray, ...]:
+    """The reference's matches at ``delta`` and each one's exact nearest neighbour in b."""
+    rows = np.flatnonzero(match_batch_u8_reference(a, [b], delta).matched[0])
+    cos = (a[rows].astype(np.float64) @ b.astype(np.float64).T) \
+        / (norms_u8(a)[rows, None] * norms_u8(b)[None, :])
+    return rows, cos.argmax(axis=1)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_pairs_at_a_second_ratio_come_from_the_same_pass(frames, references, backend) -> None:
+    """The geometry's matches (ratio 0.9) kept by the similarity's pass (ratio 0.6) are the
+    reference's at 0.9, each with its exact nearest neighbour; the similarity is unchanged."""
+    names = sorted(frames)
+    sets = [prepare(frames[n], backend) for n in names]
+    looser = 0
+    for name in names[::3]:
+        r, pairs = match_batch_u8_pairs(frames[name], sets, 0.6, 0.9, backend=backend)
+        _same(r, references[name])
+        for n, (rows, cols), m in zip(names, pairs, r.matched, strict=True):
+            want = _reference_pairs(frames[name], frames[n], 0.9)
+            np.testing.assert_array_equal(rows, want[0])
+            np.testing.assert_array_equal(cols, want[1])
+            assert set(np.flatnonzero(m)) <= set(rows.tolist())  # 0.6's matches pass 0.9
+            looser += len(rows) - int(m.sum())
+        same, kept = match_batch_u8_pairs(frames[name], sets, 0.6, 0.6, backend=backend)
+        assert all(np.array_equal(k[0], np.flatnonzero(m)) for k, m in zip(kept, same.matched,
+                                                                          strict=True))
+    assert looser > 0  # the second ratio decides differently
+
+
 def test_exact_tie_never_passes_and_identical_descriptor_does() -> None:
     rng = np.random.default_rng(0)
     x = rng.integers(1, 255, (3, 128)).astype(np.uint8)
@@ -122,6 +153,8 @@ def test_small_sets_match_nothing() -> None:
     assert r.scores.tolist() == [0.0, 0.0, 1.0]
     assert match_batch_u8(x[:1], [x]).counts.tolist() == [0]
     assert match_batch_u8(x, []).counts.shape == (0,)
+    _, pairs = match_batch_u8_pairs(x[:1], [x, x[:1]], 0.6, 0.9)
+    assert [len(p[0]) for p in pairs] == [0, 0]
 
 
 def test_bad_input_is_refused() -> None:

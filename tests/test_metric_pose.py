@@ -18,7 +18,7 @@ from service.api.round_format import DatasetError, camera_from_hfov, dataset_cam
 from service.engine.localizer import Localizer
 from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
 from service.vision.features import Features, extract
-from service.vision.map_geometry import GeometryParams, MapGeometry
+from service.vision.map_geometry import FramePairs, GeometryParams, MapGeometry
 from service.vision.metric_pose import Camera
 
 
@@ -142,6 +142,61 @@ def test_localizer_replays_bit_identically_with_geometry(
     for k in range(60):
         ea, eb = a.step(sunny2_features[k], float(k)), b.step(sunny2_features[k], float(k))
         assert (ea.x, ea.y, ea.accuracy_m) == (eb.x, eb.y, eb.accuracy_m)
+
+
+def test_the_geometry_reuses_the_matches_the_similarity_kept(
+        camera_map: RouteMap, sunny2_features: list[Features],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Located on the frame's matches kept by its similarity pass, the frame gets the offset
+    it gets by matching again, and the localizer never matches a frame a second time."""
+    geo, p = _geometry(camera_map), GeometryParams()
+    again: list[int] = []
+    pairs = camera_map.pairs
+
+    def counted(codes: np.ndarray, image_id: int, delta: float) -> tuple:
+        if any(codes is f.codes for f in sunny2_features):
+            again.append(image_id)
+        return pairs(codes, image_id, delta)
+
+    for k in (30, 40, 50):
+        f = sunny2_features[k]
+        want = geo.locate(f, k, p)
+        kept = FramePairs(p.delta)
+        camera_map.similarity(f.codes, [k - 1, k, k + 1], kept)
+        monkeypatch.setattr(camera_map, "pairs", counted)
+        assert want is not None and geo.locate(f, k, p, kept) == want
+        monkeypatch.undo()
+    assert again == []
+    monkeypatch.setattr(camera_map, "pairs", counted)
+    tries: list[int] = []
+    locate = geo.locate
+    monkeypatch.setattr(geo, "locate", lambda *a: tries.append(a[1]) or locate(*a))
+    loc = Localizer(camera_map, seed=5)
+    for k in range(40):
+        loc.step(sunny2_features[k], float(k))
+    assert len(tries) > 10 and again == []
+
+
+def test_structures_computed_beforehand_are_the_ones_a_frame_computes(
+        camera_map: RouteMap, sunny2: Round) -> None:
+    """``MapGeometry.warm`` keeps each image's structure ahead of the frames; the benchmark's
+    three ways (matching again, kept matches, structures beforehand) give the same estimates."""
+    from client.lab.bench_reuse import compare
+
+    assert camera_map.path is not None
+    fresh = _geometry(load_map(camera_map.path))
+    p = GeometryParams()
+    assert fresh.warm(range(20, 30)) > 5
+    assert all((i, p) in fresh._cache for i in range(20, 30)) and len(fresh._cache) == 10
+    for i in (20, 25):
+        want = _geometry(camera_map).structure(i, p)
+        got = fresh.structure(i, p)
+        assert want is not None and got is not None
+        np.testing.assert_array_equal(got.points, want.points)
+    fp = camera_map.feature_params
+    row = compare(camera_map.path, sunny2, "sunny2", (fp.width, fp.height), frames=4,
+                  warmup=4, seed=5)
+    assert all(row.identical.values()) and row.step_ms.keys() == row.error_m.keys()
 
 
 def test_the_camera_is_kept_and_checked_on_load(camera_map: RouteMap, sunny1: Round,

@@ -20,7 +20,7 @@ from service.engine.localizer import Localizer
 from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
 from service.settings import Settings
 from service.vision.features import extract
-from service.vision.map_geometry import GeometryParams
+from service.vision.map_geometry import FramePairs, GeometryParams
 from service.vision.xfeat import (
     MODEL_PATH,
     MODEL_SHA256,
@@ -102,13 +102,21 @@ def test_the_true_place_is_the_best_match_and_the_index_finds_it(xfeat_map: Rout
 
 def test_the_geometry_locates_frames_with_xfeat_matches(xfeat_map: RouteMap, sunny2: Round
                                                         ) -> None:
+    """...also on the matches the similarity kept (the same offsets, no second matching)."""
     geo = xfeat_map.geometry
     assert geo is not None
     located = 0
+    p = GeometryParams()
     for i in range(10, 40, 3):
         f = extract(sunny2.load_image(i), xfeat_map.feature_params)
         nearest, _ = xfeat_map.nearest(np.asarray(sunny2.xy[i])[None, :])
-        located += geo.locate(f, int(nearest[0]), GeometryParams()) is not None
+        j = int(nearest[0])
+        off = geo.locate(f, j, p)
+        located += off is not None
+        kept = FramePairs(p.delta)
+        scores = xfeat_map.similarity(f.codes, [j, j + 1], kept)
+        np.testing.assert_array_equal(scores, xfeat_map.similarity(f.codes, [j, j + 1]))
+        assert kept.get(j) is not None and geo.locate(f, j, p, kept) == off
     assert located >= 5
 
 

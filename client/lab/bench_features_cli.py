@@ -101,6 +101,46 @@ def register(bench_app: typer.Typer) -> None:
         report(bench_approx(pairs, wh, frames, warmup, seed, words, probes, max_features,
                             exact_geometry), typer.echo)
 
+    @bench_app.command("reuse")
+    def reuse_cmd(
+        dataset: Annotated[Path, typer.Argument(help="dataset with the rounds (with the "
+                                                     "camera's intrinsics)")],
+        map_round: Annotated[str, typer.Option("--map", help="round used as the map")]
+        = "sunny1",
+        query: Annotated[str, typer.Option(help="comma-separated query rounds (the map "
+                                                "round: its odd frames on a map of its even "
+                                                "frames)")] = "cloudy1",
+        size: Annotated[str, typer.Option(help="working size WxH")] = "320x240",
+        frames: Annotated[int, typer.Option(min=1, help="frames after the warm-up")] = 60,
+        warmup: Annotated[int, typer.Option(min=0, help="frames not scored")] = 20,
+        seed: int = 0,
+    ) -> None:
+        """The two-view geometry on the matches the similarity kept against matching the
+        frame again, and with every structure computed beforehand: step, step / extraction,
+        error, and whether the estimates are identical."""
+        from client.dataset import DatasetError
+        from client.lab.bench_extract import split_rounds
+        from client.lab.bench_reuse import bench_reuse, report
+
+        try:
+            pairs = [(q, *split_rounds(dataset, map_round, q)) for q in query.split(",") if q]
+        except DatasetError as exc:
+            raise typer.BadParameter(str(exc)) from None
+        if not pairs:
+            raise typer.BadParameter("--query names no round")
+        if len(pairs) > 1 and any(q == map_round for q, _, _ in pairs):
+            raise typer.BadParameter("the map round as a query (even / odd frames) cannot be "
+                                     "combined with other query rounds")
+        wh = _sizes(size, "--size")[0]
+        typer.echo(f"{dataset} map {map_round} at {wh[0]}x{wh[1]}; DPSO seed {seed}; one "
+                   "thread")
+        try:
+            rows = bench_reuse(pairs[0][1], [(q, r) for q, _, r in pairs], wh, frames, warmup,
+                               seed)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc)) from None
+        report(rows, typer.echo)
+
     @bench_app.command("extract")
     def extract_cmd(
         dataset: Annotated[Path | None, typer.Argument(

@@ -51,7 +51,7 @@ def bench_geometry(dataset: Path, map_round: str, query_round: str, frames: int 
     from service.api.params import DPSOParams
     from service.engine.localizer import Localizer
     from service.vision.features import Features, extract
-    from service.vision.map_geometry import GeometryParams, MapGeometry
+    from service.vision.map_geometry import FramePairs, GeometryParams, MapGeometry
     from service.vision.metric_pose import Offset, Structure
 
     m = map_for(dataset, map_round, papers=False)
@@ -80,11 +80,11 @@ def bench_geometry(dataset: Path, map_round: str, query_round: str, frames: int 
             structure_ms.append(1e3 * (time.perf_counter() - t0))
         return out
 
-    def locate(self: MapGeometry, frame: Features, image_id: int, p: GeometryParams
-               ) -> Offset | None:
+    def locate(self: MapGeometry, frame: Features, image_id: int, p: GeometryParams,
+               kept: FramePairs | None = None) -> Offset | None:
         self.structure(image_id, p)  # its first use is timed apart
         t0 = time.perf_counter()
-        out = timed_locate(self, frame, image_id, p)
+        out = timed_locate(self, frame, image_id, p, kept)
         locate_ms.append(1e3 * (time.perf_counter() - t0))
         reach = DPSOParams().metric_reach_m  # what DPSO takes (the default sessions here)
         located.append(out is not None and math.hypot(out.right_m, out.ahead_m) <= reach)

@@ -23,7 +23,7 @@ from service.estimators.registry import make_estimator
 from service.maps.experiences import LayerChoice, experience_layers
 from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
-from service.vision.map_geometry import GeometryParams
+from service.vision.map_geometry import FramePairs, GeometryParams
 from service.vision.place_index import PlaceSeeder
 
 _UNKNOWN_VAR = 1e6
@@ -101,13 +101,15 @@ class Localizer:
         codes = features.codes
         self.seed_places(codes)
         learned = bool(experience_layers(self.map))
+        # the similarity keeps the frame's matches for the geometry (no second matching)
+        kept = FramePairs(GeometryParams().delta) if self.map.geometry is not None else None
         if not learned:
-            res = self.estimator.step(lambda ids: self.map.similarity(codes, ids), t,
-                                      self.locator(features), motion)
+            res = self.estimator.step(lambda ids: self.map.similarity(codes, ids, kept), t,
+                                      self.locator(features, kept), motion)
             comparisons = res.comparisons
         else:  # one layer per particle, then the layer probes (service/maps/experiences.py)
-            similarity = ComparisonCache(lambda ids: self.map.similarity(codes, ids))
-            res = self.estimator.step(similarity, t, self.locator(features), motion,
+            similarity = ComparisonCache(lambda ids: self.map.similarity(codes, ids, kept))
+            res = self.estimator.step(similarity, t, self.locator(features, kept), motion,
                                       nearest=self.choice.nearest(self.map))
             if not res.lost:
                 self.choice.probe(self.map, similarity, res.position)
@@ -116,14 +118,15 @@ class Localizer:
         self.last = self._estimate(res, t, comparisons, learned)
         return self.last
 
-    def locator(self, features: Features) -> LocateFn | None:
+    def locator(self, features: Features, kept: FramePairs | None = None) -> LocateFn | None:
         """The frame located at a map image by two-view geometry (service/vision/map_geometry.py),
-        None for a map without the camera's intrinsics."""
+        None for a map without the camera's intrinsics; ``kept``: the frame's matches its
+        similarity kept."""
         geometry = self.map.geometry
         if geometry is None:
             return None
         params = GeometryParams()
-        return lambda image_id: geometry.locate(features, image_id, params)
+        return lambda image_id: geometry.locate(features, image_id, params, kept)
 
     def seed_places(self, codes: np.ndarray) -> None:
         """Candidate places of this frame for a searching estimator (service/vision/place_index.py);

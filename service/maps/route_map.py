@@ -53,8 +53,8 @@ from service.vision.features import (
     match_batch,
     unit_descriptors,
 )
-from service.vision.map_geometry import MapGeometry
-from service.vision.matcher import PreparedSet, match_batch_u8, prepare
+from service.vision.map_geometry import FramePairs, MapGeometry
+from service.vision.matcher import PreparedSet, match_batch_u8, match_batch_u8_pairs, prepare
 from service.vision.metric_pose import Camera, match_pairs
 from service.vision.place_index import PlaceIndex, build_place_index
 from service.vision.xfeat import DIMS as XFEAT_DIMS
@@ -62,6 +62,7 @@ from service.vision.xfeat import (
     FeatureModelError,
     XFeatParams,
     check_map_model,
+    mnn_batch,
     mnn_pairs,
     mnn_scores,
 )
@@ -280,17 +281,29 @@ class RouteMap:
             self._prepared[image_id] = cached
         return cached
 
-    def similarity(self, frame_codes: np.ndarray, image_ids: Iterable[int]) -> np.ndarray:
+    def similarity(self, frame_codes: np.ndarray, image_ids: Iterable[int],
+                   keep: FramePairs | None = None) -> np.ndarray:
         """m(frame, map image) for each id on the frame's descriptor codes
         (``Features.codes``): the exact uint8 matcher (service/vision/matcher.py) for
-        RootSIFT, mutual nearest neighbours for XFeat (service/vision/xfeat.py)."""
+        RootSIFT, mutual nearest neighbours for XFeat (service/vision/xfeat.py). ``keep``
+        (RootSIFT): the same pass also keeps the frame's matches at ``keep.delta`` with each
+        image, for the two-view geometry (XFeat: its matches, whatever the delta)."""
         p = self.feature_params
+        ids = [int(i) for i in image_ids]
         if isinstance(p, XFeatParams):
-            return mnn_scores(unit_descriptors(frame_codes),
-                              [self.features_of(int(i)) for i in image_ids], p.min_cos,
-                              p.max_ratio)
-        sets = [self.prepared(int(i)) for i in image_ids]
-        return match_batch_u8(frame_codes, sets, self.delta).scores
+            unit = unit_descriptors(frame_codes)
+            feats = [self.features_of(i) for i in ids]
+            if keep is None:
+                return mnn_scores(unit, feats, p.min_cos, p.max_ratio)
+            scores, kept = mnn_batch(unit, feats, p.min_cos, p.max_ratio)
+            keep.keep(ids, kept)  # the geometry's matches are the similarity's (any delta)
+            return scores
+        sets = [self.prepared(i) for i in ids]
+        if keep is None:
+            return match_batch_u8(frame_codes, sets, self.delta).scores
+        r, pairs = match_batch_u8_pairs(frame_codes, sets, self.delta, keep.delta)
+        keep.keep(ids, pairs)
+        return r.scores
 
     def pairs(self, codes: np.ndarray, image_id: int, delta: float
               ) -> tuple[np.ndarray, np.ndarray]:

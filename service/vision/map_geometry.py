@@ -3,13 +3,16 @@
 ``MapGeometry.locate(features, i)`` answers where the frame's camera stands relative to map
 image ``i`` (service/vision/metric_pose.py). The structure of ``i`` (its features' 3-D points, from
 ``i`` and a neighbour of its traversal ``baseline_m`` away) depends on the map alone, so it is
-computed once per image and kept, bounded, for every session on the map.
+computed once per image and kept, bounded, for every session on the map. The frame's own
+matches with ``i`` come from its similarity's pass where that kept them (``FramePairs``), so
+locating the frame matches nothing again.
 """
 
 from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -17,6 +20,7 @@ import cv2
 import numpy as np
 
 from service.vision.features import Features
+from service.vision.matcher import Pairs
 from service.vision.metric_pose import Camera, Offset, Structure, locate, triangulate
 
 
@@ -39,6 +43,23 @@ class GeometryParams:
     delta: float = 0.9  # ratio threshold of the matches used for geometry (looser than m's)
     min_inliers: int = 8  # RANSAC inliers needed, for the structure and for the frame
     baseline_m: float = 2.4  # distance to the neighbour that gives an image its structure
+
+
+class FramePairs:
+    """One frame's matches at ``delta`` with the map images its similarity compared, kept by
+    the similarity's own pass (``RouteMap.similarity(..., keep=)``): the two-view geometry
+    locates the frame at one of them without matching it again (the same pairs, bit for
+    bit: one GEMM and scan decided at two ratio thresholds)."""
+
+    def __init__(self, delta: float) -> None:
+        self.delta = delta
+        self._pairs: dict[int, Pairs] = {}
+
+    def keep(self, image_ids: list[int], pairs: list[Pairs]) -> None:
+        self._pairs.update(zip(image_ids, pairs, strict=True))
+
+    def get(self, image_id: int) -> Pairs | None:
+        return self._pairs.get(int(image_id))
 
 
 class MapGeometry:
@@ -95,13 +116,27 @@ class MapGeometry:
                 self._cache.popitem(last=False)
         return st
 
-    def locate(self, frame: Features, image_id: int, p: GeometryParams) -> Offset | None:
+    def warm(self, image_ids: Iterable[int] | None = None, p: GeometryParams | None = None
+             ) -> int:
+        """Compute and keep the structures of ``image_ids`` (default: every image, up to the
+        cache's bound) ahead of the frames that need them; returns how many images have one.
+        They depend on the map alone: the same structures a frame would compute."""
+        p = GeometryParams() if p is None else p
+        ids = range(min(len(self.images.positions), self.max_cached)) if image_ids is None \
+            else image_ids
+        return sum(self.structure(int(i), p) is not None for i in ids)
+
+    def locate(self, frame: Features, image_id: int, p: GeometryParams,
+               kept: FramePairs | None = None) -> Offset | None:
         """The frame's camera centre relative to map image ``image_id``'s camera (metres
-        right, ahead); None where the geometry is not reliable."""
+        right, ahead); None where the geometry is not reliable. ``kept``: this frame's matches
+        kept by its similarity (matched here where it has none for the image)."""
         st = self.structure(image_id, p)
         if st is None:
             return None
-        pairs = self.images.pairs(frame.codes, image_id, p.delta)
+        pairs = kept.get(image_id) if kept is not None and kept.delta == p.delta else None
+        if pairs is None:
+            pairs = self.images.pairs(frame.codes, image_id, p.delta)
         try:
             return locate(frame.keypoints, pairs, st, self.k, p.min_inliers)
         except cv2.error:  # a degenerate configuration: the frame is not located

@@ -319,8 +319,9 @@ def _ratio(c1, m2, n, delta, tol):
     return -1
 
 
-def _decide(a, na, b, nb, inv_na, rm1, rj1, rm2, rd1, cm1, cm2, delta, tol, matched):
-    """Mark rows of A in a symmetric ratio-test match with B; return the count.
+def _decide(a, na, b, nb, inv_na, rm1, rj1, rm2, rd1, cm1, cm2, delta, tol, matched, partner):
+    """Mark rows of A in a symmetric ratio-test match with B (``partner``: the matched row of
+    B); return the count. The scan's keys do not depend on ``delta``: one scan serves any.
 
     Cheap checks first: a row whose float32 best is clear and whose column's clear best is
     another row is no match (no angle is computed); exact rescans only where keys are close.
@@ -358,6 +359,7 @@ def _decide(a, na, b, nb, inv_na, rm1, rj1, rm2, rd1, cm1, cm2, delta, tol, matc
             okb = ib == i and _passes(c1b, c2b, delta)
         if okb:
             matched[i] = True
+            partner[i] = j
             count += 1
     return count
 
@@ -420,6 +422,9 @@ cache_kernels_in(default_cache_dir())
 
 
 # ---- public API -----------------------------------------------------------------------------
+Pairs = tuple[np.ndarray, np.ndarray]  # (rows of a, rows of a set): matched features
+
+
 def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
                    delta: float = DEFAULT_DELTA, backend: str = "auto") -> BatchMatch:
     """Exact symmetric ratio-test matches of uint8 descriptors ``a`` (nA, D) against each set.
@@ -428,11 +433,30 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
     prepares each image once). ``backend``: ``auto`` (NumKong if installed), ``numkong`` or
     ``blas`` (float32 GEMM). Equal to ``match_batch_u8_reference`` on every input.
     """
+    return _match(a, sets, delta, backend, None)[0]
+
+
+def match_batch_u8_pairs(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
+                         delta: float, pairs_delta: float, backend: str = "auto"
+                         ) -> tuple[BatchMatch, list[Pairs]]:
+    """``match_batch_u8(a, sets, delta)`` and, per set, the matched index pairs (rows of
+    ``a``, rows of the set) of the symmetric ratio test at ``pairs_delta``, from the same
+    GEMM and scans (only the decisions run again): the matches the two-view geometry uses
+    (service/vision/metric_pose.py), at no second matching."""
+    r, pairs = _match(a, sets, delta, backend, float(pairs_delta))
+    assert pairs is not None
+    return r, pairs
+
+
+def _match(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet], delta: float,
+           backend: str, pairs_delta: float | None) -> tuple[BatchMatch, list[Pairs] | None]:
     a = _check_u8(a, "a")
     k = len(sets)
     na_rows = len(a)
     counts = np.zeros(k, np.int64)
     matched = np.zeros((k, na_rows), bool)
+    none = np.zeros(0, np.int64)
+    pairs: list[Pairs] | None = None if pairs_delta is None else [(none, none)] * k
     use_nk = _use_numkong(backend)
     prepared = [s if isinstance(s, PreparedSet) else prepare(s, backend) for s in sets]
     for s in prepared:
@@ -440,7 +464,7 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
             raise ValueError(f"descriptor length differs: {a.shape[1]} vs {s.desc.shape[1]}")
     nb_all = np.array([len(s) for s in prepared], np.int64)
     if k == 0 or na_rows < 2:
-        return BatchMatch(counts, np.zeros(k), matched)
+        return BatchMatch(counts, np.zeros(k), matched), pairs
     na = norms_u8(a)
     inv_na = (1.0 / na).astype(np.float32)
     a_f32 = None if use_nk else a.astype(np.float32)
@@ -449,6 +473,7 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
     rm2 = np.empty(na_rows, np.float32)
     rj1 = np.empty(na_rows, np.int64)
     rd1 = np.empty(na_rows, np.int64)
+    partner = np.empty(na_rows, np.int64)
     for idx, s in enumerate(prepared):
         nb = len(s)
         if nb < 2:
@@ -475,10 +500,18 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
                 dots = np.matmul(a_f32[r0:r1], b_t, out=buf[: r1 - r0])
             _scan_tile(dots, r0, inv_na, s.inv_norms, rm1, rj1, rm2, rd1, cm1, cm2)
         counts[idx] = _decide(a, na, s.desc, s.norms, inv_na, rm1, rj1, rm2, rd1, cm1, cm2,
-                              float(delta), _TOL, matched[idx])
+                              float(delta), _TOL, matched[idx], partner)
+        if pairs is not None and pairs_delta is not None:
+            hit = matched[idx]
+            if pairs_delta != delta:
+                hit = np.zeros(na_rows, bool)
+                _decide(a, na, s.desc, s.norms, inv_na, rm1, rj1, rm2, rd1, cm1, cm2,
+                        float(pairs_delta), _TOL, hit, partner)
+            rows = np.flatnonzero(hit)
+            pairs[idx] = (rows, partner[rows])
     denom = np.minimum(na_rows, nb_all)
     scores = np.where(denom > 0, counts / np.maximum(denom, 1), 0.0)
-    return BatchMatch(counts, scores, matched)
+    return BatchMatch(counts, scores, matched), pairs
 
 
 class WordSorted(Protocol):

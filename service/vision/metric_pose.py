@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from service.vision.matcher import PreparedSet, match_batch_u8, prepare
+from service.vision.matcher import PreparedSet, match_batch_u8_pairs
 
 
 @dataclass(frozen=True)
@@ -72,13 +72,7 @@ def match_pairs(a: np.ndarray, b: np.ndarray | PreparedSet, delta: float
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Indices (ia, ib) of the symmetric ratio-test matches between uint8 descriptor codes
     ``a`` and ``b`` (the similarity's own matches, service/vision/matcher.py)."""
-    pb = b if isinstance(b, PreparedSet) else prepare(np.asarray(b, np.uint8))
-    rows = np.flatnonzero(match_batch_u8(a, [pb], delta).matched[0])
-    if not len(rows):
-        return rows, rows
-    # a matched pair is a pair of mutual nearest neighbours: b's partner is a's nearest
-    dots = np.asarray(a[rows], np.float32) @ pb.desc.astype(np.float32).T
-    return rows, np.argmax(dots * pb.inv_norms[None, :], axis=1)
+    return match_batch_u8_pairs(a, [b], delta, delta)[1][0]
 
 
 def triangulate(kp_i: np.ndarray, kp_j: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],

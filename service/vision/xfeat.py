@@ -226,9 +226,19 @@ def mnn_pairs(a: np.ndarray, b: np.ndarray, min_cos: float, max_ratio: float = 1
 def mnn_scores(a: np.ndarray, sets: Sequence[np.ndarray], min_cos: float,
                max_ratio: float = 1.0) -> np.ndarray:
     """m(A, B) for each set B: mutual-nearest-neighbour matches over min(|A|, |B|)."""
+    return mnn_batch(a, sets, min_cos, max_ratio)[0]
+
+
+def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray], min_cos: float,
+              max_ratio: float = 1.0
+              ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """``mnn_scores`` and each set's matches (``mnn_pairs``), which the two-view geometry
+    takes as they are."""
     out = np.zeros(len(sets))
+    pairs = []
     for k, b in enumerate(sets):
+        pairs.append(mnn_pairs(a, b, min_cos, max_ratio))
         n = min(len(a), len(b))
         if n:
-            out[k] = len(mnn_pairs(a, b, min_cos, max_ratio)[0]) / n
-    return out
+            out[k] = len(pairs[-1][0]) / n
+    return out, pairs
