@@ -14,6 +14,7 @@ import pytest
 from client.dataset import Round, read_round
 from client.lab.experiments import SimilarityTable, run
 from client.lab.world import World
+from client.lab.world.geometry import Pose
 from service.api.round_format import DatasetError, camera_from_hfov, dataset_camera
 from service.engine.localizer import Localizer
 from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
@@ -415,3 +416,45 @@ def test_frames_the_geometry_cannot_locate_move_the_position_less_along_the_path
     high = {"along_track_alpha_unlocated": 0.7, "along_track_alpha_weak": 0.7}
     assert jitter(track(low, True)) < 0.8 * jitter(track(high, True))
     np.testing.assert_array_equal(track(low, False), track(high, False))
+
+
+def _heading_error_deg(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
+    return np.degrees(np.abs(np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b))))))
+
+
+def test_a_located_frame_reports_the_camera_yaw(
+        camera_map: RouteMap, small_world: World, sunny2: Round,
+        sunny2_table: SimilarityTable) -> None:
+    """DPSO over sunny2 on the map with the camera: located frames report the camera's
+    heading (``heading_source`` "camera", with its std), within a few degrees of the
+    world's exact heading; frames not located keep the direction of motion."""
+    truth = small_world.round_trajectory(1, len(sunny2))[0][:, 2]
+    r = run(camera_map, sunny2_table, sunny2, "dpso", seed=0, start=0)
+    assert r.heading_sources is not None
+    src = np.asarray(r.heading_sources)
+    assert np.array_equal(src == "camera", r.located)  # camera exactly where located
+    assert set(src[~r.located]) <= {"motion"}
+    assert r.located[20:].mean() > 0.5
+    err = _heading_error_deg(r.heading, truth[r.frames])
+    assert np.median(err[r.located]) < 3.0
+    assert np.median(err[r.located]) < np.median(err[~r.located][20:])
+
+
+@pytest.mark.parametrize("turn_deg", [-8.0, 8.0])
+def test_the_camera_yaw_follows_a_frame_turned_against_the_route(
+        camera_map: RouteMap, small_world: World, sunny2: Round, turn_deg: float) -> None:
+    """A frame rendered at a sunny2 pose but turned ``turn_deg`` (counter-clockwise
+    positive, as the map's headings) is located with that turn: a wrong sign of the yaw
+    would put its heading 16 degrees off."""
+    geo = _geometry(camera_map)
+    poses = small_world.round_trajectory(1, len(sunny2))[0]
+    errs = []
+    for k in (30, 60, 90):
+        x, y, heading, pitch = poses[k]
+        turned = heading + np.radians(turn_deg)
+        img = small_world.render(Pose(float(x), float(y), float(turned), float(pitch)))
+        i = int(camera_map.nearest(np.array([[x, y]]))[0][0])
+        off = geo.locate(extract(img, camera_map.feature_params), i, GeometryParams())
+        assert off is not None and off.heading is not None and off.heading_sigma
+        errs.append(float(_heading_error_deg(off.heading, turned)))
+    assert np.median(errs) < 3.0, errs
