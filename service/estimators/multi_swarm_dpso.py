@@ -229,9 +229,13 @@ class MultiSwarmDPSO(DPSO):
                                   confirmed)
         self.odom_observe(odom, pos, status is Status.TRACKING and confirmed,
                           lost or self.recovering)
+        cam = camera[1] if camera is not None else None
+        if cam is not None and cam.heading is not None and cam.heading_sigma is not None \
+                and odom is not None and self.odometry is not None and self.params.odom_look:
+            self.odometry.look(cam.heading, cam.heading_sigma)
         heading, source, h_sigma = self.odom_heading(odom, heading)
-        if camera is not None and camera[1].heading is not None:  # the camera's yaw
-            heading, source, h_sigma = camera[1].heading, "camera", camera[1].heading_sigma
+        if cam is not None and cam.heading is not None:  # the camera's yaw
+            heading, source, h_sigma = cam.heading, "camera", cam.heading_sigma
         return StepResult(reported, cov, heading, speed, status,
                           lost or self.recovering, ev.best_m, fitness.comparisons, spread,
                           hypotheses, source, h_sigma, located is not None)
