@@ -71,6 +71,10 @@ class OdomHeading:
     tau_m = 12.0  # travel over which a pair's weight falls by e
     min_span_m = 3.0  # rms spread of the dead-reckoned points a fit needs
     keep = 200  # pairs kept at most
+    # class-level starts too: a session state stored before the camera's yaw was fused
+    # (service/engine/state_codec.py) restores without them
+    seen: float | None = None
+    seen_var = 0.0
 
     def __init__(self) -> None:
         self.reset()
