@@ -14,6 +14,7 @@ import pytest
 from client.dataset import Round, read_round
 from client.lab.experiments import SimilarityTable, run
 from client.lab.world import World
+from client.lab.world.geometry import Pose
 from service.api.round_format import DatasetError, camera_from_hfov, dataset_camera
 from service.engine.localizer import Localizer
 from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
@@ -470,3 +471,51 @@ def test_frames_the_geometry_cannot_locate_move_the_position_less_along_the_path
     high = {"along_track_alpha_unlocated": 0.7, "along_track_alpha_weak": 0.7}
     assert jitter(track(low, True)) < 0.8 * jitter(track(high, True))
     np.testing.assert_array_equal(track(low, False), track(high, False))
+
+
+def _heading_error_deg(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
+    return np.degrees(np.abs(np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b))))))
+
+
+def test_a_located_frame_reports_the_camera_yaw(
+        camera_map: RouteMap, small_world: World, sunny2: Round,
+        sunny2_table: SimilarityTable) -> None:
+    """DPSO over sunny2 on the map with the camera: located frames report the camera's
+    heading (``heading_source`` "camera", with its std), within a few degrees of the
+    world's exact heading; frames not located keep the direction of motion."""
+    truth = small_world.round_trajectory(1, len(sunny2))[0][:, 2]
+    r = run(camera_map, sunny2_table, sunny2, "dpso", seed=0, start=0)
+    assert r.heading_sources is not None
+    src = np.asarray(r.heading_sources)
+    assert np.array_equal(src == "camera", r.located)  # camera exactly where located
+    assert set(src[~r.located]) <= {"motion"}
+    assert r.located[20:].mean() > 0.5
+    err = _heading_error_deg(r.heading, truth[r.frames])
+    assert np.median(err[r.located]) < 3.0
+
+
+def test_the_camera_yaw_follows_a_frame_turned_against_the_route(
+        camera_map: RouteMap, small_world: World, sunny2: Round) -> None:
+    """Frames rendered at sunny2 poses as driven and turned 8 degrees left and right
+    (counter-clockwise positive, as the map's headings), each located at the map image
+    nearest: the turned frames' headings differ from the straight one's by the turn, to a
+    fraction of a degree (a wrong sign of the yaw would make it 16 degrees), and all lie
+    within a few degrees of the truth."""
+    geo = _geometry(camera_map)
+    poses = small_world.round_trajectory(1, len(sunny2))[0]
+    turned_by, absolute = [], []
+    for k in (30, 60, 90):
+        x, y, heading, pitch = (float(v) for v in poses[k])
+        i = int(camera_map.nearest(np.array([[x, y]]))[0][0])
+        got = {}
+        for turn in (-8.0, 0.0, 8.0):
+            truth = heading + np.radians(turn)
+            img = small_world.render(Pose(x, y, truth, pitch))
+            off = geo.locate(extract(img, camera_map.feature_params), i, GeometryParams())
+            assert off is not None and off.heading is not None and off.heading_sigma
+            got[turn] = off.heading
+            absolute.append(float(_heading_error_deg(off.heading, truth)))
+        for turn in (-8.0, 8.0):
+            turned_by.append(float(np.degrees(np.angle(np.exp(1j * (got[turn] - got[0.0]))))))
+    assert np.allclose(turned_by, [-8.0, 8.0] * 3, atol=1.5), turned_by
+    assert np.median(absolute) < 4.0 and max(absolute) < 8.0, absolute

@@ -13,6 +13,7 @@ import pytest
 import zenoh
 
 from client.transports import HttpClient, LocalClient, SwarmlocError, ZenohClient
+from service.api.models import Estimate, Odometry
 from service.server import free_port
 from service.zenoh.config import zenoh_config
 
@@ -202,3 +203,45 @@ def test_async_http_client(server, sunny2) -> None:
     seq, comps = asyncio.run(go())
     assert seq == 1 and comps > 0
 
+
+
+def test_zenoh_frames_carry_odometry_and_bad_odometry_is_refused(server, sunny2) -> None:
+    """``{"odom": {"x", "y", "yaw"}}`` in a frame's attachment is fused (the heading becomes
+    the odometry's); a bad odom there (out of range, a 500 m jump, no yaw) gets the Zenoh
+    error reply with the HTTP status and message, and the session is untouched: the next
+    frame gives what a twin session that never saw the bad frames gives."""
+    assert sunny2.odometry is not None
+    z = ZenohClient([server["zenoh"]], mode="peer")
+    frames = range(5, 30)
+
+    def send(robot: str, k: int, i: int) -> Estimate:
+        x, y, yaw = (float(v) for v in sunny2.odometry[i])
+        return z.localize(robot, sunny2.image_path(i).read_bytes(), t=float(k), seq=k,
+                          odom=Odometry(x=x, y=y, yaw=yaw))
+
+    try:
+        for robot in ("zodom", "ztwin"):
+            z.create_session(robot, "small", "dpso", None, 4)
+        sources = [send("zodom", k, i).heading_source for k, i in enumerate(frames)]
+        assert "odometry" in sources  # the odometry was fused: it gives the map heading
+        last = sunny2.odometry[frames[-1]]
+        bad = [({"x": 1e9, "y": 0.0, "yaw": 0.0}, 422, "less than or equal"),
+               ({"x": float(last[0]) + 500.0, "y": float(last[1]), "yaw": float(last[2])},
+                422, "more than 100 m"),
+               ({"x": 0.0, "y": 0.0}, 422, "yaw")]
+        image = sunny2.image_path(frames[-1] + 1).read_bytes()
+        for odom, status, message in bad:
+            with pytest.raises(SwarmlocError) as err:
+                z._query("zodom/localize", image,
+                         json.dumps({"t": 99.0, "seq": 99, "odom": odom}).encode())
+            assert err.value.status == status and message in err.value.message
+        assert z.session("zodom").frames == len(frames)
+        for k, i in enumerate(frames):
+            send("ztwin", k, i)
+        nxt = len(frames), frames[-1] + 1
+        a, b = send("zodom", *nxt), send("ztwin", *nxt)
+        assert a.model_dump(exclude={"robot_id"}) == b.model_dump(exclude={"robot_id"})
+    finally:
+        for robot in ("zodom", "ztwin"):
+            z.delete_session(robot)
+        z.close()

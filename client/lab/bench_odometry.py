@@ -28,6 +28,8 @@ class WorldResult:
     kidnap_frames: list[int | None]  # frames to recover per kidnap run, with odometry
     heading_err_deg: np.ndarray  # |heading error| of located frames with odometry, degrees
     heading_sources: dict[str, int]
+    # |heading error| of the tracked frames with odometry by heading_source, degrees
+    heading_err_by_source: dict[str, np.ndarray]
 
 
 def true_heading(dataset: Path, round_name: str, n: int) -> np.ndarray | None:
@@ -91,19 +93,24 @@ def bench_world(dataset: Path, map_round: str, query: str, same: str | None, met
     kid = [frames_to_recover(r) for r in runs(query, True, kidnap=True)]
     truth = true_heading(dataset, query, len(tables[query][0]))
     errs: list[float] = []
-    sources: dict[str, int] = {}
+    by_source: dict[str, list[float]] = {}
     for r in odom:
         if truth is None or r.located is None:
             break
         h = np.asarray(r.heading)[warmup:]
-        sel = r.located[warmup:] & (np.array(r.status[warmup:]) == "tracking")
-        d = np.angle(np.exp(1j * (h - truth[r.frames[warmup:]])))
-        errs.extend(np.degrees(np.abs(d[sel])).tolist())
+        tracked = np.array(r.status[warmup:]) == "tracking"
+        d = np.degrees(np.abs(np.angle(np.exp(1j * (h - truth[r.frames[warmup:]])))))
+        errs.extend(d[r.located[warmup:] & tracked].tolist())
+        for src, e in zip(np.asarray(r.heading_sources[warmup:])[tracked], d[tracked],
+                          strict=True):
+            by_source.setdefault(str(src), []).append(float(e))
+    sources: dict[str, int] = {}
     for r in odom:
         for src in r.heading_sources or []:
             sources[src] = sources.get(src, 0) + 1
     return WorldResult(dataset.name, _mean_error(plain, warmup), _mean_error(odom, warmup),
-                       same_odom, same_plain, kid, np.asarray(errs), sources)
+                       same_odom, same_plain, kid, np.asarray(errs), sources,
+                       {k: np.asarray(v) for k, v in by_source.items()})
 
 
 def report(results: list[WorldResult]) -> None:
@@ -115,12 +122,15 @@ def report(results: list[WorldResult]) -> None:
                f"{'same-light odom':>15s} {'cross/same':>10s} {'kidnap back':>11s} "
                f"{'median':>6s} {'heading med (deg)':>17s} {'located':>7s}  sources")
     ratios, kid_all, head_all = [], [], []
+    by_source: dict[str, list[float]] = {}
     for w in results:
         ratio = w.error_odom / w.error_plain
         ratios.append(ratio)
         done = [f for f in w.kidnap_frames if f is not None]
         kid_all.extend(w.kidnap_frames)
         head_all.extend(w.heading_err_deg.tolist())
+        for src, e in w.heading_err_by_source.items():
+            by_source.setdefault(src, []).extend(e.tolist())
         cross = (f"{w.error_odom / w.same_light_odom:10.2f}" if w.same_light_odom
                  else f"{'–':>10s}")
         same = f"{w.same_light_odom:15.2f}" if w.same_light_odom else f"{'–':>15s}"
@@ -130,6 +140,9 @@ def report(results: list[WorldResult]) -> None:
         typer.echo(f"{w.name:8s} {w.error_plain:11.2f} {w.error_odom:9.2f} {ratio:6.2f} "
                    f"{same} {cross} {len(done):>5d}/{len(w.kidnap_frames):<5d} {med} "
                    f"{hmed} {len(w.heading_err_deg):7d}  {w.heading_sources}")
+        if w.heading_err_by_source:
+            typer.echo(f"{'':8s} heading error of tracked frames by source: "
+                       + _by_source(w.heading_err_by_source))
         if w.same_light_plain:
             typer.echo(f"{'':8s} same light without odometry {w.same_light_plain:.2f} m: "
                        f"cross/same {w.error_plain / w.same_light_plain:.2f}")
@@ -144,6 +157,17 @@ def report(results: list[WorldResult]) -> None:
         h = np.asarray(head_all)
         typer.echo(f"heading error of located frames: median {np.median(h):.2f} deg, "
                    f"p90 {np.percentile(h, 90):.2f} deg over {len(h)} frames")
+    if by_source:
+        typer.echo("heading error of tracked frames by source: "
+                   + _by_source({k: np.asarray(v) for k, v in by_source.items()}))
+
+
+def _by_source(errs: dict[str, np.ndarray]) -> str:
+    """'source: median / p90 deg (frames)' for each heading source."""
+    import numpy as np
+
+    return ", ".join(f"{k} {np.median(v):.2f} / {np.percentile(v, 90):.2f} deg ({len(v)})"
+                     for k, v in sorted(errs.items()) if len(v))
 
 
 def register(bench_app: typer.Typer) -> None:

@@ -285,6 +285,9 @@ class DPSOParams(CommonParams):
     along_track_gate_m: float = Field(
         10.0, gt=0, le=1e5, description="a correction longer than this restarts the "
         "smoother at the swarm's estimate (m); 10 m, so a real jump is reported at once")
+    odom_look: bool = Field(
+        True, description="with wheel odometry, a located frame's camera yaw also corrects "
+        "the odometry's map heading (service/estimators/odometry.py)")
     odom_alpha: float = Field(
         0.3, ge=0, le=1, description="with wheel odometry, the share of the image "
         "estimate's correction (along and across the path) the reported position takes "

@@ -52,7 +52,10 @@ changes, each measured in docs/research/lighting.md:
   (off by default) also lets frames that cannot be located within ``metric_gate_m`` for
   that many tracked frames in a row count as not good for the lost detection;
   ``verify_switch_frames`` (off by default) then moves the estimate to another sub-swarm
-  where the frame is located.
+  where the frame is located. A located frame's heading is the camera's yaw (the map
+  image camera's heading plus the frame's yaw relative to it, ``heading_source`` "camera",
+  its std from service/vision/map_geometry.py); a frame not located keeps the odometry's
+  heading or the direction of motion.
 - **Lost detection** is relative (service/estimators/lost_detection.py): recovery starts when no
   match stands out for ``lost_frames`` frames, not when matches are merely weak.
 """
@@ -61,6 +64,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -72,6 +76,9 @@ from service.estimators.located_noise import LocatedNoise
 from service.estimators.lost_detection import DistinctnessMonitor
 from service.estimators.odometry import OdomStep
 from service.estimators.paper_dpso import DPSO
+
+if TYPE_CHECKING:
+    from service.vision.metric_pose import Offset
 
 
 def speciate(x: np.ndarray, evidence: np.ndarray, radius: float, max_species: int
@@ -182,7 +189,8 @@ class MultiSwarmDPSO(DPSO):
         self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))
         if self.recovery_phase(lost):
             status = Status.RECOVERING
-        located = self._located(fitness, status, pos, ids, scores, compared_xy)
+        camera = self._located(fitness, status, pos, ids, scores, compared_xy)
+        located = camera[0] if camera is not None else None
 
         # attractors: the seeds where the robot will be at the next frame (the tracked step
         # ahead), so the swarm does not trail the robot where matches are weak
@@ -221,7 +229,13 @@ class MultiSwarmDPSO(DPSO):
                                   confirmed)
         self.odom_observe(odom, pos, status is Status.TRACKING and confirmed,
                           lost or self.recovering)
+        cam = camera[1] if camera is not None else None
+        if cam is not None and cam.heading is not None and cam.heading_sigma is not None \
+                and odom is not None and self.odometry is not None and self.params.odom_look:
+            self.odometry.look(cam.heading, cam.heading_sigma)
         heading, source, h_sigma = self.odom_heading(odom, heading)
+        if cam is not None and cam.heading is not None:  # the camera's yaw
+            heading, source, h_sigma = cam.heading, "camera", cam.heading_sigma
         return StepResult(reported, cov, heading, speed, status,
                           lost or self.recovering, ev.best_m, fitness.comparisons, spread,
                           hypotheses, source, h_sigma, located is not None)
@@ -254,13 +268,14 @@ class MultiSwarmDPSO(DPSO):
 
     def _located(self, fitness: FrameFitness, status: Status, pos: np.ndarray,
                  ids: np.ndarray, scores: np.ndarray, compared_xy: np.ndarray
-                 ) -> np.ndarray | None:
+                 ) -> tuple[np.ndarray, Offset] | None:
         """While tracking, the camera's position from two-view geometry against the
         best-matching compared image within ``estimate_image_radius_m`` of ``pos``: that
         image's position plus the located offset, right and ahead along the path there
         (service/vision/metric_pose.py); where it cannot be located there within
         ``metric_reach_m``, against the next best compared images within
-        ``metric_search_m``, ``metric_tries`` images in all; None where none locates it."""
+        ``metric_search_m``, ``metric_tries`` images in all, with the offset that placed it
+        (its heading); None where none locates it."""
         p = self.params
         if not self._geometry_runs(fitness) or status is not Status.TRACKING:
             self.unverified = 0  # counted while tracking only
@@ -286,7 +301,8 @@ class MultiSwarmDPSO(DPSO):
                 self.unverified = 0 if reach <= p.metric_gate_m else self.unverified + 1
             if off is not None and tangent is not None and reach <= p.metric_reach_m:
                 right = np.array([tangent[1], -tangent[0]])
-                return self._map_positions[image] + off.right_m * right + off.ahead_m * tangent
+                return (self._map_positions[image] + off.right_m * right
+                        + off.ahead_m * tangent, off)
         return None
 
     def _verified_alternative(self, fitness: FrameFitness, seeds: np.ndarray,

@@ -71,6 +71,10 @@ class OdomHeading:
     tau_m = 12.0  # travel over which a pair's weight falls by e
     min_span_m = 3.0  # rms spread of the dead-reckoned points a fit needs
     keep = 200  # pairs kept at most
+    # class-level starts too: a session state stored before the camera's yaw was fused
+    # (service/engine/state_codec.py) restores without them
+    seen: float | None = None
+    seen_var = 0.0
 
     def __init__(self) -> None:
         self.reset()
@@ -82,6 +86,10 @@ class OdomHeading:
         self.offset: float | None = None  # map yaw - dead-reckoned yaw, rad
         self.offset_sigma = math.pi  # its std, rad
         self.scale = 1.0  # map metres per odometry metre, from the same fit
+        # the offset seen by the located camera's yaw (a Kalman filter over located frames;
+        # its variance grows with the odometry's drift between them); None: none seen
+        self.seen: float | None = None
+        self.seen_var = 0.0
 
     def advance(self, step: OdomStep) -> None:
         """Integrate one step into the dead-reckoned pose."""
@@ -91,16 +99,39 @@ class OdomHeading:
                               y + s * step.forward + c * step.left,
                               wrap_angle(yaw + step.turn)])
         self.travelled += step.distance
+        if self.seen is not None:
+            self.seen_var += step.var_yaw * step.distance
         if self.offset is not None:  # the odometry's heading drifts while no fit corrects it
             self.offset_sigma = math.hypot(self.offset_sigma,
                                            math.sqrt(step.var_yaw * step.distance))
 
     def heading(self, motion_heading: float | None) -> tuple[float | None, float]:
-        """(map heading of the robot now, its std): from the fit where there is one, else
-        the tracked direction of motion (None where there is none either)."""
-        if self.offset is not None:
-            return wrap_angle(float(self.pose[2]) + self.offset), self.offset_sigma
+        """(map heading of the robot now, its std): from the fit and the camera's yaw where
+        there are (weighted by their variances), else the tracked direction of motion (None
+        where there is none either)."""
+        offset, sigma = self.offset, self.offset_sigma
+        if self.seen is not None:
+            if offset is None:
+                offset, sigma = self.seen, math.sqrt(self.seen_var)
+            else:
+                v_fit = sigma * sigma
+                w = v_fit / (v_fit + self.seen_var)
+                offset = offset + w * wrap_angle(self.seen - offset)
+                sigma = math.sqrt(v_fit * self.seen_var / (v_fit + self.seen_var))
+        if offset is not None:
+            return wrap_angle(float(self.pose[2]) + offset), sigma
         return motion_heading, MOTION_HEADING_SIGMA
+
+    def look(self, heading: float, sigma: float) -> None:
+        """The located camera's yaw ``heading`` (std ``sigma``) at the current pose: a direct
+        measurement of the offset between the dead-reckoned yaw and the map's."""
+        z = wrap_angle(heading - float(self.pose[2]))
+        if self.seen is None:
+            self.seen, self.seen_var = z, sigma * sigma
+            return
+        gain = self.seen_var / (self.seen_var + sigma * sigma)
+        self.seen = wrap_angle(self.seen + gain * wrap_angle(z - self.seen))
+        self.seen_var = (1.0 - gain) * self.seen_var
 
     def displacement(self, step: OdomStep, motion_heading: float | None
                      ) -> tuple[np.ndarray, float]:
@@ -127,6 +158,7 @@ class OdomHeading:
         """The place was lost: the pairs may belong to a wrong place; the drift since the
         last fit is kept as the heading's uncertainty."""
         self.pairs = np.zeros((0, 5))
+        self.seen = None
 
     def _fit(self) -> None:
         p = self.pairs

@@ -6,6 +6,18 @@ image ``i`` (service/vision/metric_pose.py). The structure of ``i`` (its feature
 computed once per image and kept, bounded, for every session on the map. The frame's own
 matches with ``i`` come from its similarity's pass where that kept them (``FramePairs``), so
 locating the frame matches nothing again.
+
+The located frame's heading in the map is the map image camera's heading plus the frame's
+yaw relative to it (PnP's rotation). The map keeps positions, not headings. Its cameras look
+along their traversal on the whole, but each turns a few degrees about the path (a robot's
+wobble), which positions cannot tell; the pairs' rotations can (the structure's partner
+yaw: a fraction of a degree). So a map image's heading is a circular mean over a chain of
+partners, ``heading_hops`` beyond the image: at each link, the traversal's direction
+there (the principal axis of its positions within ``heading_window_m``, oriented in the
+order the images were taken) less the link's yaw relative to the image, the partners' yaws
+summed. The wobble averages out over the chain and the positions' noise over each window
+(a neighbour one image away gives 6° median error with 0.3 m GPS noise; docs/research/
+odometry.md has the measured errors).
 """
 
 from __future__ import annotations
@@ -13,7 +25,7 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import cv2
@@ -22,6 +34,10 @@ import numpy as np
 from service.vision.features import Features
 from service.vision.matcher import Pairs
 from service.vision.metric_pose import Camera, Offset, Structure, locate, triangulate
+
+# std (rad) of a located frame's heading, 2.9°: near the spread measured on the located,
+# tracked frames of the rendered worlds (median 2.19°, p90 5.2°; docs/research/odometry.md)
+LOCATED_HEADING_SIGMA = 0.05
 
 
 class _Images(Protocol):  # what this module needs of a RouteMap (service/maps/route_map.py)
@@ -43,6 +59,8 @@ class GeometryParams:
     delta: float = 0.9  # ratio threshold of the matches used for geometry (looser than m's)
     min_inliers: int = 8  # RANSAC inliers needed, for the structure and for the frame
     baseline_m: float = 2.4  # distance to the neighbour that gives an image its structure
+    heading_window_m: float = 6.0  # reach of the path's direction at a map image, each way
+    heading_hops: int = 3  # partners beyond a map image whose directions its heading averages
 
 
 class FramePairs:
@@ -71,6 +89,7 @@ class MapGeometry:
         self.k = camera.matrix(width, height)
         self.max_cached = max_cached
         self._cache: OrderedDict[tuple[int, GeometryParams], Structure | None] = OrderedDict()
+        self._headings: OrderedDict[tuple[int, GeometryParams], float | None] = OrderedDict()
         self._lock = threading.Lock()
 
     def partner(self, image_id: int, baseline_m: float) -> int | None:
@@ -91,6 +110,59 @@ class MapGeometry:
             if best is not None:
                 return best
         return None
+
+    def path_heading(self, image_id: int, window_m: float) -> float | None:
+        """Direction (rad counter-clockwise from east) of ``image_id``'s traversal there: the
+        principal axis of the traversal's positions within ``window_m`` of the image, along
+        the id order; None where no other image of the traversal lies that near."""
+        pos = self.images.positions
+        layers = self.images.layers
+        here = pos[image_id]
+        ends = []
+        for step in (-1, 1):
+            j = image_id
+            while 0 <= j + step < len(pos) and \
+                    (layers is None or layers[j + step] == layers[image_id]) and \
+                    float(np.linalg.norm(pos[j + step] - here)) <= window_m:
+                j += step
+            ends.append(j)
+        lo, hi = ends
+        if hi == lo:
+            return None
+        near = np.asarray(pos[lo:hi + 1], float)
+        axis = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)[2][0]
+        if float(axis @ (near[-1] - near[0])) < 0:
+            axis = -axis
+        return float(np.arctan2(axis[1], axis[0]))
+
+    def camera_heading(self, image_id: int, p: GeometryParams) -> float | None:
+        """The heading (rad counter-clockwise from east) of map image ``image_id``'s camera:
+        the circular mean, over the image and ``heading_hops`` partners beyond it, of the
+        traversal's direction at each less its yaw relative to the image; None where the
+        traversal's direction is not known there."""
+        key = (int(image_id), p)
+        with self._lock:
+            if key in self._headings:
+                self._headings.move_to_end(key)
+                return self._headings[key]
+        image, turned, seen, votes = int(image_id), 0.0, {int(image_id)}, []
+        for hop in range(p.heading_hops + 1):
+            direction = self.path_heading(image, p.heading_window_m)
+            if direction is not None:
+                votes.append(direction - turned)
+            st = self.structure(image, p) if hop < p.heading_hops else None
+            j = self.partner(image, p.baseline_m) if st is not None else None
+            if st is None or j is None or j in seen:
+                break
+            turned += st.partner_yaw
+            image = j
+            seen.add(j)
+        heading = float(np.angle(np.exp(1j * np.asarray(votes)).sum())) if votes else None
+        with self._lock:
+            self._headings[key] = heading
+            while len(self._headings) > self.max_cached:
+                self._headings.popitem(last=False)
+        return heading
 
     def structure(self, image_id: int, p: GeometryParams) -> Structure | None:
         key = (int(image_id), p)
@@ -129,8 +201,9 @@ class MapGeometry:
     def locate(self, frame: Features, image_id: int, p: GeometryParams,
                kept: FramePairs | None = None) -> Offset | None:
         """The frame's camera centre relative to map image ``image_id``'s camera (metres
-        right, ahead); None where the geometry is not reliable. ``kept``: this frame's matches
-        kept by its similarity (matched here where it has none for the image)."""
+        right, ahead), its yaw relative to it and its heading in the map; None where the
+        geometry is not reliable. ``kept``: this frame's matches kept by its similarity
+        (matched here where it has none for the image)."""
         st = self.structure(image_id, p)
         if st is None:
             return None
@@ -138,6 +211,11 @@ class MapGeometry:
         if pairs is None:
             pairs = self.images.pairs(frame.codes, image_id, p.delta)
         try:
-            return locate(frame.keypoints, pairs, st, self.k, p.min_inliers)
+            off = locate(frame.keypoints, pairs, st, self.k, p.min_inliers)
         except cv2.error:  # a degenerate configuration: the frame is not located
             return None
+        base = self.camera_heading(image_id, p) if off is not None else None
+        if off is None or base is None:
+            return off
+        heading = float(np.angle(np.exp(1j * (base + off.yaw))))
+        return replace(off, heading=heading, heading_sigma=LOCATED_HEADING_SIGMA)

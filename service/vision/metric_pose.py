@@ -7,7 +7,9 @@ of the same traversal, a known distance apart, give the 3-D points of ``i``'s fe
 essential matrix of the pair, its translation scaled to the distance between their recorded
 positions, then triangulation); the frame's features matched with ``i``'s give the frame's
 camera pose against those points (PnP with RANSAC). The result is the camera centre in the
-frame of ``i``'s camera: metres to the right and ahead.
+frame of ``i``'s camera: metres to the right and ahead, and the camera's yaw relative to
+``i``'s (its turn about the vertical axis, counter-clockwise seen from above, as the map's
+headings).
 
 Everything here is pure computation on arrays (OpenCV's RANSAC draws from its own fixed-seed
 generator, so one input always gives one result).
@@ -54,18 +56,35 @@ class Camera:
 @dataclass(frozen=True)
 class Structure:
     """3-D points (n, 3) of some of a map image's features, in that image's camera frame
-    (x right, y down, z ahead; metres), and the features' indices in the image."""
+    (x right, y down, z ahead; metres), and the features' indices in the image; the yaw of
+    the partner image that gave them relative to this image's camera (rad, counter-clockwise
+    seen from above: the pair's rotation, far sharper than its translation's direction)."""
 
     feature_ids: np.ndarray
     points: np.ndarray
+    partner_yaw: float = 0.0
 
 
 @dataclass(frozen=True)
 class Offset:
-    """A frame's camera centre in a map image's camera frame: metres right and ahead."""
+    """A frame's camera centre in a map image's camera frame: metres right and ahead; its
+    yaw relative to the map image's camera; and, where the map knows that camera's heading
+    (service/vision/map_geometry.py), the frame camera's heading in the map and its std."""
 
     right_m: float
     ahead_m: float
+    yaw: float = 0.0  # rad, counter-clockwise seen from above (turned left: positive)
+    inliers: int = 0  # PnP RANSAC inliers
+    heading: float | None = None  # rad counter-clockwise from east: the map's heading + yaw
+    heading_sigma: float | None = None  # its std, rad
+
+
+def relative_yaw(rot: np.ndarray) -> float:
+    """Yaw (rad, counter-clockwise seen from above) of a camera whose rotation from a
+    reference camera's frame (x right, y down, z ahead) is ``rot`` (x_cam = rot x_ref + t):
+    the angle of its optical axis, ``rot``'s third row in the reference frame, left of the
+    reference's axis."""
+    return -math.atan2(float(rot[2, 0]), float(rot[2, 2]))
 
 
 def match_pairs(a: np.ndarray, b: np.ndarray | PreparedSet, delta: float
@@ -100,7 +119,7 @@ def triangulate(kp_i: np.ndarray, kp_j: np.ndarray, pairs: tuple[np.ndarray, np.
     good = np.isfinite(x).all(axis=1) & (x[:, 2] > 0.5) & (x[:, 2] < max_depth_m)
     if good.sum() < min_points:
         return None
-    return Structure(ia[ok][good].astype(np.int64), x[good])
+    return Structure(ia[ok][good].astype(np.int64), x[good], relative_yaw(r))
 
 
 def locate(kp_q: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], structure: Structure,
@@ -109,7 +128,8 @@ def locate(kp_q: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], structure: St
     """The frame's camera centre in the structure's camera frame from the frame's matches
     ``pairs`` (frame feature, map image feature) by PnP with RANSAC; None with fewer than
     ``min_inliers`` inliers, or a centre farther than ``max_offset_m`` (a degenerate
-    configuration: image points that do not span the view)."""
+    configuration: image points that do not span the view). The offset's yaw is the frame
+    camera's relative to the structure's."""
     iq, ii = pairs
     pos = np.searchsorted(structure.feature_ids, ii)
     pos = np.minimum(pos, len(structure.feature_ids) - 1)
@@ -127,4 +147,4 @@ def locate(kp_q: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], structure: St
     centre = (-rot.T @ tvec).ravel()
     if not np.isfinite(centre).all() or float(np.linalg.norm(centre)) > max_offset_m:
         return None
-    return Offset(float(centre[0]), float(centre[2]))
+    return Offset(float(centre[0]), float(centre[2]), relative_yaw(rot), len(inl))
