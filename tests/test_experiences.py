@@ -428,11 +428,13 @@ def test_in_a_gap_of_the_experience_every_particle_uses_the_base_images(
     est = [loc.step(f, t=float(i)) for i, f in enumerate(cloudy_features)]
     assert loc.choice.scores and est[14].experience == "cloudy"  # it learned today's light
     everywhere = learned.positions  # particles at every image of the map
+    layers = learned.layers
+    assert layers is not None
     for i in range(25, 35):  # frames deep in the gap
         assert np.hypot(est[i - 1].x - cloudy1.xy[i - 1][0],
                         est[i - 1].y - cloudy1.xy[i - 1][1]) < 2.0
         ids, _ = nearest_fns[i](everywhere)
-        assert not np.any(learned.layers[ids] == exp_layer), i
+        assert not np.any(layers[ids] == exp_layer), i
     # where the experience covers the estimate, its images are used again
     ids, _ = nearest_fns[55](everywhere)
-    assert np.any(learned.layers[ids] == exp_layer)
+    assert np.any(layers[ids] == exp_layer)
