@@ -402,3 +402,39 @@ def test_replay_learn_through_the_local_transport(camera_maps: Path, tmp_path: P
     m = load_map(tmp_path / "maps" / "route.swmap")
     (e,) = experience_list(m)
     assert e["condition"] == "cloudy" and e["robot"] == "replay" and e["images"] > 0
+
+
+def test_in_a_gap_of_the_experience_every_particle_uses_the_base_images(
+        map_copy: RouteMap, cloudy_images: list[NewImage],
+        cloudy_features: list[Features], cloudy1: Round) -> None:
+    """Issue #34 (seed 37): an experience learned on part of the route. Where the robot is in a
+    gap of it, particles at the true place were scored on the base images (another light) while
+    particles at the experience's images nearby got today's light: the swarm left the gap for
+    the covered part and lost track. In a gap every particle now uses the base images."""
+    assert map_copy.path is not None
+    gapped = cloudy_images[:15] + cloudy_images[45:]  # no images for frames 15-44 (~18 m)
+    learned, _ = add_experience(map_copy, map_copy.path, "cloudy", gapped,
+                                condition="cloudy", robot=None, now=1.0, budget_bytes=1 << 30)
+    exp_layer = experience_layers(learned)["cloudy"]
+    loc = Localizer(learned, seed=1)
+    step = loc.estimator.step
+    nearest_fns: list = []
+
+    def captured(*args, **kw):
+        nearest_fns.append(kw.get("nearest"))
+        return step(*args, **kw)
+
+    loc.estimator.step = captured  # type: ignore[method-assign]
+    est = [loc.step(f, t=float(i)) for i, f in enumerate(cloudy_features)]
+    assert loc.choice.scores and est[14].experience == "cloudy"  # it learned today's light
+    everywhere = learned.positions  # particles at every image of the map
+    layers = learned.layers
+    assert layers is not None
+    for i in range(25, 35):  # frames deep in the gap
+        assert np.hypot(est[i - 1].x - cloudy1.xy[i - 1][0],
+                        est[i - 1].y - cloudy1.xy[i - 1][1]) < 2.0
+        ids, _ = nearest_fns[i](everywhere)
+        assert not np.any(layers[ids] == exp_layer), i
+    # where the experience covers the estimate, its images are used again
+    ids, _ = nearest_fns[55](everywhere)
+    assert np.any(layers[ids] == exp_layer)

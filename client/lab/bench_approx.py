@@ -45,7 +45,9 @@ class _WithMatcher:
         self._matcher = matcher
         self._exact_geometry = exact_geometry
 
-    def similarity(self, codes: np.ndarray, image_ids: Any) -> np.ndarray:
+    def similarity(self, codes: np.ndarray, image_ids: Any, keep: Any = None) -> np.ndarray:
+        """The inverted file's similarity; it keeps no matches (``keep`` stays empty), so the
+        geometry matches the located image itself, as before the exact path kept them."""
         return self._matcher.similarity(codes, np.asarray(list(image_ids)), self._map.delta)
 
     def pairs(self, codes: np.ndarray, image_id: int, delta: float

@@ -110,13 +110,18 @@ class Localizer:
         else:  # one layer per particle, then the layer probes (service/maps/experiences.py)
             similarity = ComparisonCache(lambda ids: self.map.similarity(codes, ids, kept))
             res = self.estimator.step(similarity, t, self.locator(features, kept), motion,
-                                      nearest=self.choice.nearest(self.map))
+                                      nearest=self.choice.nearest(self.map, self._at()))
             if not res.lost:
                 self.choice.probe(self.map, similarity, res.position)
             comparisons = similarity.comparisons
         self.seq += 1
         self.last = self._estimate(res, t, comparisons, learned)
         return self.last
+
+    def _at(self) -> np.ndarray | None:
+        """The previous estimate's position (None: none yet, or it was lost)."""
+        last = self.last
+        return None if last is None or last.lost else np.array([last.x, last.y])
 
     def locator(self, features: Features, kept: FramePairs | None = None) -> LocateFn | None:
         """The frame located at a map image by two-view geometry (service/vision/map_geometry.py),

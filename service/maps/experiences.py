@@ -255,12 +255,23 @@ class LayerChoice:
     active: str = BASE
     turn: int = 0  # round-robin over the other layers for the probe
 
-    def nearest(self, m: RouteMap) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    def nearest(self, m: RouteMap, at: np.ndarray | None = None
+                ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """For the fitness: each particle's base images (one column per base layer), replaced
-        by the active experience's image where it has one within ``GAP_SPACINGS``."""
+        by the active experience's image where it has one within ``GAP_SPACINGS``.
+
+        ``at`` (the previous estimate, None when unknown): where the active experience has no
+        image within ``GAP_SPACINGS`` of it, the frame is in a gap of that experience and every
+        particle uses the base images. Otherwise the particles at the true place (base images,
+        another light) would compete with particles at the experience's images elsewhere
+        (today's light, higher similarity to any frame), and the swarm would leave the gap for
+        the part of the route the experience covers."""
         base = base_layers(m)
         layer = experience_layers(m).get(self.active)
         gap = GAP_SPACINGS * base_spacing(m)
+        if layer is not None and at is not None and \
+                float(m.nearest_in_layer(np.asarray(at, float)[None, :], layer)[1][0]) > gap:
+            layer = None
 
         def nearest(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             cols = [m.nearest_in_layer(positions, k) for k in base]
