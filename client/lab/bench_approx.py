@@ -28,10 +28,10 @@ import cv2
 import numpy as np
 
 from client.dataset import Round
-from client.lab.bench_extract import capped_params
+from client.lab.bench_extract import capped_params, extract_timed
 from service.engine.localizer import Localizer
 from service.maps.route_map import RouteMap, build_map_from_rounds
-from service.vision.features import extract, named_params
+from service.vision.features import named_params
 from service.vision.map_geometry import MapGeometry
 from service.vision.vocabulary import DEFAULT_PROBES, DEFAULT_WORDS, InvertedFileMatcher
 
@@ -104,12 +104,7 @@ def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], fram
     m = build_map_from_rounds([map_rnd], params=params)
     ivf = inverted_file(m, k, probes)
     n = min(len(query), frames + warmup)
-    ext_ms, feats = [], []
-    for i in range(n):
-        img = query.load_image(i)
-        t0 = time.perf_counter()
-        feats.append(extract(img, params))
-        ext_ms.append(1e3 * (time.perf_counter() - t0))
+    feats, ext_ms = extract_timed(query, n, params)
     truth = query.reference_xy[:n]
     exact = Localizer(m, "dpso", {}, seed)
     approx = Localizer(cast(RouteMap, _WithMatcher(m, ivf, exact_geometry)), "dpso", {}, seed)

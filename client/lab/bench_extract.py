@@ -37,7 +37,7 @@ import numpy as np
 from client.dataset import Round, read_round
 from service.engine.localizer import Localizer
 from service.maps.route_map import build_map_from_rounds
-from service.vision.features import SiftParams, extract, named_params
+from service.vision.features import Features, SiftParams, extract, named_params
 
 if TYPE_CHECKING:
     from service.vision.features import FeatureParams
@@ -79,6 +79,19 @@ def split_rounds(dataset: Path, map_round: str, query_round: str) -> tuple[Round
     if query_round == map_round:
         return m.subset(list(range(0, len(m), 2))), m.subset(list(range(1, len(m), 2)))
     return m, read_round(dataset / query_round)
+
+
+def extract_timed(query: Round, n: int, params: FeatureParams
+                  ) -> tuple[list[Features], list[float]]:
+    """The first ``n`` frames' features and each extraction's ms (image loading not timed)."""
+    feats: list[Features] = []
+    ms: list[float] = []
+    for i in range(n):
+        img = query.load_image(i)
+        t0 = time.perf_counter()
+        feats.append(extract(img, params))
+        ms.append(1e3 * (time.perf_counter() - t0))
+    return feats, ms
 
 
 def time_steps(map_rnd: Round, query: Round, params: FeatureParams, frames: int, warmup: int,

@@ -28,9 +28,10 @@ import cv2
 import numpy as np
 
 from client.dataset import Round
+from client.lab.bench_extract import extract_timed
 from service.engine.localizer import Localizer
 from service.maps.route_map import RouteMap, build_map_from_rounds, load_map, save_map
-from service.vision.features import extract, named_params
+from service.vision.features import named_params
 from service.vision.map_geometry import FramePairs
 
 VARIANTS = ("again", "kept", "kept+structures")
@@ -72,12 +73,7 @@ def compare(map_path: Path, query: Round, name: str, size: tuple[int, int], fram
     geometry.warm()
     warm_s = time.perf_counter() - t0
     n = min(len(query), frames + warmup)
-    ext_ms, feats = [], []
-    for i in range(n):
-        img = query.load_image(i)
-        t0 = time.perf_counter()
-        feats.append(extract(img, params))
-        ext_ms.append(1e3 * (time.perf_counter() - t0))
+    feats, ext_ms = extract_timed(query, n, params)
     truth = query.reference_xy[:n]
     locs = {k: Localizer(cast(RouteMap, _MatchAgain(maps[k])) if k == "again" else maps[k],
                          "dpso", {}, seed) for k in VARIANTS}
