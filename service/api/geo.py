@@ -1,7 +1,9 @@
-"""Local metric east/north frame around a stored WGS84 origin (pyproj azimuthal equidistant)."""
+"""Local metric east/north frame around a stored WGS84 origin (pyproj azimuthal equidistant),
+and angles in that frame."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -9,6 +11,11 @@ import numpy as np
 
 if TYPE_CHECKING:
     from pyproj import Transformer
+
+
+def wrap_angle(a: float) -> float:
+    """``a`` (rad) in [-pi, pi): one definition for headings in the map frame."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @dataclass(frozen=True)

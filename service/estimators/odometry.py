@@ -26,13 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.api.geo import wrap_angle
+
 # the direction of motion as a heading: its std (rad) when no odometry fit is there yet
 MOTION_HEADING_SIGMA = math.radians(20.0)
-
-
-def wrap_angle(a: float) -> float:
-    """``a`` in [-pi, pi)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from service.api.geo import wrap_angle
 from service.vision.features import Features
 from service.vision.matcher import Pairs
 from service.vision.metric_pose import Camera, Offset, Structure, locate, triangulate
@@ -217,5 +218,5 @@ class MapGeometry:
         base = self.camera_heading(image_id, p) if off is not None else None
         if off is None or base is None:
             return off
-        heading = float(np.angle(np.exp(1j * (base + off.yaw))))
+        heading = wrap_angle(base + off.yaw)
         return replace(off, heading=heading, heading_sigma=LOCATED_HEADING_SIGMA)
