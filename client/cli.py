@@ -58,6 +58,21 @@ def _main(debug: DebugOpt = False) -> None:
 
     Errors print one line saying what to do; --debug (before the command) shows the
     traceback."""
+    _one_blas_thread()
+
+
+def _one_blas_thread() -> None:
+    """NumPy's BLAS on one thread, as the service runs it (service/server.py): the lab's
+    matrix products are small and run beside threads and processes of their own, and
+    OpenBLAS's spinning pool made them up to 100x slower on a busy 2-core machine (a frame's
+    VLAD: 58 ms against 0.5 ms). Results do not depend on it. A light client install has no
+    threadpoolctl and skips it."""
+    try:
+        import numpy  # noqa: F401  (threadpoolctl limits the BLAS libraries already loaded)
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return
+    threadpool_limits(1, "blas")
 
 
 def _fail(msg: str) -> NoReturn:

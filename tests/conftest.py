@@ -5,19 +5,28 @@ Everything is rendered here, into pytest's temporary directories; nothing from .
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+from threadpoolctl import threadpool_limits
 
 from client.dataset import Round, read_round
 from client.lab.experiments import SimilarityTable
 from client.lab.processes import RedisServer
 from client.lab.world import World
+from service.api.round_format import camera_from_hfov
 from service.engine.localization_service import LocalizationService
 from service.maps.route_map import RouteMap, build_map, load_map, save_map
 from service.server import free_port, running_server
 from service.settings import Settings
+from service.vision.features import Features, extract
+from service.vision.metric_pose import Camera
+
+ROOT = Path(__file__).resolve().parent.parent
 
 SMALL_LENGTH_M = 90.0
 
@@ -26,6 +35,10 @@ SMALL_LENGTH_M = 90.0
 # their sessions in memory unless a test names a store. tests/test_durable_store.py runs the
 # default itself (its servers drop this variable).
 os.environ.setdefault("SWARMLOC_SESSION_STORE", "memory")
+# One BLAS thread, as the service runs (service/server.py): the tests' many small matrix
+# products beside servers in threads and processes were up to 100x slower with OpenBLAS's
+# spinning pool on a busy 2-core machine. Results do not depend on it.
+threadpool_limits(1, "blas")
 
 
 @pytest.fixture(scope="session")
@@ -97,6 +110,34 @@ def rdb(redis_srv: RedisServer):
 
 
 @pytest.fixture(scope="session")
-def table(small_map: RouteMap, sunny2: Round) -> SimilarityTable:
+def sunny2_features(small_map: RouteMap, sunny2: Round) -> list[Features]:
+    """Every sunny2 frame's features with the small map's parameters, extracted once."""
+    return [extract(sunny2.load_image(i), small_map.feature_params) for i in range(len(sunny2))]
+
+
+@pytest.fixture(scope="session")
+def table(small_map: RouteMap, sunny2_features: list[Features]) -> SimilarityTable:
     """Similarities of every sunny2 frame to every image of the small map."""
-    return SimilarityTable.from_round(small_map, sunny2)
+    return SimilarityTable(small_map, sunny2_features)
+
+
+@pytest.fixture(scope="session")
+def camera_map(tmp_path_factory: pytest.TempPathFactory, small_map: RouteMap,
+               small_world: World) -> RouteMap:
+    """The small map with the world's camera in its metadata (the two-view geometry runs),
+    saved and loaded: what a build from the round with a dataset.json camera gives, without
+    extracting the round again."""
+    cam = small_world.camera
+    camera = Camera.from_dict(camera_from_hfov(cam.hfov_deg, cam.width, cam.height)).as_dict()
+    route = dataclasses.replace(small_map, name="cam", meta={**small_map.meta, "camera": camera})
+    return load_map(save_map(route, tmp_path_factory.mktemp("cam_maps") / "cam"))
+
+
+@pytest.fixture(scope="session")
+def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The project's wheel (``pip wheel . --no-deps``), built once for the packaging tests."""
+    out = tmp_path_factory.mktemp("wheel")
+    res = subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "-q",
+                          "-w", str(out)], capture_output=True, text=True, check=False)
+    assert res.returncode == 0, res.stdout + res.stderr
+    return next(out.glob("swarmloc-*.whl"))

@@ -1,19 +1,19 @@
 """The bare client (`pip install swarmloc`, no extras) in a fresh virtualenv talks to a real
 server, and OpenCV, SciPy and FastAPI are not even installed there.
 
-The virtualenv has no system site packages; pip installs the repository (not editable) with
-its base dependencies from the package index, reusing pip's cache.
+The virtualenv has no system site packages; pip installs the repository's wheel (built once
+for the session, tests/conftest.py) with its base dependencies from the package index, reusing
+pip's cache.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import venv
 from pathlib import Path
-
-ROOT = Path(__file__).resolve().parent.parent
 
 PROBE = r"""
 import importlib.util, json, sys
@@ -43,18 +43,22 @@ print(json.dumps({"maps": [m.name for m in connect(url).maps()], "estimator": in
 
 
 def _run(cmd: list[str], **kw: object) -> subprocess.CompletedProcess[str]:
-    res = subprocess.run(cmd, capture_output=True, text=True, check=False, **kw)  # type: ignore[call-overload]
+    """``cmd`` in the bare virtualenv: without PYTHONPATH, so nothing of the source tree (or
+    its egg-info) is seen there."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    res = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env, **kw)  # type: ignore[call-overload]
     assert res.returncode == 0, f"{cmd}\n{res.stdout}\n{res.stderr}"
     return res
 
 
-def test_bare_client_install_talks_to_a_server(tmp_path: Path, server, sunny2) -> None:
+def test_bare_client_install_talks_to_a_server(tmp_path: Path, wheel: Path, server, sunny2
+                                               ) -> None:
     env_dir = tmp_path / "venv"
     venv.EnvBuilder(with_pip=True, system_site_packages=False).create(env_dir)
     bindir = env_dir / ("Scripts" if sys.platform == "win32" else "bin")
     py = bindir / "python"
     _run([str(py), "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
-          str(ROOT)], cwd=tmp_path)
+          str(wheel)], cwd=tmp_path)
 
     res = _run([str(py), "-c", PROBE, server["url"], str(sunny2.image_path(5))], cwd=tmp_path)
     out = json.loads(res.stdout.strip().splitlines()[-1])

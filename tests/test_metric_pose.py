@@ -24,24 +24,14 @@ from service.vision.metric_pose import Camera
 
 
 @pytest.fixture(scope="module")
-def camera_map(tmp_path_factory: pytest.TempPathFactory, small_world: World,
-               sunny1: Round) -> RouteMap:
-    cam = small_world.camera
-    rnd = replace(sunny1, camera=camera_from_hfov(cam.hfov_deg, cam.width, cam.height))
-    path = save_map(build_map_from_rounds([rnd], name="cam"),
-                    tmp_path_factory.mktemp("cam_maps") / "cam")
-    return load_map(path)
-
-
-@pytest.fixture(scope="module")
-def sunny2_features(camera_map: RouteMap, sunny2: Round) -> list[Features]:
-    return [extract(sunny2.load_image(i), camera_map.feature_params) for i in range(len(sunny2))]
-
-
-@pytest.fixture(scope="module")
-def sunny2_table(camera_map: RouteMap, sunny2_features: list[Features]) -> SimilarityTable:
-    """The frames' similarities to the camera map, computed once for the module's tests."""
-    return SimilarityTable(camera_map, sunny2_features)
+def sunny2_table(camera_map: RouteMap, table: SimilarityTable,
+                 sunny2_features: list[Features]) -> SimilarityTable:
+    """The frames' similarities to the camera map: the session's table of the small map, whose
+    images' codes the camera map holds (one extraction, one comparison each)."""
+    assert np.array_equal(table.map.codes, camera_map.codes)
+    t = SimilarityTable(camera_map, sunny2_features)
+    t.table = table.table
+    return t
 
 
 def _geometry(m: RouteMap) -> MapGeometry:

@@ -51,7 +51,7 @@ def test_same_estimates_over_http_zenoh_and_in_process(server, sunny2) -> None:
 
 
 def test_sixteen_robots_in_parallel_equal_each_alone(server, sunny2) -> None:
-    robots = [(f"robot{k}", range(6 * k, 6 * k + 12), k) for k in range(16)]
+    robots = [(f"robot{k}", range(6 * k, 6 * k + 6), k) for k in range(16)]
     alone = {}
     c = HttpClient(server["url"])
     for rid, frames, seed in robots:
