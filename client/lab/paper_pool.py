@@ -69,6 +69,9 @@ _WORKER: dict[str, Lab] = {}  # the worker process's Lab (set by ``_init``)
 
 
 def _init(dataset: str) -> None:
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1, "blas")  # the workers share the cores: one BLAS thread each
     _WORKER["lab"] = Lab(Path(dataset), threads=1)
 
 
