@@ -181,3 +181,40 @@ class OdomHeading:
         n_eff = 1.0 / float(w @ w)
         self.offset = theta
         self.offset_sigma = max(resid / (span * math.sqrt(n_eff)), math.radians(0.5))
+
+
+class LocatedGate:
+    """Whether a frame the geometry located is taken while the odometry carries the
+    estimate: a located position farther than ``gate_m`` from where the odometry predicts the
+    robot is held back, unless the previous one held back (carried by the odometry since, at
+    most ``keep_frames`` frames old) agrees with it within half the gate. One wrong match
+    (an unmatchable stretch's look-alike image) then moves nothing; images that keep saying
+    another place (the odometry's drift, a kidnap) are taken at the second frame."""
+
+    keep_frames = 5
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.pending: np.ndarray | None = None  # the last located position held back, m
+        self.pending_age = 0  # frames since
+
+    def admit(self, located: np.ndarray | None, predicted: np.ndarray | None,
+              step: np.ndarray, gate_m: float) -> bool:
+        """Whether ``located`` (None: the frame was not located) is taken, given the
+        odometry's prediction ``predicted`` (None: none) and this frame's odometry step
+        ``step`` (m, map frame); call once per frame with odometry."""
+        if self.pending is not None:
+            self.pending_age += 1
+            self.pending = self.pending + step if self.pending_age <= self.keep_frames \
+                else None
+        if located is None or predicted is None or gate_m <= 0 or \
+                float(np.linalg.norm(located - predicted)) <= gate_m:
+            return True
+        if self.pending is not None and \
+                float(np.linalg.norm(located - self.pending)) <= 0.5 * gate_m:
+            self.reset()
+            return True
+        self.pending, self.pending_age = np.array(located, float), 0
+        return False
