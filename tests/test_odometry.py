@@ -167,20 +167,24 @@ def test_http_frames_carry_odometry_and_bad_odometry_is_refused(server, sunny2: 
 
 def test_a_located_position_the_odometry_contradicts_waits_for_a_second_one() -> None:
     """One located position far from the odometry's prediction moves nothing; the next one
-    that agrees with it (carried by the odometry step) is taken."""
-    gate, step, pred = LocatedGate(), np.array([0.6, 0.0]), np.array([10.0, 0.0])
-    assert gate.admit(np.array([10.8, 0.3]), pred, step, 1.5)  # within the gate
-    assert not gate.admit(np.array([14.0, 0.0]), pred, step, 1.5)  # a lone contradiction
-    assert gate.admit(np.array([14.7, 0.1]), pred + step, step, 1.5)  # the second agrees
-    assert gate.pending is None
+    within the distance travelled since (heading-free: after a kidnap the odometry's map
+    heading is wrong) is taken, as a move."""
+    gate, pred = LocatedGate(), np.array([10.0, 0.0])
+    assert gate.admit(np.array([10.8, 0.3]), pred, 0.6, 1.5)  # within the gate
+    assert not gate.moved
+    assert not gate.admit(np.array([14.0, 0.0]), pred, 0.6, 1.5)  # a lone contradiction
+    # the second agrees, 0.6 m on in a direction the odometry's heading does not give
+    assert gate.admit(np.array([14.0, -0.6]), pred, 0.6, 1.5)
+    assert gate.moved and gate.pending is None
     # two contradictions that disagree with each other: both held back
-    assert not gate.admit(np.array([20.0, 0.0]), pred, step, 1.5)
-    assert not gate.admit(np.array([5.0, 3.0]), pred, step, 1.5)
+    assert not gate.admit(np.array([20.0, 0.0]), pred, 0.6, 1.5)
+    assert not gate.moved
+    assert not gate.admit(np.array([5.0, 3.0]), pred, 0.6, 1.5)
     # a held-back position is forgotten after keep_frames frames
     for _ in range(LocatedGate.keep_frames + 1):
-        assert gate.admit(None, pred, step, 1.5)
+        assert gate.admit(None, pred, 0.6, 1.5)
     assert gate.pending is None
-    assert not gate.admit(np.array([20.0, 0.0]), pred, step, 1.5)
+    assert not gate.admit(np.array([20.0, 0.0]), pred, 0.6, 1.5)
     # off, or no prediction yet (the reported position restarted): taken
-    assert gate.admit(np.array([50.0, 0.0]), pred, step, 0.0)
-    assert gate.admit(np.array([50.0, 0.0]), None, step, 1.5)
+    assert gate.admit(np.array([50.0, 0.0]), pred, 0.6, 0.0)
+    assert gate.admit(np.array([50.0, 0.0]), None, 0.6, 1.5)

@@ -192,10 +192,16 @@ class MultiSwarmDPSO(DPSO):
         if self.recovery_phase(lost):
             status = Status.RECOVERING
         camera = self._located(fitness, status, pos, ids, scores, compared_xy)
-        if odom_d is not None and not self.gate.admit(
-                None if camera is None else camera[0], self.smoother.predicted(odom_d),
-                odom_d, p.odom_locate_gate_m):
-            camera = None  # a located position the odometry contradicts, not yet confirmed
+        if odom is not None and odom_d is not None:  # the located position against the
+            # odometry's prediction
+            if not self.gate.admit(None if camera is None else camera[0],
+                                   self.smoother.predicted(odom_d), odom.distance,
+                                   p.odom_locate_gate_m):
+                camera = None  # contradicted, not yet confirmed by a second located frame
+            elif self.gate.moved:  # two located frames agree, against the odometry: the
+                self.smoother.reset()  # reported position restarts at the located one,
+                if self.odometry is not None:  # and the heading fit's pairs may belong to
+                    self.odometry.forget()  # the place the robot is not at
         located = camera[0] if camera is not None else None
 
         # attractors: the seeds where the robot will be at the next frame (the tracked step
