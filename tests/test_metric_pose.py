@@ -15,6 +15,7 @@ from client.dataset import Round, read_round
 from client.lab.experiments import SimilarityTable, run
 from client.lab.world import World
 from client.lab.world.geometry import Pose
+from client.runs import frames_to_recover
 from service.api.round_format import DatasetError, camera_from_hfov, dataset_camera
 from service.engine.localizer import Localizer
 from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
@@ -125,6 +126,30 @@ def test_dpso_with_geometry_is_more_accurate(camera_map: RouteMap, small_map: Ro
         err_img.append(b.errors[20:].mean())
         assert (np.array(a.status[20:]) == "tracking").mean() > 0.9
     assert np.mean(err_cam) < 0.85 * np.mean(err_img)
+
+
+def test_a_kidnap_with_odometry_is_recovered_where_frames_are_located(
+        camera_map: RouteMap, sunny2: Round, sunny2_table: SimilarityTable) -> None:
+    """The wheels see an ordinary step at the kidnap; the frames located at the new place
+    contradict the odometry's prediction (service/estimators/odometry.py LocatedGate): they
+    must still take the estimate there, and the frames are located again."""
+    n = len(sunny2)
+    for seed in range(2):
+        r = run(camera_map, sunny2_table, sunny2, "dpso", seed=seed, start=seed * n // 2,
+                kidnap=True, odometry=True)
+        back = frames_to_recover(r)
+        assert back is not None, f"seed {seed}: the kidnap was not recovered"
+        assert r.located is not None and r.located[len(r.frames) // 2 + back:].mean() > 0.5
+
+
+def test_frames_without_odometry_do_not_pass_the_odometry_gate(
+        camera_map: RouteMap, sunny2: Round, sunny2_table: SimilarityTable) -> None:
+    a = run(camera_map, sunny2_table, sunny2, "dpso", {"odom_locate_gate_m": 0.0}, seed=1,
+            length=60)
+    b = run(camera_map, sunny2_table, sunny2, "dpso", {"odom_locate_gate_m": 0.01}, seed=1,
+            length=60)
+    assert a.located is not None and a.located.sum() > 20
+    assert np.array_equal(a.est_xy, b.est_xy) and np.array_equal(a.heading, b.heading)
 
 
 def test_localizer_replays_bit_identically_with_geometry(

@@ -18,7 +18,7 @@ from service.api.models import Odometry, odometry
 from service.api.round_format import DatasetError
 from service.engine.localizer import Localizer
 from service.engine.state_codec import SessionState, decode_session, encode_session
-from service.estimators.odometry import OdomHeading, OdomStep, body_step
+from service.estimators.odometry import LocatedGate, OdomHeading, OdomStep, body_step
 from service.maps.route_map import RouteMap
 
 
@@ -163,3 +163,28 @@ def test_http_frames_carry_odometry_and_bad_odometry_is_refused(server, sunny2: 
         x, y, yaw = sunny2.odometry[4]
         assert frame(4, odom_x=x, odom_y=y, odom_yaw=yaw).json()["seq"] == frames + 1
         c.delete(f"/sessions/{robot}")
+
+
+def test_a_located_position_the_odometry_contradicts_waits_for_a_second_one() -> None:
+    """One located position far from the odometry's prediction moves nothing; the next one
+    within the distance travelled since (heading-free: after a kidnap the odometry's map
+    heading is wrong) is taken, as a move."""
+    gate, pred = LocatedGate(), np.array([10.0, 0.0])
+    assert gate.admit(np.array([10.8, 0.3]), pred, 0.6, 1.5)  # within the gate
+    assert not gate.moved
+    assert not gate.admit(np.array([14.0, 0.0]), pred, 0.6, 1.5)  # a lone contradiction
+    # the second agrees, 0.6 m on in a direction the odometry's heading does not give
+    assert gate.admit(np.array([14.0, -0.6]), pred, 0.6, 1.5)
+    assert gate.moved and gate.pending is None
+    # two contradictions that disagree with each other: both held back
+    assert not gate.admit(np.array([20.0, 0.0]), pred, 0.6, 1.5)
+    assert not gate.moved
+    assert not gate.admit(np.array([5.0, 3.0]), pred, 0.6, 1.5)
+    # a held-back position is forgotten after keep_frames frames
+    for _ in range(LocatedGate.keep_frames + 1):
+        assert gate.admit(None, pred, 0.6, 1.5)
+    assert gate.pending is None
+    assert not gate.admit(np.array([20.0, 0.0]), pred, 0.6, 1.5)
+    # off, or no prediction yet (the reported position restarted): taken
+    assert gate.admit(np.array([50.0, 0.0]), pred, 0.6, 0.0)
+    assert gate.admit(np.array([50.0, 0.0]), None, 0.6, 1.5)

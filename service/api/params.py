@@ -300,6 +300,11 @@ class DPSOParams(CommonParams):
         "do not confirm (not located where the map's geometry runs; weak without it); the "
         "odometry's prediction carries the rest, and such a frame farther than "
         "along_track_gate_m from it is not taken at all (no unit)")
+    odom_locate_gate_m: float = Field(
+        1.5, ge=0, le=1e5, description="with wheel odometry, a located frame farther than "
+        "this from the odometry's prediction of the reported position is held back until "
+        "the next located frame agrees with it within half this distance "
+        "(service/estimators/odometry.py LocatedGate); 0: off (m)")
     metric_pose: bool = Field(
         True, description="while tracking, locate the camera between map images by two-view "
         "geometry against the best-matching map image near the estimate "

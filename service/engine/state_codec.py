@@ -53,12 +53,13 @@ REBUILT: dict[str, frozenset[str]] = {
 # Attributes added after states were first stored: a state written before one existed lacks
 # it, and the freshly built object's value (its constructor's start value) is kept. Every
 # other missing attribute is still refused. (Odometry, issue 33: the previous frame's
-# odometry pose and the map heading fitted from odometry, both empty at the start; experience
+# odometry pose and the map heading fitted from odometry, both empty at the start, and the
+# located frames' odometry gate, empty at the start; experience
 # maps, issue 34: the layer choice, so a session stored before maps had experiences matches
 # the map's own images.)
 ADDED: dict[str, frozenset[str]] = {
     "localizer": frozenset({"odom_prev", "choice"}),
-    "estimator": frozenset({"odometry"}),
+    "estimator": frozenset({"odometry", "gate"}),
 }
 
 # classes an object in a state may be rebuilt as (a blob names its classes: never import

@@ -73,6 +73,10 @@ class AlongTrackSmoother:
         self.velocity = self.velocity + alpha * alpha / (2.0 - alpha) * r
         return self.position.copy()
 
+    def predicted(self, motion: np.ndarray) -> np.ndarray | None:
+        """Where the filter's position moves by ``motion`` (m); None before it has one."""
+        return None if self.position is None else self.position + motion
+
     def _restart(self, z: np.ndarray, velocity: np.ndarray | None) -> np.ndarray:
         self.position = z.copy()
         self.velocity = np.zeros(2) if velocity is None else np.array(velocity, float)

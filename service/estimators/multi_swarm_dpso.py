@@ -74,7 +74,7 @@ from service.estimators.base import Hypothesis, Status, StepResult, weighted_cov
 from service.estimators.fitness import FrameFitness, MapIndex
 from service.estimators.located_noise import LocatedNoise
 from service.estimators.lost_detection import DistinctnessMonitor
-from service.estimators.odometry import OdomStep
+from service.estimators.odometry import LocatedGate, OdomStep
 from service.estimators.paper_dpso import DPSO
 
 if TYPE_CHECKING:
@@ -118,6 +118,7 @@ class MultiSwarmDPSO(DPSO):
         self.smoother = AlongTrackSmoother()  # the reported position (tracked frames)
         self.unverified = 0  # tracked frames in a row the geometry could not locate
         self.noise = LocatedNoise()  # the located positions' noise: their radius
+        self.gate = LocatedGate()  # located frames against the odometry's prediction
         self._reset_coasting()
 
     def _initialize(self) -> None:
@@ -128,6 +129,7 @@ class MultiSwarmDPSO(DPSO):
         self.smoother.reset()
         self.unverified = 0
         self.noise.reset()
+        self.gate.reset()
         self._reset_coasting()
 
     def _reset_coasting(self) -> None:
@@ -190,6 +192,16 @@ class MultiSwarmDPSO(DPSO):
         if self.recovery_phase(lost):
             status = Status.RECOVERING
         camera = self._located(fitness, status, pos, ids, scores, compared_xy)
+        if odom is not None and odom_d is not None:  # the located position against the
+            # odometry's prediction
+            if not self.gate.admit(None if camera is None else camera[0],
+                                   self.smoother.predicted(odom_d), odom.distance,
+                                   p.odom_locate_gate_m):
+                camera = None  # contradicted, not yet confirmed by a second located frame
+            elif self.gate.moved:  # two located frames agree, against the odometry: the
+                self.smoother.reset()  # reported position restarts at the located one,
+                if self.odometry is not None:  # and the heading fit's pairs may belong to
+                    self.odometry.forget()  # the place the robot is not at
         located = camera[0] if camera is not None else None
 
         # attractors: the seeds where the robot will be at the next frame (the tracked step

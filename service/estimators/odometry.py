@@ -181,3 +181,47 @@ class OdomHeading:
         n_eff = 1.0 / float(w @ w)
         self.offset = theta
         self.offset_sigma = max(resid / (span * math.sqrt(n_eff)), math.radians(0.5))
+
+
+class LocatedGate:
+    """Whether a frame the geometry located is taken while the odometry carries the
+    estimate: a located position farther than ``gate_m`` from where the odometry predicts the
+    robot is held back, unless the previous one held back (at most ``keep_frames`` frames
+    old) lies within the odometry's distance travelled since plus half the gate (distance
+    only: after a kidnap the odometry's map heading is wrong). One wrong match (an
+    unmatchable stretch's look-alike image) then moves nothing; images that keep saying
+    another place (the odometry's drift, a kidnap) are taken at the second frame, and then
+    in full (``moved``: the reported position restarts there, the heading fit forgets)."""
+
+    keep_frames = 5
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.pending: np.ndarray | None = None  # the last located position held back, m
+        self.pending_age = 0  # frames since
+        self.pending_travel = 0.0  # odometry distance travelled since, m
+        self.moved = False  # this frame's located position was taken as a move
+
+    def admit(self, located: np.ndarray | None, predicted: np.ndarray | None,
+              travel: float, gate_m: float) -> bool:
+        """Whether ``located`` (None: the frame was not located) is taken, given the
+        odometry's prediction ``predicted`` (None: none) and this frame's odometry distance
+        ``travel`` (m); call once per frame with odometry."""
+        self.moved = False
+        if self.pending is not None:
+            self.pending_age += 1
+            self.pending_travel += travel
+            if self.pending_age > self.keep_frames:
+                self.reset()
+        if located is None or predicted is None or gate_m <= 0 or \
+                float(np.linalg.norm(located - predicted)) <= gate_m:
+            return True
+        if self.pending is not None and float(np.linalg.norm(located - self.pending)) \
+                <= self.pending_travel + 0.5 * gate_m:
+            self.reset()
+            self.moved = True
+            return True
+        self.pending, self.pending_age, self.pending_travel = np.array(located, float), 0, 0.0
+        return False
