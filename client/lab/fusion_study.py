@@ -91,8 +91,10 @@ def normalisers(t: Tables, kind: str) -> dict[str, float]:
 
 
 def fuse(t: Tables, rnd: str, rule: str) -> np.ndarray:
-    """The fused (q, n) table of one rule: ``rootsift``, ``xfeat``, or ``COMBINE/NORM`` with
-    COMBINE in max, sum, geo and NORM in chance, typical, span."""
+    """The fused (q, n) table of one rule: ``rootsift``, ``xfeat``, ``COMBINE/NORM`` with
+    COMBINE in max, sum, geo and NORM in chance, typical, span, or ``max/affine`` and
+    ``mean/affine``: RootSIFT's score and XFeat's mapped affinely onto RootSIFT's scale
+    (chance level to chance level, typical to typical), the larger or the mean."""
     r, x = t.scores["clahe-rootsift"][rnd], t.scores["xfeat"][rnd]
     if rule == "rootsift":
         return r
@@ -100,6 +102,12 @@ def fuse(t: Tables, rnd: str, rule: str) -> np.ndarray:
         return x
     combine, norm = rule.split("/")
     nr, nx = normalisers(t, "clahe-rootsift"), normalisers(t, "xfeat")
+    if norm == "affine":  # XFeat mapped onto RootSIFT's scale: chance -> chance, typical ->
+        cr, cx = nr["chance_mean"], nx["chance_mean"]  # typical; RootSIFT as it is
+        x2 = cr + (x - cx) * (nr["typical"] - cr) / (nx["typical"] - cx)
+        both = np.stack([r, x2])
+        out = both.mean(axis=0) if combine == "mean" else both.max(axis=0)
+        return np.maximum(out, 0.0)
     if norm == "span":
         a = np.maximum(r - nr["chance_mean"], 0) / (nr["typical"] - nr["chance_mean"])
         b = np.maximum(x - nx["chance_mean"], 0) / (nx["typical"] - nx["chance_mean"])
@@ -119,7 +127,7 @@ def fuse(t: Tables, rnd: str, rule: str) -> np.ndarray:
 
 
 RULES = ("rootsift", "xfeat", *(f"{c}/{n}" for n in ("chance", "typical", "span")
-                                 for c in ("max", "sum", "geo")))
+                                 for c in ("max", "sum", "geo")), "max/affine", "mean/affine")
 
 
 def judge(t: Tables, rnd: str, table: np.ndarray, floor: float = 0.004) -> dict[str, float]:

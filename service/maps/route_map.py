@@ -547,11 +547,9 @@ def build_map(
     m = RouteMap(name, meta, positions, list(image_names), codes, offsets, kps,
                  layers=layer_arr, second=second)
     if dual:
-        def both(i: int, j: int) -> tuple[float, float]:
-            first, second = m.type_similarities(m.image_features(i), [j])
-            return float(first[0]), float(second[0])
-
-        m.meta["fusion"] = fusion_levels(layer_arr, both).as_dict()
+        m.meta["fusion"] = fusion_levels(
+            positions, layer_arr,
+            lambda i, ids: m.type_similarities(m.image_features(i), ids)).as_dict()
     if place_index:
         m.place_index = build_place_index(m, np.random.default_rng(0))
     return m
