@@ -91,8 +91,9 @@ def _read_round(path: Path) -> Round:
 
 
 FeaturesOpt = Annotated[str, typer.Option(
-    help="clahe-rootsift (default: contrast-normalised RootSIFT), sift (the papers') or "
-         "xfeat (learned features that hold at night; ONNX Runtime on the CPU)")]
+    help="clahe-rootsift (default: contrast-normalised RootSIFT), sift (the papers'), "
+         "xfeat (learned features that hold at night; ONNX Runtime on the CPU) or "
+         "clahe-rootsift+xfeat (both per image, their similarities fused)")]
 PruneOpt = Annotated[bool, typer.Option(
     help="the papers' neighbour pruning (drops the features that survive lighting changes)")]
 
@@ -170,7 +171,7 @@ def world_eval(
     for i in range(0, len(qr), every):
         f = extract(qr.load_image(i), m.feature_params)
         n_feat.append(len(f))
-        best = int(np.argmax(m.similarity(f.codes, range(m.n_images))))
+        best = int(np.argmax(m.similarity(f, range(m.n_images))))
         hits.append(np.linalg.norm(m.positions[best] - qr.reference_xy[i]) <= radius)
     pr = m.meta["pruning"]
     typer.echo(f"map {mr.name}: {len(mr)} images, {pr['features_before'] / len(mr):.0f} SIFT "
@@ -695,7 +696,7 @@ def eval_split(
     feats = [extract(rnd.load_image(i), params) for i in odd]
     adjacent = 0
     for k, f in enumerate(feats):
-        best = int(np.argmax(m.similarity(f.codes, range(m.n_images))))
+        best = int(np.argmax(m.similarity(f, range(m.n_images))))
         adjacent += abs(best - (k + 0.5)) <= 0.5 + 1e-9  # even neighbours of odd frame 2k+1
     query = rnd.subset(odd)
     res = run(m, SimilarityTable(m, feats), query, estimator, None, seed=seed)

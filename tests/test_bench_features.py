@@ -87,6 +87,7 @@ def test_cli_prints_the_scenes_the_shares_and_the_ratio(scenes: Path) -> None:
 def test_cli_extract_bench_prints_both_types_and_their_ratio(rounds_dir: Path) -> None:
     out = CliRunner().invoke(app, ["bench", "extract", str(rounds_dir), "--map", "sunny1",
                                    "--query", "sunny1", "--sizes", "320x240,256x192",
+                                   "--features", "clahe-rootsift,xfeat",
                                    "--repeats", "2", "--frames", "8", "--warmup", "12"])
     assert out.exit_code == 0, out.output
     for kind in ("clahe-rootsift", "xfeat"):
@@ -111,6 +112,11 @@ def test_cli_extract_bench_times_an_image_alone_and_refuses_bad_sizes(
     assert out.exit_code == 0, out.output
     assert len(_rows(out.output, "xfeat")) == 1 and _rows(out.output, "xfeat")[0][4] == "n/a"
     assert "extract x" in out.output and "step n/a" in out.output
+    # the map of both types by default, its features counted as RootSIFT's
+    dual = _rows(out.output, "clahe-rootsift+xfeat")
+    assert len(dual) == 1 and dual[0][2] == _rows(out.output, "clahe-rootsift")[0][2]
+    assert float(dual[0][3]) > 0 and "ratio clahe-rootsift+xfeat / clahe-rootsift at " \
+        "160x128: extract x" in out.output
     for sizes in ("640", "20x20", "axb"):
         bad = CliRunner().invoke(app, ["bench", "extract", "--image",
                                        str(sunny1.image_path(0)), "--sizes", sizes])

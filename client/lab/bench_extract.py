@@ -37,13 +37,13 @@ import numpy as np
 from client.dataset import Round, read_round
 from service.engine.localizer import Localizer
 from service.maps.route_map import build_map_from_rounds
-from service.vision.features import Features, SiftParams, extract, named_params
+from service.vision.features import DualParams, Features, SiftParams, extract, named_params
 
 if TYPE_CHECKING:
     from service.vision.features import FeatureParams
 
 SIZES = ((320, 240), (640, 480), (1226, 370))
-KINDS = ("clahe-rootsift", "xfeat")
+KINDS = ("clahe-rootsift", "xfeat", "clahe-rootsift+xfeat")
 
 
 @dataclass(frozen=True)
@@ -152,6 +152,9 @@ def capped_params(kind: str, size: tuple[int, int], n: int) -> FeatureParams:
     """Feature parameters of ``kind`` at ``size`` keeping the ``n`` strongest features, with
     a detector threshold low enough that most frames have that many."""
     params = named_params(kind, *size)
+    if isinstance(params, DualParams):
+        return DualParams(replace(params.sift, n_features=n, contrast_threshold=0.005),
+                          replace(params.xfeat, top_k=n, detection_threshold=0.005))
     if isinstance(params, SiftParams):
         return replace(params, n_features=n, contrast_threshold=0.005)
     return replace(params, top_k=n, detection_threshold=0.005)
@@ -169,13 +172,15 @@ def report(rows: Sequence[ExtractRow], say: Callable[[str], object] = print) -> 
             f"{step} | {r.tracked} | {ratio} |")
     by = {(r.kind, r.size): r for r in rows}
     for size in dict.fromkeys(r.size for r in rows):
-        a, b = by.get(("clahe-rootsift", size)), by.get(("xfeat", size))
-        if a is None or b is None:
-            continue
-        step = "n/a" if a.step_ms is None or b.step_ms is None else \
-            f"x{b.step_ms / a.step_ms:.2f}"
-        say(f"ratio xfeat / clahe-rootsift at {size[0]}x{size[1]}: extract "
-            f"x{b.extract_ms / a.extract_ms:.2f}, step {step}")
+        a = by.get(("clahe-rootsift", size))
+        for kind in KINDS[1:]:
+            b = by.get((kind, size))
+            if a is None or b is None:
+                continue
+            step = "n/a" if a.step_ms is None or b.step_ms is None else \
+                f"x{b.step_ms / a.step_ms:.2f}"
+            say(f"ratio {kind} / clahe-rootsift at {size[0]}x{size[1]}: extract "
+                f"x{b.extract_ms / a.extract_ms:.2f}, step {step}")
 
 
 def report_sweep(rows: Sequence[ExtractRow], counts: Sequence[int],

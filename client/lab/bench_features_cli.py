@@ -10,12 +10,12 @@ from typing import Annotated
 import typer
 
 
-def _kinds(features: str) -> list[str]:
+def _kinds(features: str, known: tuple[str, ...] = ("clahe-rootsift", "xfeat")) -> list[str]:
     kinds = [k.strip() for k in features.split(",") if k.strip()]
-    unknown = [k for k in kinds if k not in ("clahe-rootsift", "xfeat")]
+    unknown = [k for k in kinds if k not in known]
     if unknown or not kinds:
-        raise typer.BadParameter(f"unknown feature type(s) {unknown}: use clahe-rootsift "
-                                 "and/or xfeat")
+        raise typer.BadParameter(f"unknown feature type(s) {unknown}: use "
+                                 f"{', '.join(known)}")
     return kinds
 
 
@@ -156,8 +156,9 @@ def register(bench_app: typer.Typer) -> None:
                  "first frame), e.g. a KITTI frame")] = None,
         sizes: Annotated[str, typer.Option(help="working sizes WxH, comma-separated")]
         = "320x240,640x480,1226x370",
-        features: Annotated[str, typer.Option(help="feature types")]
-        = "clahe-rootsift,xfeat",
+        features: Annotated[str, typer.Option(help="feature types (clahe-rootsift, xfeat, "
+                                                    "clahe-rootsift+xfeat)")]
+        = "clahe-rootsift,xfeat,clahe-rootsift+xfeat",
         repeats: Annotated[int, typer.Option(min=1, help="extractions timed per size")] = 15,
         frames: Annotated[int, typer.Option(min=1, help="frames stepped after the warm-up")]
         = 60,
@@ -176,7 +177,13 @@ def register(bench_app: typer.Typer) -> None:
         feature type at each size, the localizer step (median ms while tracking) on a map of
         that type beside it, and the ratio XFeat / RootSIFT, measured in one run."""
         from client.dataset import DatasetError, imread_gray
-        from client.lab.bench_extract import bench_extract, report, report_sweep, split_rounds
+        from client.lab.bench_extract import (
+            KINDS,
+            bench_extract,
+            report,
+            report_sweep,
+            split_rounds,
+        )
 
         wh = _sizes(sizes, "--sizes")
         try:
@@ -198,13 +205,13 @@ def register(bench_app: typer.Typer) -> None:
         typer.echo(f"extraction timed on {path} resized to each size; step: "
                    + (f"{dataset} map {map_round}, query {query}" if rounds else "not measured"))
         if not skip_sizes:
-            rows = bench_extract(img, wh, _kinds(features), repeats, rounds, frames, warmup,
-                                 seed)
+            rows = bench_extract(img, wh, _kinds(features, KINDS), repeats, rounds, frames,
+                                 warmup, seed)
             report(rows, typer.echo)
         if caps:
             size = _sizes(sweep_size, "--sweep-size")[0]
             typer.echo(f"sweep at {size[0]}x{size[1]}: features per frame capped at {caps} "
                        "(map and frames); features/frame counted on the timed image")
-            swept = bench_extract(img, [size], _kinds(features), repeats, rounds, frames,
-                                  warmup, seed, caps)
+            swept = bench_extract(img, [size], _kinds(features, KINDS), repeats, rounds,
+                                  frames, warmup, seed, caps)
             report_sweep(swept, caps, typer.echo)

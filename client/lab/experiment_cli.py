@@ -125,8 +125,9 @@ def experiment(
     kidnap: Annotated[bool, typer.Option(help="also run the kidnapping experiment")] = True,
     seed: int = 0,
     features: Annotated[str, typer.Option(
-        help="feature type of the map for our estimators: clahe-rootsift or xfeat (the "
-             "papers' variants always use the papers' SIFT)")] = "clahe-rootsift",
+        help="feature type of the map for our estimators: clahe-rootsift, xfeat or "
+             "clahe-rootsift+xfeat (the papers' variants always use the papers' SIFT)")]
+    = "clahe-rootsift",
 ) -> None:
     """Every estimator's error (mean, median, within 5 m), comparisons, share of frames in
     recovery, accuracy_m calibration (tracked frames within it), honesty (frames with error

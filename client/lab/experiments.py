@@ -40,7 +40,7 @@ class SimilarityTable:
         row = self.table[q]
         missing = ids[np.isnan(row[ids])]
         if len(missing):
-            row[missing] = self.map.similarity(self.queries[q].codes, missing)
+            row[missing] = self.map.similarity(self.queries[q], missing)
         return row[ids]
 
 

@@ -315,9 +315,9 @@ class MapDetail(MapSummary):
 
 
 JobState = Literal["queued", "running", "done", "failed"]
-FeatureTypeName = Literal["clahe-rootsift", "sift", "xfeat"]
-"""A map's feature type: CLAHE + RootSIFT (the default), the papers' SIFT, or XFeat (learned,
-holds at night)."""
+FeatureTypeName = Literal["clahe-rootsift", "sift", "xfeat", "clahe-rootsift+xfeat"]
+"""A map's feature type: CLAHE + RootSIFT (the default), the papers' SIFT, XFeat (learned,
+holds at night), or CLAHE + RootSIFT and XFeat both, their similarities fused."""
 
 
 class JobInfo(BaseModel):

@@ -161,7 +161,11 @@ class Learner:
     def observe(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
                 features: Features, est: Estimate) -> None:
         """One estimate of a learning session: collect the frame if it passes the gates,
-        hand the collection to the writer when it is full (no map write here)."""
+        hand the collection to the writer when it is full (no map write here). A map of
+        two feature types learns nothing (sessions on it cannot ask to learn; this one's map
+        was replaced by such a map meanwhile)."""
+        if m.second is not None:
+            return
         with self._lock:
             t = self._trails.get(robot_id)
             if t is None or t.map_name != m.name:

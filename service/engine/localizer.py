@@ -104,11 +104,11 @@ class Localizer:
         # the similarity keeps the frame's matches for the geometry (no second matching)
         kept = FramePairs(GeometryParams().delta) if self.map.geometry is not None else None
         if not learned:
-            res = self.estimator.step(lambda ids: self.map.similarity(codes, ids, kept), t,
+            res = self.estimator.step(lambda ids: self.map.similarity(features, ids, kept), t,
                                       self.locator(features, kept), motion)
             comparisons = res.comparisons
         else:  # one layer per particle, then the layer probes (service/maps/experiences.py)
-            similarity = ComparisonCache(lambda ids: self.map.similarity(codes, ids, kept))
+            similarity = ComparisonCache(lambda ids: self.map.similarity(features, ids, kept))
             res = self.estimator.step(similarity, t, self.locator(features, kept), motion,
                                       nearest=self.choice.nearest(self.map, self._at()))
             if not res.lost:

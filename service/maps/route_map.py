@@ -35,7 +35,7 @@ import math
 import os
 import struct
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol
@@ -47,12 +47,15 @@ from service.api.geo import LocalFrame
 from service.api.models import COORD_LIMIT_M
 from service.vision.features import (
     DEFAULT_DELTA,
+    DUAL,
+    DualParams,
     Features,
     SiftParams,
     feature_params,
     match_batch,
     unit_descriptors,
 )
+from service.vision.fusion import Fusion, fusion_levels
 from service.vision.map_geometry import FramePairs, MapGeometry
 from service.vision.matcher import PreparedSet, match_batch_u8, match_batch_u8_pairs, prepare
 from service.vision.metric_pose import Camera, match_pairs
@@ -84,19 +87,31 @@ _DTYPES_V3: dict[str, np.dtype] = {
     "codes": np.dtype(np.uint8), "keypoints": np.dtype("<f4"),
     "image_digests": np.dtype(np.uint8)}
 _OPTIONAL = ("place_words", "place_mean", "place_projection", "place_descriptors")
-_LAZY = ("codes", "keypoints")  # checked per image on first use with verify="lazy"
+_LAZY = ("codes", "keypoints", "codes2", "keypoints2")  # checked per image on first use
+#                                                        with verify="lazy"
 _DIGEST = 8  # bytes of each BLAKE2b image digest (codes, then keypoints)
 # version 4: version 3 with learned (XFeat) features: int8 codes of 64 dimensions and the
-# model's digest in the metadata. RootSIFT maps are still written as version 3, which older
-# services read.
-FORMAT_VERSION = 4
-READABLE_VERSIONS = (2, 3, 4)
-_CODE_DTYPES = {"sift": np.dtype(np.uint8), "xfeat": np.dtype(np.int8)}
-_CODE_DIMS = {"sift": 128, "xfeat": XFEAT_DIMS}
+# model's digest in the metadata.
+# version 5: version 3 (RootSIFT) with a second feature set per image, XFeat: its own offsets,
+# int8 codes, keypoints and per-image digests (the ``_SECOND`` arrays, the codes and
+# keypoints checked lazily like the first), and the fusion's levels in the metadata
+# (``fusion``, service/vision/fusion.py). Single-type maps are still written as version 3
+# (RootSIFT) or 4 (XFeat), which older services read.
+FORMAT_VERSION = 5
+READABLE_VERSIONS = (2, 3, 4, 5)
+_CODE_DTYPES = {"sift": np.dtype(np.uint8), "xfeat": np.dtype(np.int8), DUAL: np.dtype(np.uint8)}
+_CODE_DIMS = {"sift": 128, "xfeat": XFEAT_DIMS, DUAL: 128}
+_VERSIONS = {"sift": 3, "xfeat": 4, DUAL: 5}
+_SECOND: dict[str, np.dtype] = {
+    "offsets2": np.dtype("<i8"), "codes2": np.dtype(np.int8), "keypoints2": np.dtype("<f4"),
+    "image_digests2": np.dtype(np.uint8)}
+REBUILD_DUAL = "rebuild it with 'swarmloc map build --features clahe-rootsift+xfeat'"
 
 
 def _version_of(kind: str) -> int:
-    return FORMAT_VERSION if kind == "xfeat" else 3
+    return _VERSIONS[kind]
+
+
 Verify = bool | Literal["lazy"]
 SUFFIX = ".swmap"
 _ALIGN = 64
@@ -136,6 +151,21 @@ def prune(features: list[Features], delta: float = DEFAULT_DELTA
 
 
 @dataclass
+class SecondSet:
+    """A map's second feature set (XFeat beside RootSIFT, format 5): int8 codes (total, 64),
+    memory-mapped, keypoints (total, 2), row offsets (n + 1,) of each image and, when the map
+    was opened with verify="lazy", the (n, 16) digests of each image's codes and keypoints."""
+
+    codes: np.ndarray
+    keypoints: np.ndarray
+    offsets: np.ndarray
+    lazy_digests: np.ndarray | None = None
+
+    def rows(self, image_id: int) -> slice:
+        return slice(int(self.offsets[image_id]), int(self.offsets[image_id + 1]))
+
+
+@dataclass
 class RouteMap:
     """A loaded map: image positions, descriptor codes (memory-mapped) and KD-trees.
 
@@ -157,6 +187,7 @@ class RouteMap:
     # (n, 16) BLAKE2b-64 digests of each image's codes and keypoints, checked on first use
     # of an image when the map was opened with verify="lazy" (None: nothing left to check)
     lazy_digests: np.ndarray | None = None
+    second: SecondSet | None = None  # XFeat beside RootSIFT (feature type sift+xfeat)
 
     def __post_init__(self) -> None:
         n = len(self.positions)
@@ -169,6 +200,9 @@ class RouteMap:
         self._sets: list[np.ndarray | None] = [None] * n
         self._prepared: list[PreparedSet | None] = [None] * n
         self._checked = np.zeros(n if self.lazy_digests is not None else 0, bool)
+        self._sets2: list[np.ndarray | None] = [None] * (n if self.second is not None else 0)
+        self._checked2 = np.zeros(n if self.second is not None and
+                                  self.second.lazy_digests is not None else 0, bool)
 
     def _check_image(self, image_id: int) -> None:
         """With lazy verification: the image's codes and keypoints against their digests,
@@ -181,6 +215,19 @@ class RouteMap:
             raise MapError(f"{self.path}: image {image_id} ('{self.image_names[image_id]}') "
                            "does not match its digest, the file is corrupted; rebuild the map")
         self._checked[image_id] = True
+
+    def _check_second(self, image_id: int) -> None:
+        """``_check_image`` for the second feature set."""
+        s = self.second
+        assert s is not None
+        if s.lazy_digests is None or self._checked2[image_id]:
+            return
+        rows = s.rows(image_id)
+        if _image_digest(s.codes[rows], s.keypoints[rows]) != bytes(s.lazy_digests[image_id]):
+            raise MapError(f"{self.path}: the XFeat features of image {image_id} "
+                           f"('{self.image_names[image_id]}') do not match their digest, the "
+                           f"file is corrupted; {REBUILD_DUAL}")
+        self._checked2[image_id] = True
 
     @property
     def n_layers(self) -> int:
@@ -198,6 +245,19 @@ class RouteMap:
     def feature_params(self) -> FeatureParams:
         """The map's feature type and its settings (every frame is extracted with them)."""
         return feature_params(self.meta["feature"])
+
+    @property
+    def first_params(self) -> SiftParams | XFeatParams:
+        """The feature type of the map's codes and keypoints (RootSIFT for a map of two: the
+        two-view geometry and the place index use it)."""
+        p = self.feature_params
+        return p.sift if isinstance(p, DualParams) else p
+
+    @cached_property
+    def fusion(self) -> Fusion | None:
+        """How a map of two feature types fuses their similarities (metadata ``fusion``);
+        None for a map of one."""
+        return Fusion.from_dict(self.meta["fusion"]) if self.second is not None else None
 
     @cached_property
     def frame(self) -> LocalFrame | None:
@@ -243,6 +303,30 @@ class RouteMap:
             self._sets[image_id] = cached
         return cached
 
+    def second_features_of(self, image_id: int) -> np.ndarray:
+        """Unit descriptors of one map image's second feature set (XFeat; kept after the first
+        use)."""
+        s = self.second
+        if s is None:
+            raise ValueError(f"map '{self.name}' has one feature type")
+        cached = self._sets2[image_id]
+        if cached is None:
+            self._check_second(image_id)
+            cached = unit_descriptors(s.codes[s.rows(image_id)])
+            self._sets2[image_id] = cached
+        return cached
+
+    def image_features(self, image_id: int) -> Features:
+        """One map image as a frame's ``Features`` (both sets on a map of two types)."""
+        second = None
+        if self.second is not None:
+            self._check_second(image_id)
+            rows = self.second.rows(image_id)
+            second = Features(np.asarray(self.second.keypoints[rows]),
+                              np.asarray(self.second.codes[rows]))
+        return Features(np.asarray(self.keypoints_of(image_id)),
+                        np.asarray(self.codes_of(image_id)), second)
+
     def nearest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest map image id and its distance for each of many positions, in one call."""
         dist, idx = self._tree.query(np.asarray(positions, float).reshape(-1, 2))
@@ -281,15 +365,44 @@ class RouteMap:
             self._prepared[image_id] = cached
         return cached
 
-    def similarity(self, frame_codes: np.ndarray, image_ids: Iterable[int],
+    def similarity(self, frame: Features | np.ndarray, image_ids: Iterable[int],
                    keep: FramePairs | None = None) -> np.ndarray:
-        """m(frame, map image) for each id on the frame's descriptor codes
-        (``Features.codes``): the exact uint8 matcher (service/vision/matcher.py) for
-        RootSIFT, mutual nearest neighbours for XFeat (service/vision/xfeat.py). ``keep``
-        (RootSIFT): the same pass also keeps the frame's matches at ``keep.delta`` with each
-        image, for the two-view geometry (XFeat: its matches, whatever the delta)."""
-        p = self.feature_params
+        """m(frame, map image) for each id on the frame's ``Features`` (or, on a map of one
+        feature type, its descriptor codes ``Features.codes``): the exact uint8 matcher
+        (service/vision/matcher.py) for RootSIFT, mutual nearest neighbours for XFeat
+        (service/vision/xfeat.py), both fused (service/vision/fusion.py) on a map of two.
+        ``keep`` (RootSIFT): the same pass also keeps the frame's matches at ``keep.delta``
+        with each image, for the two-view geometry (XFeat: its matches, whatever the delta;
+        a map of two: RootSIFT's)."""
         ids = [int(i) for i in image_ids]
+        if self.second is None:
+            codes = frame.codes if isinstance(frame, Features) else frame
+            return self._first_similarity(codes, ids, keep)
+        assert self.fusion is not None
+        return self.fusion.fuse(*self.type_similarities(frame, ids, keep))
+
+    def type_similarities(self, frame: Features | np.ndarray, image_ids: Iterable[int],
+                          keep: FramePairs | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """On a map of two feature types: each type's m(frame, map image) for each id,
+        RootSIFT's (which ``keep`` keeps the matches of) and XFeat's."""
+        p = self.feature_params
+        second = frame.second if isinstance(frame, Features) else None
+        if not isinstance(p, DualParams) or second is None:
+            raise ValueError(f"map '{self.name}' holds two feature types: compare a frame's "
+                             "Features from extract(image, map.feature_params), not its codes"
+                             if isinstance(p, DualParams) else
+                             f"map '{self.name}' holds one feature type")
+        assert isinstance(frame, Features)
+        ids = [int(i) for i in image_ids]
+        first = self._first_similarity(frame.codes, ids, keep)
+        other = mnn_scores(unit_descriptors(second.codes),
+                           [self.second_features_of(i) for i in ids], p.xfeat.min_cos,
+                           p.xfeat.max_ratio)
+        return first, other
+
+    def _first_similarity(self, frame_codes: np.ndarray, ids: list[int],
+                          keep: FramePairs | None) -> np.ndarray:
+        p = self.first_params
         if isinstance(p, XFeatParams):
             unit = unit_descriptors(frame_codes)
             feats = [self.features_of(i) for i in ids]
@@ -309,8 +422,8 @@ class RouteMap:
               ) -> tuple[np.ndarray, np.ndarray]:
         """Matched feature indices (in ``codes``, in the image) for the two-view geometry:
         the symmetric ratio test at ``delta`` (RootSIFT) or the map's mutual nearest
-        neighbours (XFeat)."""
-        p = self.feature_params
+        neighbours (XFeat). A map of two feature types: RootSIFT's."""
+        p = self.first_params
         if isinstance(p, XFeatParams):
             return mnn_pairs(unit_descriptors(codes), self.features_of(image_id), p.min_cos,
                              p.max_ratio)
@@ -390,6 +503,10 @@ def build_map(
                  else np.asarray(layers, np.int64))
     if len(layer_arr) != len(feats) or layer_arr.min() < 0:
         raise MapError("layers must give a non-negative traversal index per image")
+    dual = isinstance(params, DualParams)
+    if dual and any(f.second is None for f in feats):
+        raise MapError("a map of two feature types needs both per image (extract each with "
+                       "the map's DualParams)")
     kept = feats
     stats = PruneStats(sum(len(f) for f in feats), sum(len(f) for f in feats))
     if prune_features:
@@ -398,18 +515,19 @@ def build_map(
         for k in np.unique(layer_arr):
             idx = np.flatnonzero(layer_arr == k)
             part, st = prune([feats[i] for i in idx], delta)
+            if dual:  # each type among its own kind (the second's counts are not reported)
+                part2, _ = prune([feats[i].second for i in idx], delta)  # type: ignore[misc]
+                part = [replace(f, second=g) for f, g in zip(part, part2, strict=True)]
             for i, f in zip(idx, part, strict=True):
                 kept[i] = f
             before, after = before + st.features_before, after + st.features_after
         stats = PruneStats(before, after)
-    counts = np.array([len(f) for f in kept], np.int64)
-    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    kind = "xfeat" if isinstance(params, XFeatParams) else "sift"
-    dtype = _CODE_DTYPES[kind]
-    codes = (np.concatenate([f.codes for f in kept]) if offsets[-1]
-             else np.zeros((0, _CODE_DIMS[kind]), dtype)).astype(dtype)
-    kps = (np.concatenate([f.keypoints for f in kept]) if offsets[-1]
-           else np.zeros((0, 2), np.float32)).astype(np.float32)
+    kind = DUAL if dual else "xfeat" if isinstance(params, XFeatParams) else "sift"
+    codes, kps, offsets = _stack(kept, _CODE_DTYPES[kind], _CODE_DIMS[kind])
+    second = None
+    if dual:
+        second = SecondSet(*_stack([f.second for f in kept],  # type: ignore[misc]
+                                   _SECOND["codes2"], XFEAT_DIMS))
     meta = {
         "format_version": _version_of(kind),
         "feature": params.as_dict(),
@@ -427,10 +545,26 @@ def build_map(
         "camera": camera.as_dict() if camera is not None else None,
     }
     m = RouteMap(name, meta, positions, list(image_names), codes, offsets, kps,
-                 layers=layer_arr)
+                 layers=layer_arr, second=second)
+    if dual:
+        m.meta["fusion"] = fusion_levels(
+            positions, layer_arr,
+            lambda i, ids: m.type_similarities(m.image_features(i), ids)).as_dict()
     if place_index:
         m.place_index = build_place_index(m, np.random.default_rng(0))
     return m
+
+
+def _stack(feats: Sequence[Features], dtype: np.dtype, dims: int
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(codes, keypoints, offsets) of the images' features, one after the other."""
+    counts = np.array([len(f) for f in feats], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    codes = (np.concatenate([f.codes for f in feats]) if offsets[-1]
+             else np.zeros((0, dims), dtype)).astype(dtype)
+    kps = (np.concatenate([f.keypoints for f in feats]) if offsets[-1]
+           else np.zeros((0, 2), np.float32)).astype(np.float32)
+    return codes, kps, offsets
 
 
 class RoundLike(Protocol):
@@ -559,34 +693,63 @@ def save_map(m: RouteMap, path: str | Path) -> Path:
             lo, hi = int(m.offsets[a]), int(m.offsets[b])
             yield m.codes[lo:hi], m.keypoints[lo:hi], counts[a:b]
 
+    second = None
+    if m.second is not None:
+        s2 = m.second
+        counts2 = np.diff(s2.offsets)
+
+        def chunks2() -> Iterator[Chunk]:
+            for a in range(0, n, 512):
+                b = min(n, a + 512)
+                rows = slice(int(s2.offsets[a]), int(s2.offsets[b]))
+                yield s2.codes[rows], s2.keypoints[rows], counts2[a:b]
+
+        second = (counts2, chunks2())
     assert m.layers is not None
     out = write_map(path, m.name, m.meta, m.positions, m.image_names, m.layers, counts,
-                    chunks(), m.place_index)
+                    chunks(), m.place_index, second)
     m.path = out
     return out
 
 
 def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
               image_names: list[str], layers: np.ndarray, counts: np.ndarray,
-              chunks: Iterable[Chunk], place_index: PlaceIndex | None = None) -> Path:
+              chunks: Iterable[Chunk], place_index: PlaceIndex | None = None,
+              second: tuple[np.ndarray, Iterable[Chunk]] | None = None) -> Path:
     """Stream a map into ``path`` atomically (temp + fsync + rename), chunk by chunk of whole
     images, so a map of any size is written without holding its descriptors in memory.
 
     ``counts``: features per image (the chunks' counts, in order, must repeat them).
+    ``second``: (counts, chunks) of the second feature set, which a map of two feature types
+    (metadata ``feature`` type sift+xfeat, format 5) needs and no other map has.
     """
     path = Path(path)
     if path.suffix != SUFFIX:
         path = path.with_name(path.name + SUFFIX)
-    path.parent.mkdir(parents=True, exist_ok=True)
     counts = np.asarray(counts, np.int64)
     n, total = len(counts), int(counts.sum())
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     small = _small_arrays(positions, offsets, list(image_names), layers, place_index)
     kind = str(meta.get("feature", {}).get("type", "sift"))
+    if kind not in _VERSIONS:
+        raise MapError(f"unknown feature type '{kind}'")
+    if (second is not None) != (kind == DUAL):
+        raise MapError(f"a map of feature type '{kind}' "
+                       f"{'needs' if kind == DUAL else 'has no'} a second feature set")
     code_dtype, dims = _CODE_DTYPES[kind], _CODE_DIMS[kind]
     dtypes = {**_DTYPES_V3, "codes": code_dtype}
     shapes = {**{k: v.shape for k, v in small.items()}, "codes": (total, dims),
               "keypoints": (total, 2), "image_digests": (n, 2 * _DIGEST)}
+    counts2 = np.zeros(0, np.int64)
+    if second is not None:
+        counts2 = np.asarray(second[0], np.int64)
+        if len(counts2) != n:
+            raise MapError(f"the second feature set counts {len(counts2)} images, expected {n}")
+        small["offsets2"] = np.concatenate([[0], np.cumsum(counts2)]).astype("<i8")
+        total2 = int(counts2.sum())
+        dtypes.update(_SECOND)
+        shapes.update({"offsets2": (n + 1,), "codes2": (total2, XFEAT_DIMS),
+                       "keypoints2": (total2, 2), "image_digests2": (n, 2 * _DIGEST)})
     layout: dict[str, dict[str, Any]] = {}
     offset = 0
     for key, dtype in dtypes.items():
@@ -603,6 +766,7 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
     head_len = len(json.dumps(header).encode())
     start = len(MAGIC) + 8 + head_len
     data_start = start + _pad(start)
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         with tmp.open("wb") as fh:
@@ -616,33 +780,10 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
             for key, arr in small.items():
                 put(key, 0, arr)
                 layout[key]["sha256"] = _sha256(arr)
-            h_codes, h_kps = hashlib.sha256(), hashlib.sha256()
-            digests = np.zeros((n, 2 * _DIGEST), np.uint8)
-            img = row = 0
-            for codes, kps, cnt in chunks:
-                codes = np.ascontiguousarray(codes, code_dtype)
-                kps = np.ascontiguousarray(kps, "<f4")
-                cnt = np.asarray(cnt, np.int64)
-                if not np.array_equal(cnt, counts[img: img + len(cnt)]) or \
-                        len(codes) != int(cnt.sum()) or len(kps) != len(codes):
-                    raise MapError("map chunks do not add up to the images' feature counts")
-                put("codes", row * dims, codes)
-                put("keypoints", row * 8, kps)
-                h_codes.update(_raw(codes))
-                h_kps.update(_raw(kps))
-                local = np.concatenate([[0], np.cumsum(cnt)])
-                for j in range(len(cnt)):
-                    a, b = int(local[j]), int(local[j + 1])
-                    digests[img + j] = np.frombuffer(_image_digest(codes[a:b], kps[a:b]),
-                                                     np.uint8)
-                img += len(cnt)
-                row += len(codes)
-            if img != n:
-                raise MapError(f"map chunks hold {img} images, expected {n}")
-            put("image_digests", 0, digests)
-            layout["codes"]["sha256"] = h_codes.hexdigest()
-            layout["keypoints"]["sha256"] = h_kps.hexdigest()
-            layout["image_digests"]["sha256"] = _sha256(digests)
+            _stream_set(put, layout, chunks, counts, code_dtype, dims, "")
+            if second is not None:
+                _stream_set(put, layout, second[1], counts2, _SECOND["codes2"], XFEAT_DIMS,
+                            "2")
             header["checksum"] = hashlib.sha256(_canonical(header)).hexdigest()
             head = json.dumps(header).encode()
             assert len(head) == head_len  # digests are fixed-length hex: same header size
@@ -659,6 +800,40 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
     finally:
         os.close(dir_fd)
     return path
+
+
+def _stream_set(put: Callable[[str, int, np.ndarray], None], layout: dict[str, dict[str, Any]],
+                chunks: Iterable[Chunk], counts: np.ndarray, code_dtype: np.dtype, dims: int,
+                suffix: str) -> None:
+    """Write one feature set's chunks (arrays ``codes``, ``keypoints`` and ``image_digests``
+    with ``suffix``) and record their SHA-256 in ``layout``."""
+    n = len(counts)
+    h_codes, h_kps = hashlib.sha256(), hashlib.sha256()
+    digests = np.zeros((n, 2 * _DIGEST), np.uint8)
+    img = row = 0
+    for codes, kps, cnt in chunks:
+        codes = np.ascontiguousarray(codes, code_dtype)
+        kps = np.ascontiguousarray(kps, "<f4")
+        cnt = np.asarray(cnt, np.int64)
+        if not np.array_equal(cnt, counts[img: img + len(cnt)]) or \
+                len(codes) != int(cnt.sum()) or len(kps) != len(codes):
+            raise MapError("map chunks do not add up to the images' feature counts")
+        put("codes" + suffix, row * dims * code_dtype.itemsize, codes)
+        put("keypoints" + suffix, row * 8, kps)
+        h_codes.update(_raw(codes))
+        h_kps.update(_raw(kps))
+        local = np.concatenate([[0], np.cumsum(cnt)])
+        for j in range(len(cnt)):
+            a, b = int(local[j]), int(local[j + 1])
+            digests[img + j] = np.frombuffer(_image_digest(codes[a:b], kps[a:b]), np.uint8)
+        img += len(cnt)
+        row += len(codes)
+    if img != n:
+        raise MapError(f"map chunks hold {img} images, expected {n}")
+    put("image_digests" + suffix, 0, digests)
+    layout["codes" + suffix]["sha256"] = h_codes.hexdigest()
+    layout["keypoints" + suffix]["sha256"] = h_kps.hexdigest()
+    layout["image_digests" + suffix]["sha256"] = _sha256(digests)
 
 
 def _read_header(path: Path) -> tuple[dict, int]:
@@ -756,8 +931,9 @@ def _verify_v3(path: Path, header: dict, arrays: dict[str, np.ndarray], lazy: bo
         if lazy and key in _LAZY:
             continue
         if _sha256(arr) != header["arrays"][key].get("sha256"):
+            fix = REBUILD_DUAL if key in _SECOND else "rebuild the map"
             raise MapError(f"{path}: checksum mismatch (array '{key}'), the file is "
-                           "corrupted; rebuild the map")
+                           f"corrupted; {fix}")
 
 
 def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
@@ -783,12 +959,21 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
         if verify:
             _verify_v2(path, header, arrays)
     else:
-        kind = (header.get("feature") or {}).get("type", "sift") if version == 4 else "sift"
+        feature = header.get("feature")
+        kind = (feature.get("type", "sift") if isinstance(feature, dict) and version in (4, 5)
+                else "sift")
         if kind not in _CODE_DTYPES:
             raise MapError(f"{path}: unknown feature type '{kind}' (this swarmloc knows "
                            f"{', '.join(_CODE_DTYPES)}); rebuild it with 'swarmloc map build'")
-        arrays = _open_arrays(path, header, data_start,
-                              {**_DTYPES_V3, "codes": _CODE_DTYPES[kind]}, _OPTIONAL)
+        dtypes = {**_DTYPES_V3, "codes": _CODE_DTYPES[kind]}
+        if version == 5:
+            layout = header.get("arrays")
+            missing = [k for k in _SECOND if not isinstance(layout, dict) or k not in layout]
+            if missing:
+                raise MapError(f"{path}: the map of two feature types lacks its XFeat arrays "
+                               f"({', '.join(missing)}); {REBUILD_DUAL}")
+            dtypes.update(_SECOND)
+        arrays = _open_arrays(path, header, data_start, dtypes, _OPTIONAL)
         _check_no_trailing_bytes(path, header, data_start, arrays)
         if verify:
             _verify_v3(path, header, arrays, lazy=verify == "lazy")
@@ -821,8 +1006,9 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
     if codes.ndim != 2 or codes.shape[1] != dims or kps.shape != (len(codes), 2):
         raise MapError(f"{path}: descriptor codes {codes.shape} / keypoints {kps.shape} do "
                        f"not have the shapes (n, {dims}) / (n, 2)")
+    second = _check_second(path, arrays, n) if version == 5 else None
     place_index = None
-    if version in (3, 4):
+    if version in (3, 4, 5):
         place_index = _check_place_index(path, arrays, n, dims)
         if arrays["image_digests"].shape != (n, 2 * _DIGEST):
             raise MapError(f"{path}: image digests {arrays['image_digests'].shape} do not "
@@ -835,20 +1021,16 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
         fp = feature_params(feature)
     except (TypeError, ValueError) as exc:
         raise MapError(f"{path}: feature parameters are invalid ({exc})") from None
-    if isinstance(fp, SiftParams) != (version != 4):
+    if not isinstance(fp, _PARAMS_OF_VERSION[version]):
         raise MapError(f"{path}: feature type '{feature.get('type')}' does not fit map format "
                        f"version {version}")
-    sizes = ((fp.width, fp.height, fp.clahe_tile, fp.n_features) if isinstance(fp, SiftParams)
-             else (fp.width, fp.height, fp.top_k))
-    if not all(type(v) is int for v in sizes) or not (
-            8 <= fp.width <= 8192 and 8 <= fp.height <= 8192 and min(sizes[2:]) >= 0
-            and (not isinstance(fp, SiftParams) or 1 <= fp.clahe_tile <= 64)):
-        raise MapError(f"{path}: feature parameters are invalid ({feature})")
-    if isinstance(fp, XFeatParams):
-        try:
-            check_map_model(fp)
-        except FeatureModelError as exc:
-            raise MapError(f"{path}: {exc}") from None
+    dual = isinstance(fp, DualParams)
+    for part in (fp.sift, fp.xfeat) if isinstance(fp, DualParams) else (fp,):
+        _check_feature_params(path, part, feature,
+                              "clahe-rootsift+xfeat" if dual else "xfeat")
+    if version == 5 and not isinstance(header.get("fusion"), dict):
+        raise MapError(f"{path}: the map of two feature types lacks its fusion levels "
+                       f"('fusion'); {REBUILD_DUAL}")
     cam = header.get("camera")
     if cam is not None:
         try:
@@ -858,10 +1040,53 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
                            "with a valid --hfov, or without one") from None
     meta = {k: v for k, v in header.items() if k not in ("name",)}
     name = str(header.get("name", path.stem))
-    lazy = (np.asarray(arrays["image_digests"]) if version in (3, 4) and verify == "lazy"
+    lazy = (np.asarray(arrays["image_digests"]) if version in (3, 4, 5) and verify == "lazy"
             else None)
-    return RouteMap(name, meta, positions, names, arrays["codes"], offsets,
-                    arrays["keypoints"], path, layers, place_index, lazy)
+    if second is not None and verify == "lazy":
+        second.lazy_digests = np.asarray(arrays["image_digests2"])
+    m = RouteMap(name, meta, positions, names, arrays["codes"], offsets,
+                 arrays["keypoints"], path, layers, place_index, lazy, second)
+    if m.second is not None:
+        try:
+            m.fusion  # noqa: B018 - parsed now: a bad header fails at load, not on a frame
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MapError(f"{path}: the fusion levels are invalid ({exc}); {REBUILD_DUAL}"
+                           ) from None
+    return m
+
+
+_PARAMS_OF_VERSION: dict[int, type] = {2: SiftParams, 3: SiftParams, 4: XFeatParams,
+                                       5: DualParams}
+
+
+def _check_feature_params(path: Path, fp: SiftParams | XFeatParams, feature: dict,
+                          name: str) -> None:
+    """Sizes within bounds and, for XFeat, this service's model (``name``: the map's feature
+    type name, for the rebuild command)."""
+    sizes = ((fp.width, fp.height, fp.clahe_tile, fp.n_features) if isinstance(fp, SiftParams)
+             else (fp.width, fp.height, fp.top_k))
+    if not all(type(v) is int for v in sizes) or not (
+            8 <= fp.width <= 8192 and 8 <= fp.height <= 8192 and min(sizes[2:]) >= 0
+            and (not isinstance(fp, SiftParams) or 1 <= fp.clahe_tile <= 64)):
+        raise MapError(f"{path}: feature parameters are invalid ({feature})")
+    if isinstance(fp, XFeatParams):
+        try:
+            check_map_model(fp, name)
+        except FeatureModelError as exc:
+            raise MapError(f"{path}: {exc}") from None
+
+
+def _check_second(path: Path, arrays: dict[str, np.ndarray], n: int) -> SecondSet:
+    """The second feature set's arrays fit together and the map's n images."""
+    offsets, codes = np.asarray(arrays["offsets2"]), arrays["codes2"]
+    kps, digests = arrays["keypoints2"], arrays["image_digests2"]
+    if offsets.shape != (n + 1,) or (n and (offsets[0] != 0 or np.any(np.diff(offsets) < 0))) \
+            or offsets[-1] != len(codes) or codes.ndim != 2 or codes.shape[1] != XFEAT_DIMS \
+            or kps.shape != (len(codes), 2) or digests.shape != (n, 2 * _DIGEST):
+        raise MapError(f"{path}: the XFeat arrays do not fit together (offsets "
+                       f"{offsets.shape}, codes {codes.shape}, keypoints {kps.shape}, digests "
+                       f"{digests.shape} for {n} images); {REBUILD_DUAL}")
+    return SecondSet(codes, kps, offsets)
 
 
 def _check_place_index(path: Path, arrays: dict[str, np.ndarray], n: int, dims: int

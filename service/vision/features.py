@@ -24,7 +24,7 @@ padding scores -4 (below any angle) without a masking pass.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import cached_property
 from typing import TYPE_CHECKING, Any, Protocol, get_args
 
@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 
     from service.vision.xfeat import XFeatParams
 
-    FeatureParams: TypeAlias = "SiftParams | XFeatParams"  # a map's feature type
+    FeatureParams: TypeAlias = "SiftParams | XFeatParams | DualParams"  # a map's feature type
 
 DEFAULT_DELTA = 0.6  # ratio threshold delta (journal Sec. 4)
 _PAD_SCORE = -4.0
@@ -71,12 +71,42 @@ class SiftParams:
 
 
 @dataclass(frozen=True)
+class DualParams:
+    """Two feature types per frame and map image (``clahe-rootsift+xfeat``): CLAHE + RootSIFT,
+    the first, which the two-view geometry and the place index use, and XFeat, the second;
+    the map's similarity fuses both (service/maps/fusion.py). One working size for both."""
+
+    sift: SiftParams
+    xfeat: XFeatParams
+
+    def __post_init__(self) -> None:
+        if (self.sift.width, self.sift.height) != (self.xfeat.width, self.xfeat.height):
+            raise ValueError("both feature types of a map need one working size")
+
+    @property
+    def width(self) -> int:
+        return self.sift.width
+
+    @property
+    def height(self) -> int:
+        return self.sift.height
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"type": DUAL, "sift": self.sift.as_dict(), "xfeat": self.xfeat.as_dict()}
+
+
+DUAL = "sift+xfeat"  # the metadata type of a map with both (feature type clahe-rootsift+xfeat)
+
+
+@dataclass(frozen=True)
 class Features:
     """Keypoint positions (N, 2) in working-size pixels and descriptor codes (N, D): uint8
-    (RootSIFT) or int8 (XFeat)."""
+    (RootSIFT) or int8 (XFeat). ``second``: the frame's XFeat features where the map holds
+    two types (``DualParams``; these are then its RootSIFT ones)."""
 
     keypoints: np.ndarray
     codes: np.ndarray
+    second: Features | None = None
 
     def __len__(self) -> int:
         return len(self.codes)
@@ -116,7 +146,8 @@ def to_working_size(image: np.ndarray, params: WorkingSize) -> np.ndarray:
 
 
 def feature_params(d: dict[str, Any]) -> FeatureParams:
-    """The feature parameters a map's metadata ``feature`` describes (``type``: sift|xfeat)."""
+    """The feature parameters a map's metadata ``feature`` describes (``type``: sift, xfeat,
+    or sift+xfeat with each one's parameters under ``sift`` and ``xfeat``)."""
     from service.vision.xfeat import XFeatParams
 
     kind = d.get("type", "sift")
@@ -125,7 +156,14 @@ def feature_params(d: dict[str, Any]) -> FeatureParams:
         return SiftParams(**rest)
     if kind == "xfeat":
         return XFeatParams(**rest)
-    raise ValueError(f"unknown feature type '{kind}' (this swarmloc knows sift and xfeat)")
+    if kind == DUAL:
+        sift, xfeat = feature_params(rest["sift"]), feature_params(rest["xfeat"])
+        if not isinstance(sift, SiftParams) or not isinstance(xfeat, XFeatParams) or \
+                set(rest) != {"sift", "xfeat"}:
+            raise ValueError(f"a {DUAL} map describes its sift and xfeat parameters, got {d}")
+        return DualParams(sift, xfeat)
+    raise ValueError(f"unknown feature type '{kind}' (this swarmloc knows sift, xfeat and "
+                     f"{DUAL})")
 
 
 FEATURE_TYPES: tuple[str, ...] = get_args(FeatureTypeName)  # the CLI's, the API's and the lab's
@@ -133,7 +171,8 @@ FEATURE_TYPES: tuple[str, ...] = get_args(FeatureTypeName)  # the CLI's, the API
 
 def named_params(name: str, width: int = 320, height: int = 240) -> FeatureParams:
     """The feature parameters of a feature type name at a working size: ``clahe-rootsift``
-    (CLAHE + RootSIFT, the default), ``sift`` (the papers') or ``xfeat``."""
+    (CLAHE + RootSIFT, the default), ``sift`` (the papers'), ``xfeat`` or
+    ``clahe-rootsift+xfeat`` (both, fused)."""
     from service.vision.xfeat import XFeatParams
 
     if name == "clahe-rootsift":
@@ -142,14 +181,25 @@ def named_params(name: str, width: int = 320, height: int = 240) -> FeatureParam
         return SiftParams.papers(width, height)
     if name == "xfeat":
         return XFeatParams(width=width, height=height)
+    if name == "clahe-rootsift+xfeat":
+        return DualParams(SiftParams(width=width, height=height),
+                          XFeatParams(width=width, height=height))
     raise ValueError(f"unknown feature type {name!r}; choose one of {list(FEATURE_TYPES)}")
 
 
 def extract(image: np.ndarray, params: FeatureParams | None = None) -> Features:
     """Keypoints and descriptor codes of a frame (resized to the working size): CLAHE +
-    RootSIFT (uint8 codes) or XFeat (int8 codes, service/vision/xfeat.py)."""
+    RootSIFT (uint8 codes), XFeat (int8 codes, service/vision/xfeat.py) or both (the
+    RootSIFT ones with the XFeat ones as ``second``; the frame is resized once)."""
     params = params or SiftParams()
     gray = to_working_size(image, params)
+    if isinstance(params, DualParams):
+        return replace(_extract_gray(gray, params.sift),
+                       second=_extract_gray(gray, params.xfeat))
+    return _extract_gray(gray, params)
+
+
+def _extract_gray(gray: np.ndarray, params: SiftParams | XFeatParams) -> Features:
     if not isinstance(params, SiftParams):
         from service.vision.xfeat import extract_xfeat
 

@@ -180,12 +180,13 @@ def model(path: Path = MODEL_PATH, threads: int = 1) -> XFeatModel:
     return XFeatModel(path, threads)
 
 
-def check_map_model(params: XFeatParams) -> None:
-    """Refuse descriptors of another model: they do not compare with this one's."""
+def check_map_model(params: XFeatParams, features: str = "xfeat") -> None:
+    """Refuse descriptors of another model: they do not compare with this one's
+    (``features``: the map's feature type name, for the rebuild command)."""
     if params.model != MODEL_SHA256:
         raise FeatureModelError(
             f"built with XFeat model {params.model[:12]}, this service has {MODEL_SHA256[:12]}; "
-            "rebuild the map with 'swarmloc map build --features xfeat'")
+            f"rebuild the map with 'swarmloc map build --features {features}'")
 
 
 def extract_xfeat(gray: np.ndarray, params: XFeatParams) -> tuple[np.ndarray, np.ndarray]:

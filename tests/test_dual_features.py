@@ -1,0 +1,246 @@
+"""Maps of two feature types (``clahe-rootsift+xfeat``, format 5): both sets per image saved,
+loaded and verified, the fused similarity, the refusals of a damaged or incomplete file, and
+the name accepted by the CLI and the HTTP API."""
+
+from __future__ import annotations
+
+import json
+import re
+import struct
+from dataclasses import replace
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from client.cli import app
+from client.dataset import Round
+from client.lab.world import World
+from service.api.errors import InvalidParameters
+from service.api.models import SessionConfig
+from service.api.round_format import camera_from_hfov
+from service.engine.localization_service import LocalizationService
+from service.engine.localizer import Localizer
+from service.maps.route_map import (
+    MAGIC,
+    MapError,
+    RouteMap,
+    build_map_from_rounds,
+    load_map,
+    save_map,
+)
+from service.settings import Settings
+from service.vision.features import DualParams, SiftParams, extract, named_params
+from service.vision.xfeat import XFeatParams
+
+DUAL = "clahe-rootsift+xfeat"
+
+
+@pytest.fixture(scope="module")
+def dual_map(tmp_path_factory: pytest.TempPathFactory, small_world: World, sunny1: Round
+             ) -> RouteMap:
+    """Every second image of the small world's sunny round as a map of both types with the
+    camera, saved and reloaded (fully verified)."""
+    cam = small_world.camera
+    rnd = replace(sunny1.subset(range(0, len(sunny1), 2)),
+                  camera=camera_from_hfov(cam.hfov_deg, cam.width, cam.height))
+    m = build_map_from_rounds([rnd], name="dual", params=named_params(DUAL))
+    return load_map(save_map(m, tmp_path_factory.mktemp("dmaps") / "dual"))
+
+
+def _header(path: Path) -> tuple[dict, int, int]:
+    """(header, its length, where the arrays start) of a map file."""
+    raw = path.read_bytes()
+    (n,) = struct.unpack("<Q", raw[len(MAGIC): len(MAGIC) + 8])
+    start = len(MAGIC) + 8 + n
+    return json.loads(raw[len(MAGIC) + 8: start]), n, start + (-start) % 64
+
+
+def _rewrite_header(path: Path, header: dict, length: int) -> None:
+    """The same file with ``header`` (padded with spaces to the old length)."""
+    raw = bytearray(path.read_bytes())
+    head = json.dumps(header).encode()
+    assert len(head) <= length
+    raw[len(MAGIC) + 8: len(MAGIC) + 8 + length] = head + b" " * (length - len(head))
+    path.write_bytes(bytes(raw))
+
+
+def test_a_dual_map_round_trips_both_sets_as_format_5(dual_map: RouteMap,
+                                                      small_map: RouteMap) -> None:
+    p = dual_map.feature_params
+    assert isinstance(p, DualParams) and p == named_params(DUAL)
+    assert dual_map.meta["format_version"] == 5 and small_map.meta["format_version"] == 3
+    assert dual_map.codes.dtype == np.uint8 and dual_map.codes.shape[1] == 128
+    s = dual_map.second
+    assert s is not None and s.codes.dtype == np.int8 and s.codes.shape[1] == 64
+    assert len(s.offsets) == dual_map.n_images + 1 and s.offsets[-1] == len(s.codes)
+    fusion = dual_map.fusion
+    assert fusion is not None and fusion.as_dict() == dual_map.meta["fusion"]
+    assert 0 <= fusion.first_chance < fusion.second_chance < 0.1  # XFeat shares more by chance
+    assert 0.1 < fusion.first_typical < fusion.second_typical < 1  # ... and at one place
+    assert dual_map.place_index is not None and dual_map.geometry is not None
+    assert dual_map.path is not None
+    header, _, _ = _header(dual_map.path)
+    for key in ("codes2", "keypoints2", "offsets2", "image_digests2"):
+        assert re.fullmatch(r"[0-9a-f]{64}", header["arrays"][key]["sha256"]), key
+    lazy = load_map(dual_map.path, verify="lazy")
+    assert lazy.second is not None and lazy.second.lazy_digests is not None
+    img, again = dual_map.image_features(7), lazy.image_features(7)
+    assert img.second is not None and again.second is not None
+    assert np.array_equal(img.second.codes, again.second.codes)
+    ids = range(dual_map.n_images)
+    np.testing.assert_array_equal(dual_map.similarity(img, ids), lazy.similarity(img, ids))
+    first, second = dual_map.type_similarities(img, ids)
+    assert int(np.argmax(first)) == int(np.argmax(second)) == 7
+    mapped = fusion.first_chance + (second - fusion.second_chance) * (
+        (fusion.first_typical - fusion.first_chance)
+        / (fusion.second_typical - fusion.second_chance))
+    np.testing.assert_allclose(dual_map.similarity(img, ids),
+                               np.maximum((first + mapped) / 2, 0))
+    with pytest.raises(ValueError, match=r"two feature types.*Features"):
+        dual_map.similarity(img.codes, ids)  # codes alone cannot be fused
+
+
+def test_a_frame_is_extracted_once_with_both_types(sunny2: Round) -> None:
+    img = sunny2.load_image(12)
+    f = extract(img, named_params(DUAL))
+    one, other = extract(img, SiftParams()), extract(img, XFeatParams())
+    assert f.second is not None and other.second is None
+    assert np.array_equal(f.codes, one.codes) and np.array_equal(f.keypoints, one.keypoints)
+    assert np.array_equal(f.second.codes, other.codes)
+
+
+def test_a_dark_frame_is_placed_by_xfeat_where_rootsift_finds_nothing(dual_map: RouteMap,
+                                                                       sunny2: Round) -> None:
+    rng = np.random.default_rng(0)
+    placed = by_rootsift = 0
+    frames = range(20, len(sunny2) - 20, 15)
+    ids = range(dual_map.n_images)
+    for i in frames:
+        img = sunny2.load_image(i).astype(float) * 0.05 + rng.normal(0, 1.5, (240, 320))
+        f = extract(np.clip(img, 0, 255).astype(np.uint8), dual_map.feature_params)
+        truth = np.asarray(sunny2.xy[i])
+        first, _ = dual_map.type_similarities(f, ids)
+        by_rootsift += bool(first.max() > 0 and np.linalg.norm(
+            dual_map.positions[int(np.argmax(first))] - truth) <= 3.0)
+        best = dual_map.positions[int(np.argmax(dual_map.similarity(f, ids)))]
+        placed += bool(np.linalg.norm(best - truth) <= 3.0)
+    assert by_rootsift <= len(frames) // 2  # RootSIFT sees (almost) nothing in the dark
+    assert placed >= len(frames) - 1
+
+
+def test_dpso_localizes_on_a_dual_map_with_the_geometry(dual_map: RouteMap, sunny2: Round
+                                                        ) -> None:
+    loc = Localizer(dual_map, "dpso", {}, seed=1)
+    errors, located = [], 0
+    for k, i in enumerate(range(0, 60)):
+        est = loc.localize(sunny2.load_image(i), t=float(k))
+        if k >= 20:
+            errors.append(np.hypot(est.x - sunny2.xy[i][0], est.y - sunny2.xy[i][1]))
+            located += est.heading_source == "camera"
+    assert np.median(errors) < 1.5
+    assert located > 0  # the two-view geometry works on the RootSIFT matches
+
+
+def _flip(path: Path, key: str, at: int = 0) -> None:
+    header, _, data = _header(path)
+    raw = bytearray(path.read_bytes())
+    raw[data + int(header["arrays"][key]["offset"]) + at] ^= 0x01
+    path.write_bytes(bytes(raw))
+
+
+def test_a_damaged_xfeat_array_is_refused_naming_the_file_and_the_fix(
+        dual_map: RouteMap, tmp_path: Path) -> None:
+    assert dual_map.path is not None and dual_map.second is not None
+    path = tmp_path / "broken.swmap"
+    path.write_bytes(dual_map.path.read_bytes())
+    image = 3
+    _flip(path, "codes2", int(dual_map.second.offsets[image]) * 64 + 5)
+    fix = re.escape("swarmloc map build --features clahe-rootsift+xfeat")
+    with pytest.raises(MapError, match=rf"broken\.swmap: checksum mismatch \(array 'codes2'\)"
+                                       rf".*{fix}"):
+        load_map(path)
+    lazy = load_map(path, verify="lazy")  # opens; the image is refused when first used
+    frame = dual_map.image_features(image)
+    lazy.similarity(frame, [image + 1])
+    with pytest.raises(MapError, match=rf"broken\.swmap: the XFeat features of image {image} "
+                                       rf".*{fix}"):
+        lazy.similarity(frame, [image])
+
+
+@pytest.mark.parametrize("damage", ["missing", "short", "no fusion"])
+def test_an_incomplete_dual_map_is_refused_naming_the_file_and_the_fix(
+        dual_map: RouteMap, tmp_path: Path, damage: str) -> None:
+    assert dual_map.path is not None
+    path = tmp_path / "incomplete.swmap"
+    path.write_bytes(dual_map.path.read_bytes())
+    header, length, _ = _header(path)
+    if damage == "missing":
+        del header["arrays"]["codes2"]
+        want = r"lacks its XFeat arrays \(codes2\)"
+    elif damage == "short":  # offsets that promise more features than the codes hold
+        header["arrays"]["offsets2"]["shape"] = [dual_map.n_images]
+        header["arrays"]["offsets2"]["nbytes"] -= 8
+        want = r"XFeat arrays do not fit together"
+    else:
+        del header["fusion"]
+        want = r"lacks its fusion levels"
+    _rewrite_header(path, header, length)
+    with pytest.raises(MapError, match=rf"incomplete\.swmap: .*{want}.*"
+                                       r"--features clahe-rootsift\+xfeat"):
+        load_map(path, verify=False)
+
+
+def test_an_older_service_is_told_to_rebuild(dual_map: RouteMap, tmp_path: Path) -> None:
+    """A format this swarmloc does not read names the versions it reads and the fix."""
+    assert dual_map.path is not None
+    path = tmp_path / "future.swmap"
+    path.write_bytes(dual_map.path.read_bytes())
+    header, length, _ = _header(path)
+    header["format_version"] = 6
+    _rewrite_header(path, header, length)
+    with pytest.raises(MapError, match=r"future\.swmap: map format version 6 is not supported "
+                                       r"\(this swarmloc reads versions 2, 3, 4, 5\); rebuild"):
+        load_map(path)
+
+
+def test_a_learning_session_on_a_dual_map_is_refused(dual_map: RouteMap, tmp_path: Path
+                                                     ) -> None:
+    assert dual_map.path is not None
+    (tmp_path / "dual.swmap").write_bytes(dual_map.path.read_bytes())
+    svc = LocalizationService(Settings(maps_dir=tmp_path, zenoh_enabled=False))
+    try:
+        with pytest.raises(InvalidParameters, match=r"learn.*two feature types"):
+            svc.put_session("learner", SessionConfig(map="dual", learn=True))
+        svc.put_session("plain", SessionConfig(map="dual"))  # without learning it serves
+    finally:
+        svc.close()
+
+
+def test_the_cli_builds_a_dual_map(tmp_path: Path, sunny1: Round) -> None:
+    part = sunny1.subset(range(8))
+    rnd = tmp_path / "part"
+    rnd.mkdir()
+    lines = ["image,x,y"] + [f"{n},{x:.3f},{y:.3f}" for n, (x, y) in zip(
+        part.images, part.xy, strict=True)]
+    (rnd / "poses.csv").write_text("\n".join(lines) + "\n")
+    for n in part.images:
+        (rnd / n).write_bytes((sunny1.path / n).read_bytes())
+    out = CliRunner().invoke(app, ["map", "build", str(rnd), "--out", str(tmp_path / "m"),
+                                   "--features", DUAL])
+    assert out.exit_code == 0, out.output
+    m = load_map(next(tmp_path.glob("m*.swmap")))
+    assert isinstance(m.feature_params, DualParams) and m.second is not None
+
+
+def test_the_http_api_accepts_the_name(server) -> None:
+    """The build route's features parameter takes the new name (an empty body is refused for
+    the archive, not for the name)."""
+    r = httpx.post(f"{server['url']}/maps/dualbuilt/build", content=b"",
+                   params={"features": DUAL}, headers={"content-type": "application/zip"})
+    assert r.status_code == 400 and "features" not in r.text, r.text  # the archive's fault
+    r = httpx.post(f"{server['url']}/maps/dualbuilt/build", content=b"",
+                   params={"features": "surf"}, headers={"content-type": "application/zip"})
+    assert r.status_code == 422 and DUAL in r.text
