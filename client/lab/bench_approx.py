@@ -31,7 +31,7 @@ from client.dataset import Round
 from client.lab.bench_extract import capped_params, extract_timed
 from service.engine.localizer import Localizer
 from service.maps.route_map import RouteMap, build_map_from_rounds
-from service.vision.features import named_params
+from service.vision.features import Features, named_params
 from service.vision.map_geometry import MapGeometry
 from service.vision.vocabulary import DEFAULT_PROBES, DEFAULT_WORDS, InvertedFileMatcher
 
@@ -45,9 +45,12 @@ class _WithMatcher:
         self._matcher = matcher
         self._exact_geometry = exact_geometry
 
-    def similarity(self, codes: np.ndarray, image_ids: Any, keep: Any = None) -> np.ndarray:
-        """The inverted file's similarity; it keeps no matches (``keep`` stays empty), so the
-        geometry matches the located image itself, as before the exact path kept them."""
+    def similarity(self, frame: Features | np.ndarray, image_ids: Any, keep: Any = None
+                   ) -> np.ndarray:
+        """The inverted file's similarity of the frame's ``Features`` (or codes); it keeps no
+        matches (``keep`` stays empty), so the geometry matches the located image itself, as
+        before the exact path kept them."""
+        codes = frame.codes if isinstance(frame, Features) else frame
         return self._matcher.similarity(codes, np.asarray(list(image_ids)), self._map.delta)
 
     def pairs(self, codes: np.ndarray, image_id: int, delta: float

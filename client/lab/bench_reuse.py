@@ -31,7 +31,7 @@ from client.dataset import Round
 from client.lab.bench_extract import extract_timed
 from service.engine.localizer import Localizer
 from service.maps.route_map import RouteMap, build_map_from_rounds, load_map, save_map
-from service.vision.features import named_params
+from service.vision.features import Features, named_params
 from service.vision.map_geometry import FramePairs
 
 VARIANTS = ("again", "kept", "kept+structures")
@@ -43,9 +43,9 @@ class _MatchAgain:
     def __init__(self, route_map: RouteMap) -> None:
         self._map = route_map
 
-    def similarity(self, codes: np.ndarray, image_ids: Any,
+    def similarity(self, frame: Features | np.ndarray, image_ids: Any,
                    keep: FramePairs | None = None) -> np.ndarray:
-        return self._map.similarity(codes, image_ids)
+        return self._map.similarity(frame, image_ids)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._map, name)

@@ -74,7 +74,7 @@ class SiftParams:
 class DualParams:
     """Two feature types per frame and map image (``clahe-rootsift+xfeat``): CLAHE + RootSIFT,
     the first, which the two-view geometry and the place index use, and XFeat, the second;
-    the map's similarity fuses both (service/maps/fusion.py). One working size for both."""
+    the map's similarity fuses both (service/vision/fusion.py). One working size for both."""
 
     sift: SiftParams
     xfeat: XFeatParams
