@@ -19,7 +19,7 @@ from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
 from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
 from service.settings import Settings
-from service.vision.features import extract
+from service.vision.features import Features, extract
 from service.vision.map_geometry import FramePairs, GeometryParams
 from service.vision.xfeat import (
     MODEL_PATH,
@@ -40,6 +40,19 @@ def xfeat_map(tmp_path_factory: pytest.TempPathFactory, small_world: World, sunn
     rnd = replace(sunny1, camera=camera_from_hfov(cam.hfov_deg, cam.width, cam.height))
     m = build_map_from_rounds([rnd], name="xsmall", params=XFeatParams())
     return load_map(save_map(m, tmp_path_factory.mktemp("xmaps") / "xsmall"))
+
+
+@pytest.fixture(scope="module")
+def xfeat_sunny2(xfeat_map: RouteMap, sunny2: Round) -> list[Features]:
+    """Every sunny2 frame's XFeat features, extracted once for the module's tests."""
+    return [extract(sunny2.load_image(i), xfeat_map.feature_params) for i in range(len(sunny2))]
+
+
+@pytest.fixture(scope="module")
+def xfeat_cloudy1(xfeat_map: RouteMap, cloudy1: Round) -> list[Features]:
+    """Every cloudy1 frame's XFeat features, extracted once for the module's tests."""
+    return [extract(cloudy1.load_image(i), xfeat_map.feature_params)
+            for i in range(len(cloudy1))]
 
 
 def test_the_shipped_model_is_the_recorded_one() -> None:
@@ -82,12 +95,12 @@ def test_the_map_stores_int8_codes_as_format_4(xfeat_map: RouteMap) -> None:
     assert np.array_equal(again.codes_of(5), xfeat_map.codes_of(5))
 
 
-def test_the_true_place_is_the_best_match_and_the_index_finds_it(xfeat_map: RouteMap,
-                                                                  sunny2: Round) -> None:
+def test_the_true_place_is_the_best_match_and_the_index_finds_it(
+        xfeat_map: RouteMap, sunny2: Round, xfeat_sunny2: list[Features]) -> None:
     hits = index_hits = 0
     frames = range(5, len(sunny2) - 5, 6)
     for i in frames:
-        f = extract(sunny2.load_image(i), xfeat_map.feature_params)
+        f = xfeat_sunny2[i]
         scores = xfeat_map.similarity(f.codes, range(xfeat_map.n_images))
         truth = np.asarray(sunny2.xy[i])
         best = xfeat_map.positions[int(np.argmax(scores))]
@@ -100,15 +113,15 @@ def test_the_true_place_is_the_best_match_and_the_index_finds_it(xfeat_map: Rout
     assert index_hits >= 0.8 * len(frames)
 
 
-def test_the_geometry_locates_frames_with_xfeat_matches(xfeat_map: RouteMap, sunny2: Round
-                                                        ) -> None:
+def test_the_geometry_locates_frames_with_xfeat_matches(
+        xfeat_map: RouteMap, sunny2: Round, xfeat_sunny2: list[Features]) -> None:
     """...also on the matches the similarity kept (the same offsets, no second matching)."""
     geo = xfeat_map.geometry
     assert geo is not None
     located = 0
     p = GeometryParams()
     for i in range(10, 40, 3):
-        f = extract(sunny2.load_image(i), xfeat_map.feature_params)
+        f = xfeat_sunny2[i]
         nearest, _ = xfeat_map.nearest(np.asarray(sunny2.xy[i])[None, :])
         j = int(nearest[0])
         off = geo.locate(f, j, p)
@@ -139,25 +152,26 @@ def test_the_ratio_test_drops_ambiguous_mutual_neighbours() -> None:
     assert ia.tolist() == [0] and ib.tolist() == [0]
 
 
-def test_a_right_place_stands_out_across_light(xfeat_map: RouteMap, cloudy1: Round) -> None:
+def test_a_right_place_stands_out_across_light(xfeat_map: RouteMap, cloudy1: Round,
+                                               xfeat_cloudy1: list[Features]) -> None:
     """Across light the right place's similarity stands out from the far images by more than
     DPSO's distinct_ratio (3). (On KITTI at 320x240 it did not before the ratio test, 2.3x at
     the least: docs/research/lighting.md; this small world passes with or without it.)"""
     ratios = []
     for i in range(5, len(cloudy1) - 5, 8):
-        f = extract(cloudy1.load_image(i), xfeat_map.feature_params)
+        f = xfeat_cloudy1[i]
         scores = xfeat_map.similarity(f.codes, range(xfeat_map.n_images))
         d = np.linalg.norm(xfeat_map.positions - np.asarray(cloudy1.xy[i]), axis=1)
         ratios.append(scores[d <= 3.0].max() / max(float(np.median(scores[d > 15.0])), 1e-3))
     assert np.median(ratios) >= 3.0
 
 
-def test_dpso_tracks_across_light_on_an_xfeat_map(xfeat_map: RouteMap, cloudy1: Round
-                                                  ) -> None:
+def test_dpso_tracks_across_light_on_an_xfeat_map(xfeat_map: RouteMap, cloudy1: Round,
+                                                  xfeat_cloudy1: list[Features]) -> None:
     loc = Localizer(xfeat_map, "dpso", {}, seed=3)
     errors, tracking = [], []
     for i in range(len(cloudy1)):
-        est = loc.localize(cloudy1.load_image(i), t=float(i))
+        est = loc.step(xfeat_cloudy1[i], t=float(i))
         if i >= 15:
             errors.append(np.hypot(est.x - cloudy1.xy[i][0], est.y - cloudy1.xy[i][1]))
             tracking.append(est.status == "tracking")
@@ -165,12 +179,13 @@ def test_dpso_tracks_across_light_on_an_xfeat_map(xfeat_map: RouteMap, cloudy1: 
     assert np.mean(tracking) >= 0.7
 
 
-def test_dpso_localizes_on_an_xfeat_map(xfeat_map: RouteMap, sunny2: Round) -> None:
+def test_dpso_localizes_on_an_xfeat_map(xfeat_map: RouteMap, sunny2: Round,
+                                        xfeat_sunny2: list[Features]) -> None:
     """Same light."""
     loc = Localizer(xfeat_map, "dpso", {}, seed=2)
     errors = []
     for i in range(len(sunny2)):
-        est = loc.localize(sunny2.load_image(i), t=float(i))
+        est = loc.step(xfeat_sunny2[i], t=float(i))
         if i >= 15:
             errors.append(np.hypot(est.x - sunny2.xy[i][0], est.y - sunny2.xy[i][1]))
     assert np.median(errors) < 1.5
