@@ -395,7 +395,7 @@ class RouteMap:
         assert isinstance(frame, Features)
         ids = [int(i) for i in image_ids]
         first = self._first_similarity(frame.codes, ids, keep)
-        other = mnn_scores(unit_descriptors(second.codes),
+        other = mnn_scores(second.descriptors,  # the frame's, normalised once per frame
                            [self.second_features_of(i) for i in ids], p.xfeat.min_cos,
                            p.xfeat.max_ratio)
         return first, other
