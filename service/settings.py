@@ -9,7 +9,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from service.api.models import EstimatorName
+from service.api.models import EstimatorName, Matcher
 
 
 class Settings(BaseSettings):
@@ -71,6 +71,11 @@ class Settings(BaseSettings):
         "(default: $XDG_CACHE_HOME/swarmloc/numba, else ~/.cache/swarmloc/numba; never the "
         "installed package). Unwritable: they compile at each start (seconds, before the "
         "service reports ready)")
+    matcher: Matcher = Field(
+        "exact", description="how a frame's features are compared with a map image's: "
+        "'exact' every pair (the papers' similarity), 'words' only the pairs that share a "
+        "visual word of the map (an inverted file trained from the map's own features at "
+        "load, seeded: less work per comparison, nearly the same matches; RootSIFT maps)")
     opencv_threads: int = Field(1, ge=0, description="OpenCV's own threads per call (0: its "
                                 "default, all CPUs); frames already run in parallel threads")
     # ---- hardening: cost ceilings, input bounds, shutdown (README "Hardening")

@@ -18,7 +18,6 @@ own). Printed per round:
 
 from __future__ import annotations
 
-import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -32,47 +31,23 @@ from client.lab.bench_extract import capped_params, extract_timed
 from service.engine.localizer import Localizer
 from service.maps.route_map import RouteMap, build_map_from_rounds
 from service.vision.features import Features, named_params
-from service.vision.map_geometry import MapGeometry
-from service.vision.vocabulary import DEFAULT_PROBES, DEFAULT_WORDS, InvertedFileMatcher
+from service.vision.vocabulary import DEFAULT_PROBES
 
 
-class _WithMatcher:
-    """The map, its similarity answered by an inverted file (everything else delegated)."""
+class _ExactGeometry:
+    """The words map, its two-view geometry on the exact matcher's pairs (the similarity
+    keeps no matches; everything else delegated): the ``--exact-geometry`` variant."""
 
-    def __init__(self, route_map: RouteMap, matcher: InvertedFileMatcher,
-                 exact_geometry: bool = False) -> None:
-        self._map = route_map
-        self._matcher = matcher
-        self._exact_geometry = exact_geometry
+    def __init__(self, words_map: RouteMap, exact_map: RouteMap) -> None:
+        self._map = words_map
+        self.geometry = exact_map.geometry
 
     def similarity(self, frame: Features | np.ndarray, image_ids: Any, keep: Any = None
                    ) -> np.ndarray:
-        """The inverted file's similarity of the frame's ``Features`` (or codes); it keeps no
-        matches (``keep`` stays empty), so the geometry matches the located image itself, as
-        before the exact path kept them."""
-        codes = frame.codes if isinstance(frame, Features) else frame
-        return self._matcher.similarity(codes, np.asarray(list(image_ids)), self._map.delta)
-
-    def pairs(self, codes: np.ndarray, image_id: int, delta: float
-              ) -> tuple[np.ndarray, np.ndarray]:
-        return self._matcher.pairs(codes, image_id, delta)
-
-    @functools.cached_property
-    def geometry(self) -> MapGeometry | None:
-        """The map's two-view geometry on the inverted file's matches."""
-        if self._exact_geometry:
-            return self._map.geometry
-        cam, p = self._map.camera, self._map.feature_params
-        return None if cam is None else MapGeometry(self, cam, p.width, p.height)
+        return self._map.similarity(frame, image_ids)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._map, name)
-
-
-def inverted_file(route_map: RouteMap, k: int = DEFAULT_WORDS,
-                  probes: int = DEFAULT_PROBES) -> InvertedFileMatcher:
-    return InvertedFileMatcher(route_map.codes_of, np.asarray(route_map.codes),
-                               route_map.n_images, k, probes)
 
 
 @dataclass(frozen=True)
@@ -84,6 +59,8 @@ class ApproxRow:
     error_m: tuple[float, float]
     count_ratio: float  # inverted file's counts / exact counts
     best_same: float  # share of frames whose best image is the same
+    words: int  # k of the map's vocabulary
+    train_ms: float  # its training (what a load with the words matcher adds)
 
 
 def _run(loc: Localizer, feats: Sequence[Any], truth: np.ndarray, warmup: int
@@ -105,19 +82,23 @@ def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], fram
     params = capped_params("clahe-rootsift", size, cap) if cap else \
         named_params("clahe-rootsift", *size)
     m = build_map_from_rounds([map_rnd], params=params)
-    ivf = inverted_file(m, k, probes)
+    t0 = time.perf_counter()
+    wm = m.with_words(k or None, probes)
+    train_ms = 1e3 * (time.perf_counter() - t0)
+    ivf = wm.inverted_file
     n = min(len(query), frames + warmup)
     feats, ext_ms = extract_timed(query, n, params)
     truth = query.reference_xy[:n]
     exact = Localizer(m, "dpso", {}, seed)
-    approx = Localizer(cast(RouteMap, _WithMatcher(m, ivf, exact_geometry)), "dpso", {}, seed)
+    approx = Localizer(cast(RouteMap, _ExactGeometry(wm, m)) if exact_geometry else wm, "dpso",
+                       {}, seed)
     ms_e, err_e = _run(exact, feats, truth, warmup)
     ms_a, err_a = _run(approx, feats, truth, warmup)
     got, want, same = 0, 0, 0
     for i, f in enumerate(feats):
         ids = np.argsort(np.linalg.norm(m.positions - truth[i], axis=1))[:images]
         ce = m.similarity(f.codes, ids)
-        ca = ivf.similarity(f.codes, ids, m.delta)
+        ca = wm.similarity(f.codes, ids)
         got += int(np.round(ca * np.minimum(len(f), [len(m.codes_of(int(j))) for j in ids]))
                    .sum())
         want += int(np.round(ce * np.minimum(len(f), [len(m.codes_of(int(j))) for j in ids]))
@@ -126,14 +107,15 @@ def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], fram
     return ApproxRow(name, float(np.median([len(f) for f in feats])), float(np.median(ext_ms)),
                      (float(np.median(ms_e)), float(np.median(ms_a))),
                      (float(np.mean(err_e)), float(np.mean(err_a))),
-                     got / max(want, 1), same / n)
+                     got / max(want, 1), same / n, ivf.vocabulary.k, train_ms)
 
 
 def bench_approx(pairs: Sequence[tuple[str, Round, Round]], size: tuple[int, int],
-                 frames: int = 60, warmup: int = 20, seed: int = 0, k: int = DEFAULT_WORDS,
+                 frames: int = 60, warmup: int = 20, seed: int = 0, k: int = 0,
                  probes: int = DEFAULT_PROBES, cap: int = 0, exact_geometry: bool = False
                  ) -> list[ApproxRow]:
-    """One row per (name, map round, query round), OpenCV and BLAS on one thread; ``cap``:
+    """One row per (name, map round, query round), OpenCV and BLAS on one thread; ``k`` 0:
+    the map's own (``words_for`` its features per image); ``cap``:
     at most that many features per frame, with a low detector threshold (``bench extract``'s
     sweep), 0: the default features; ``exact_geometry``: the two-view geometry keeps the exact
     matcher's pairs (only the similarity goes through the inverted file)."""
@@ -150,12 +132,14 @@ def bench_approx(pairs: Sequence[tuple[str, Round, Round]], size: tuple[int, int
 
 
 def report(rows: Sequence[ApproxRow], say: Callable[[str], object] = print) -> None:
-    say("| query | features/frame | extract ms | step ms exact / ivf | step / extract exact / "
-        "ivf | error m exact / ivf (change) | counts ivf / exact | same best image |")
-    say("|---|---|---|---|---|---|---|---|")
+    say("| query | features/frame | k | train ms | extract ms | step ms exact / ivf | "
+        "step / extract exact / ivf | error m exact / ivf (change) | counts ivf / exact | "
+        "same best image |")
+    say("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         (se, sa), (ee, ea) = r.step_ms, r.error_m
         change = 100 * (ea - ee) / ee if ee > 0 else float("nan")
-        say(f"| {r.query} | {r.features:.0f} | {r.extract_ms:.1f} | {se:.1f} / {sa:.1f} | "
+        say(f"| {r.query} | {r.features:.0f} | {r.words} | {r.train_ms:.0f} | "
+            f"{r.extract_ms:.1f} | {se:.1f} / {sa:.1f} | "
             f"{se / r.extract_ms:.2f} / {sa / r.extract_ms:.2f} | {ee:.2f} / {ea:.2f} "
             f"({change:+.1f} %) | {r.count_ratio:.3f} | {100 * r.best_same:.0f} % |")

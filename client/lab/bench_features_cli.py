@@ -69,7 +69,9 @@ def register(bench_app: typer.Typer) -> None:
                                                 "round: its odd frames on a map of its even "
                                                 "frames)")] = "cloudy1",
         size: Annotated[str, typer.Option(help="working size WxH")] = "320x240",
-        words: Annotated[int, typer.Option(min=1, help="visual words of the map (k)")] = 256,
+        words: Annotated[int, typer.Option(min=0, help="visual words of the map (k; 0: the "
+                                                       "map's own, from its features per "
+                                                       "image)")] = 0,
         probes: Annotated[int, typer.Option(min=1, help="words a frame feature is compared "
                                                         "in (w)")] = 3,
         frames: Annotated[int, typer.Option(min=1, help="frames after the warm-up")] = 60,
@@ -95,7 +97,7 @@ def register(bench_app: typer.Typer) -> None:
         wh = _sizes(size, "--size")[0]
         typer.echo(f"{dataset} map {map_round} at {wh[0]}x{wh[1]}"
                    + (f", at most {max_features} features" if max_features else "")
-                   + f"; inverted file k={words}, w={probes}"
+                   + f"; inverted file k={words or 'auto'}, w={probes}"
                    + (" (similarity only, exact geometry)" if exact_geometry else "")
                    + f"; DPSO seed {seed}; one thread")
         report(bench_approx(pairs, wh, frames, warmup, seed, words, probes, max_features,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import re
-from typing import Any, Literal, Self, TypeVar
+from typing import Any, Literal, Self, TypeVar, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from pydantic.json_schema import JsonDict
@@ -32,6 +32,10 @@ StatusName = Literal["initializing", "tracking", "recovering", "lost"]
 #: every estimator's name, listed once (``service.estimators.registry`` dispatches each to its
 #: class)
 EstimatorName = Literal["dpso", "pf-g", "pf-l"]
+#: how a frame's RootSIFT features are compared with a map image's (service/maps/route_map.py):
+#: "exact" every pair, "words" only the pairs that share a visual word (inverted file)
+Matcher = Literal["exact", "words"]
+MATCHERS: tuple[str, ...] = get_args(Matcher)
 #: what an Estimate's heading is (service/estimators/odometry.py)
 HeadingSource = Literal["motion", "odometry", "camera"]
 #: search radius of a pose prior or a reset near a pose when the robot gives none, m

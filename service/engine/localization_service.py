@@ -126,7 +126,8 @@ class LocalizationService:
         and the second is refused, naming both."""
         for path in list_maps(directory):
             try:
-                m = load_map(path, verify="lazy")  # images checked on first use
+                # images checked on first use; the words matcher trains its vocabulary now
+                m = load_map(path, verify="lazy", matcher=self.settings.matcher)
                 if m.name in self.maps:
                     first = self.maps[m.name].path
                     raise ValueError(f"map name '{m.name}' is already loaded from "

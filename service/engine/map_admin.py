@@ -214,7 +214,7 @@ class MapAdmin:
         try:
             check_map_name(name)
             try:
-                m = load_map(staged, verify=True)
+                m = load_map(staged, verify=True, matcher=self.service.settings.matcher)
             except MapError as exc:
                 metrics.map_loads.labels("upload", "failed").inc()
                 raise BadRequest(str(exc).replace(str(staged), "uploaded map")) from None
@@ -310,7 +310,7 @@ class MapAdmin:
             if on_disk is None or on_disk == m.meta.get("checksum"):
                 return m
             try:
-                new = load_map(m.path, verify="lazy")
+                new = load_map(m.path, verify="lazy", matcher=m.matcher)
             except MapError as exc:  # half-seen or broken: keep serving the loaded version
                 log.warning("map %s: newer file not loaded: %s", name, exc)
                 return m
@@ -457,7 +457,8 @@ class MapAdmin:
                 self.check_preconditions(job.map, job.if_match, job.if_none_match)
                 final = save_map(m, self._file_of(job.map))
                 try:
-                    loaded = load_map(final, verify=True)
+                    loaded = load_map(final, verify=True,
+                                      matcher=self.service.settings.matcher)
                 except MapError:
                     metrics.map_loads.labels("build", "failed").inc()
                     raise

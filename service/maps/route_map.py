@@ -34,6 +34,7 @@ import json
 import math
 import os
 import struct
+import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from functools import cached_property
@@ -44,7 +45,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.api.geo import LocalFrame
-from service.api.models import COORD_LIMIT_M
+from service.api.models import COORD_LIMIT_M, MATCHERS
 from service.vision.features import (
     DEFAULT_DELTA,
     DUAL,
@@ -60,6 +61,7 @@ from service.vision.map_geometry import FramePairs, MapGeometry
 from service.vision.matcher import PreparedSet, match_batch_u8, match_batch_u8_pairs, prepare
 from service.vision.metric_pose import Camera, match_pairs
 from service.vision.place_index import PlaceIndex, build_place_index
+from service.vision.vocabulary import DEFAULT_PROBES, InvertedFileMatcher
 from service.vision.xfeat import DIMS as XFEAT_DIMS
 from service.vision.xfeat import (
     FeatureModelError,
@@ -188,8 +190,12 @@ class RouteMap:
     # of an image when the map was opened with verify="lazy" (None: nothing left to check)
     lazy_digests: np.ndarray | None = None
     second: SecondSet | None = None  # XFeat beside RootSIFT (feature type sift+xfeat)
+    # how a frame's RootSIFT codes are compared with the map's (MATCHERS): "exact" every
+    # pair, "words" the pairs that share a visual word (service/vision/vocabulary.py)
+    matcher: str = "exact"
 
     def __post_init__(self) -> None:
+        check_matcher(self.matcher)
         n = len(self.positions)
         if self.layers is None:
             self.layers = np.zeros(n, np.int64)
@@ -203,6 +209,8 @@ class RouteMap:
         self._sets2: list[np.ndarray | None] = [None] * (n if self.second is not None else 0)
         self._checked2 = np.zeros(n if self.second is not None and
                                   self.second.lazy_digests is not None else 0, bool)
+        self._words_lock = threading.Lock()
+        self._words: InvertedFileMatcher | None = None
 
     def _check_image(self, image_id: int) -> None:
         """With lazy verification: the image's codes and keypoints against their digests,
@@ -365,6 +373,35 @@ class RouteMap:
             self._prepared[image_id] = cached
         return cached
 
+    @property
+    def uses_words(self) -> bool:
+        """The similarity (and the geometry's matches) go through the inverted file: the
+        ``words`` matcher on a map of RootSIFT codes (XFeat keeps its own matcher)."""
+        return self.matcher == "words" and not isinstance(self.first_params, XFeatParams)
+
+    @property
+    def inverted_file(self) -> InvertedFileMatcher:
+        """The map's inverted file (service/vision/vocabulary.py), trained on first use from a
+        seeded sample of the map's codes, k from its images' median feature count; one map
+        always gives one vocabulary. ``load_map(matcher="words")`` trains it at load."""
+        with self._words_lock:
+            if self._words is None:
+                self._words = self._train_words(None, DEFAULT_PROBES)
+            return self._words
+
+    def _train_words(self, k: int | None, probes: int) -> InvertedFileMatcher:
+        counts = np.diff(self.offsets)
+        return InvertedFileMatcher(self.codes_of, self.codes, self.n_images, k, probes,
+                                   features_per_image=float(np.median(counts)))
+
+    def with_words(self, k: int | None = None, probes: int = DEFAULT_PROBES) -> RouteMap:
+        """This map (the same arrays) with the ``words`` matcher and its own vocabulary of
+        ``k`` words (None: the map's own choice) probed ``probes`` at a time (the lab's
+        knobs; ``matcher="words"`` gives the defaults)."""
+        m = replace(self, matcher="words")
+        m._words = self._train_words(k, probes)
+        return m
+
     def similarity(self, frame: Features | np.ndarray, image_ids: Iterable[int],
                    keep: FramePairs | None = None) -> np.ndarray:
         """m(frame, map image) for each id on the frame's ``Features`` (or, on a map of one
@@ -411,6 +448,12 @@ class RouteMap:
             scores, kept = mnn_batch(unit, feats, p.min_cos, p.max_ratio)
             keep.keep(ids, kept)  # the geometry's matches are the similarity's (any delta)
             return scores
+        if self.uses_words:
+            r, kept_pairs = self.inverted_file.match_pairs(
+                frame_codes, ids, self.delta, None if keep is None else keep.delta)
+            if keep is not None and kept_pairs is not None:
+                keep.keep(ids, kept_pairs)
+            return r.scores
         sets = [self.prepared(i) for i in ids]
         if keep is None:
             return match_batch_u8(frame_codes, sets, self.delta).scores
@@ -422,11 +465,14 @@ class RouteMap:
               ) -> tuple[np.ndarray, np.ndarray]:
         """Matched feature indices (in ``codes``, in the image) for the two-view geometry:
         the symmetric ratio test at ``delta`` (RootSIFT) or the map's mutual nearest
-        neighbours (XFeat). A map of two feature types: RootSIFT's."""
+        neighbours (XFeat). A map of two feature types: RootSIFT's. The ``words`` matcher:
+        among the pairs sharing a visual word."""
         p = self.first_params
         if isinstance(p, XFeatParams):
             return mnn_pairs(unit_descriptors(codes), self.features_of(image_id), p.min_cos,
                              p.max_ratio)
+        if self.uses_words:
+            return self.inverted_file.pairs(codes, image_id, delta)
         return match_pairs(codes, self.prepared(image_id), delta)
 
     def codes_of(self, image_id: int) -> np.ndarray:
@@ -936,7 +982,16 @@ def _verify_v3(path: Path, header: dict, arrays: dict[str, np.ndarray], lazy: bo
                            f"corrupted; {fix}")
 
 
-def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
+def check_matcher(matcher: str) -> str:
+    """``matcher`` if it is one of MATCHERS, else a ValueError naming them."""
+    if matcher not in MATCHERS:
+        raise ValueError(f"unknown matcher {matcher!r}: use one of {', '.join(MATCHERS)} "
+                         "('exact' compares every pair of features, 'words' only the pairs "
+                         "sharing a visual word)")
+    return matcher
+
+
+def load_map(path: str | Path, verify: Verify = True, matcher: str = "exact") -> RouteMap:
     """Open a map memory-mapped; check version, layout and (by default) every checksum.
 
     ``verify="lazy"``: check the header and every array but the descriptors and keypoints
@@ -1045,7 +1100,10 @@ def load_map(path: str | Path, verify: Verify = True) -> RouteMap:
     if second is not None and verify == "lazy":
         second.lazy_digests = np.asarray(arrays["image_digests2"])
     m = RouteMap(name, meta, positions, names, arrays["codes"], offsets,
-                 arrays["keypoints"], path, layers, place_index, lazy, second)
+                 arrays["keypoints"], path, layers, place_index, lazy, second,
+                 check_matcher(matcher))
+    if m.uses_words:
+        m.inverted_file  # noqa: B018 - trained now, so that no frame waits for it
     if m.second is not None:
         try:
             m.fusion  # noqa: B018 - parsed now: a bad header fails at load, not on a frame

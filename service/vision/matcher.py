@@ -139,6 +139,25 @@ def prepare(b: np.ndarray, backend: str = "auto") -> PreparedSet:
     return PreparedSet(b, norms, inv, packed)
 
 
+def top_columns(a: np.ndarray, s: PreparedSet, w: int) -> np.ndarray:
+    """(nA, w) int64: per row of uint8 ``a``, the ``w`` rows of the prepared set with the
+    largest cosine (exact integer dot products x 1 / |b|; NumKong's packed GEMM, else float32
+    BLAS), best first, in tiles of 256 rows."""
+    a = _check_u8(a, "a")
+    w = min(w, len(s))
+    out = np.empty((len(a), w), np.int64)
+    for r0 in range(0, len(a), _TILE):
+        r1 = min(r0 + _TILE, len(a))
+        if s.packed is not None:
+            nk_out = _nk.empty((r1 - r0, len(s)), dtype="uint32")
+            _nk.dots_packed(a[r0:r1], s.packed, out=nk_out)
+            dots = np.asarray(nk_out)
+        else:
+            dots = a[r0:r1].astype(np.float32) @ s.desc.astype(np.float32).T
+        _top_w(dots, s.inv_norms, out[r0:r1])
+    return out
+
+
 def _use_numkong(backend: str) -> bool:
     if backend not in ("auto", "numkong", "blas"):
         raise ValueError(f"unknown matcher backend {backend!r}: use auto, numkong or blas")
@@ -390,6 +409,26 @@ def _ivf_scan(a, na, words, b, nb, starts, rc1, rc2, rj, cc1, cc2, ci):
                     cc2[j] = c
 
 
+def _top_w(dots, inv_nb, out):
+    """Each row's ``out.shape[1]`` columns of the largest dots x inv_nb, best first."""
+    w = out.shape[1]
+    best = np.empty(w, np.float32)
+    for i in range(dots.shape[0]):
+        for q in range(w):
+            best[q] = -np.inf
+            out[i, q] = -1
+        for j in range(dots.shape[1]):
+            v = np.float32(dots[i, j]) * inv_nb[j]
+            if v > best[w - 1]:
+                q = w - 1
+                while q > 0 and v > best[q - 1]:
+                    best[q] = best[q - 1]
+                    out[i, q] = out[i, q - 1]
+                    q -= 1
+                best[q] = v
+                out[i, q] = j
+
+
 def _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, delta, matched):
     """Rows in a symmetric ratio-test match among their candidates (a side with fewer than
     two candidates never passes); returns the count and marks ``matched``."""
@@ -416,8 +455,10 @@ _ratio = _jit(_ratio)
 _decide = _jit(_decide)
 _ivf_scan = _jit(_ivf_scan)
 _ivf_decide = _jit(_ivf_decide)
+_top_w = _jit(_top_w)
 _KERNELS: tuple[Any, ...] = (_scan_columns, _finish_row, _scan_rows, _scan_tile, _dot, _cos,
-                             _exact_scan, _passes, _ratio, _decide, _ivf_scan, _ivf_decide)
+                             _exact_scan, _passes, _ratio, _decide, _ivf_scan, _ivf_decide,
+                             _top_w)
 cache_kernels_in(default_cache_dir())
 
 
@@ -535,45 +576,63 @@ class _Sorted:  # one word, for the warm-up
 
 
 def _ivf_one(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray, s: WordSorted,
-             delta: float, matched: np.ndarray) -> tuple[int, np.ndarray]:
-    """(count, each row's best candidate row of ``s``), marking ``matched``."""
+             delta: float, matched: np.ndarray, pairs_delta: float | None = None
+             ) -> tuple[int, np.ndarray, np.ndarray | None]:
+    """(count, each row's best candidate row of ``s``, the rows matched at ``pairs_delta``
+    or None), marking ``matched``; one scan serves both deltas."""
     na_rows, nb = len(a), len(s.desc)
     rj = np.full(na_rows, -1, np.int64)
     if nb < 2 or na_rows < 2:
-        return 0, rj
+        return 0, rj, None if pairs_delta is None else np.zeros(na_rows, bool)
     rc1 = np.full(na_rows, -2.0)
     rc2 = np.full(na_rows, -2.0)
     cc1 = np.full(nb, -2.0)
     cc2 = np.full(nb, -2.0)
     ci = np.full(nb, -1, np.int64)
     _ivf_scan(a, norms_a, words_a, s.desc, s.norms, s.starts, rc1, rc2, rj, cc1, cc2, ci)
-    return _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, float(delta), matched), rj
+    count = _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, float(delta), matched)
+    if pairs_delta is None:
+        return count, rj, None
+    hit = matched
+    if pairs_delta != delta:
+        hit = np.zeros(na_rows, bool)
+        _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, float(pairs_delta), hit)
+    return count, rj, hit
 
 
 def pairs_ivf(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray, s: WordSorted,
               delta: float) -> tuple[np.ndarray, np.ndarray]:
     """Indices (rows of ``a``, rows of ``s.desc``) of ``match_batch_ivf``'s matches."""
     matched = np.zeros(len(a), bool)
-    _, rj = _ivf_one(a, norms_a, words_a, s, delta, matched)
+    _, rj, _ = _ivf_one(a, norms_a, words_a, s, delta, matched)
     rows = np.flatnonzero(matched)
     return rows, rj[rows]
 
 
 def match_batch_ivf(a: np.ndarray, norms_a: np.ndarray, words_a: np.ndarray,
-                    sets: Sequence[WordSorted], delta: float = DEFAULT_DELTA) -> BatchMatch:
+                    sets: Sequence[WordSorted], delta: float = DEFAULT_DELTA,
+                    pairs_delta: float | None = None
+                    ) -> tuple[BatchMatch, list[Pairs] | None]:
     """The symmetric ratio test of ``a`` (nA, D) uint8 against each word-sorted set, among
     the candidate pairs only: b's word is one of ``words_a``'s (nA, w) words of a. Exact
-    cosines; with every word probed it equals ``match_batch_u8``."""
+    cosines; with every word probed it equals ``match_batch_u8``. ``pairs_delta``: also,
+    per set, the matched index pairs (rows of ``a``, rows of ``s.desc``) of the ratio test
+    at that delta, from the same scan (``match_batch_u8_pairs``'s; else None)."""
     k = len(sets)
     na_rows = len(a)
     counts = np.zeros(k, np.int64)
     matched = np.zeros((k, na_rows), bool)
     nb_all = np.array([len(s.desc) for s in sets], np.int64)
+    pairs: list[Pairs] | None = None if pairs_delta is None else []
     for idx, s in enumerate(sets):
-        counts[idx] = _ivf_one(a, norms_a, words_a, s, delta, matched[idx])[0]
+        counts[idx], rj, hit = _ivf_one(a, norms_a, words_a, s, delta, matched[idx],
+                                        pairs_delta)
+        if pairs is not None and hit is not None:
+            rows = np.flatnonzero(hit)
+            pairs.append((rows, rj[rows]))
     denom = np.minimum(na_rows, nb_all)
     scores = np.where(denom > 0, counts / np.maximum(denom, 1), 0.0)
-    return BatchMatch(counts, scores, matched)
+    return BatchMatch(counts, scores, matched), pairs
 
 
 def match_batch_u8_reference(a: np.ndarray, sets: Sequence[np.ndarray],
@@ -637,4 +696,7 @@ def warm_up() -> None:
                            backend=backend)
     one_word = _Sorted(x.copy(), norms_u8(x), np.array([0, len(x)], np.int64))
     for a in (x, ro):
-        match_batch_ivf(a, norms_u8(a), np.zeros((len(a), 1), np.int64), [one_word])
+        match_batch_ivf(a, norms_u8(a), np.zeros((len(a), 1), np.int64), [one_word], 0.6,
+                        0.9)
+        for backend in ("auto", "blas"):
+            top_columns(a, prepare(x[:5], backend), 2)

@@ -26,54 +26,76 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import csr_matrix
 
 from service.vision.features import DEFAULT_DELTA, BatchMatch, unit_descriptors
-from service.vision.matcher import match_batch_ivf, norms_u8, pairs_ivf
+from service.vision.matcher import (
+    Pairs,
+    PreparedSet,
+    match_batch_ivf,
+    norms_u8,
+    pairs_ivf,
+    prepare,
+    top_columns,
+)
 
-DEFAULT_WORDS = 256  # k: visual words of a map
 DEFAULT_PROBES = 3  # w: nearest words a frame feature is compared in
-_SAMPLE = 20_000  # descriptors the vocabulary is trained on
+FEATURES_PER_WORD = 2.5  # k = a map image's median features / this (``words_for``)
+MIN_WORDS, MAX_WORDS = 16, 4096
+_SAMPLE = 20_000  # descriptors the vocabulary is trained on (at least _PER_WORD per word)
+_PER_WORD = 8
 _ITERATIONS = 10
+_WORK = _ITERATIONS * _SAMPLE * 256  # rows x words x iterations of a k = 256 training
+
+
+def words_for(features_per_image: float) -> int:
+    """k for a map whose images hold ``features_per_image`` features: a word then holds
+    about ``FEATURES_PER_WORD`` of an image's features whatever their number, so the
+    candidate pairs of a comparison grow linearly with the features, not with their square
+    (a fixed k grew 6.2x from 1,000 to 4,000 features)."""
+    return int(np.clip(round(features_per_image / FEATURES_PER_WORD), MIN_WORDS, MAX_WORDS))
 
 
 @dataclass(frozen=True)
 class Vocabulary:
-    """``k`` unit centroids (k, D) float32."""
+    """``k`` visual words: unit centroids quantised to uint8 (k, D) and prepared for the
+    exact uint8 GEMM; a descriptor's word is the centroid of the largest cosine."""
 
-    centroids: np.ndarray
+    words: PreparedSet
 
     @property
     def k(self) -> int:
-        return len(self.centroids)
+        return len(self.words)
 
     @classmethod
-    def train(cls, codes: np.ndarray, k: int = DEFAULT_WORDS, seed: int = 0,
-              sample: int = _SAMPLE, iterations: int = _ITERATIONS) -> Vocabulary:
-        """Spherical k-means on up to ``sample`` rows of uint8 ``codes`` (seeded)."""
+    def train(cls, codes: np.ndarray, k: int, seed: int = 0, sample: int | None = None,
+              iterations: int | None = None) -> Vocabulary:
+        """Spherical k-means on up to ``sample`` rows of uint8 ``codes`` (seeded; default:
+        max(20,000, 8 k) rows, as many iterations (2 to 10) as fit in the work of 10 at
+        k = 256 on 20,000 rows, so that start-up stays short for a large k)."""
         rng = np.random.default_rng(seed)
+        sample = max(_SAMPLE, _PER_WORD * k) if sample is None else sample
         rows = rng.choice(len(codes), min(sample, len(codes)), replace=False)
         x = unit_descriptors(np.asarray(codes)[np.sort(rows)])
         k = min(k, len(x))
         if k < 1:
             raise ValueError("a vocabulary needs at least one descriptor")
+        if iterations is None:
+            iterations = int(np.clip(_WORK // (len(x) * k), 2, _ITERATIONS))
         c = x[rng.choice(len(x), k, replace=False)].copy()
+        at = np.arange(len(x))
         for _ in range(iterations):
             label = (x @ c.T).argmax(axis=1)
-            sums = np.zeros_like(c)
-            np.add.at(sums, label, x)
+            sums = csr_matrix((np.ones(len(x), np.float32), (label, at)), shape=(k, len(x))) @ x
             norms = np.linalg.norm(sums, axis=1, keepdims=True)
             c = np.where(norms > 0, sums / np.maximum(norms, 1e-12), c)  # empty: kept
-        return cls(c.astype(np.float32))
+        q = np.round(255 * c / np.maximum(c.max(axis=1, keepdims=True), 1e-12))
+        return cls(prepare(np.maximum(q, 0).astype(np.uint8)))
 
     def nearest(self, codes: np.ndarray, w: int = 1) -> np.ndarray:
-        """(n, w) int64: the ``w`` nearest words of each row of uint8 ``codes``."""
-        s = unit_descriptors(codes) @ self.centroids.T
-        out = np.empty((len(s), min(w, self.k)), np.int64)
-        rows = np.arange(len(s))
-        for q in range(out.shape[1]):  # w argmax passes: far cheaper than argpartition
-            out[:, q] = s.argmax(axis=1)
-            s[rows, out[:, q]] = -np.inf
-        return out
+        """(n, w) int64: the ``w`` nearest words of each row of uint8 ``codes`` (integer dot
+        products over the words' norms; a row's own norm does not change its order)."""
+        return top_columns(codes, self.words, w)
 
 
 @dataclass(frozen=True)
@@ -110,11 +132,20 @@ class FrameWords:
 
 class InvertedFileMatcher:
     """m(frame, image) through a map's vocabulary; thread-safe. ``codes_of(i)`` gives map
-    image i's uint8 codes; the vocabulary is trained on a sample of all of them."""
+    image i's uint8 codes; the vocabulary is trained on a sample of all of them. ``k`` None:
+    ``words_for`` the images' median feature count (the cost then grows linearly with the
+    features per frame)."""
 
     def __init__(self, codes_of: Callable[[int], np.ndarray], all_codes: np.ndarray,
-                 n_images: int, k: int = DEFAULT_WORDS, probes: int = DEFAULT_PROBES,
-                 seed: int = 0) -> None:
+                 n_images: int, k: int | None = None, probes: int = DEFAULT_PROBES,
+                 seed: int = 0, features_per_image: float | None = None) -> None:
+        if k is None:
+            per_image = features_per_image if features_per_image is not None else \
+                len(all_codes) / max(n_images, 1)
+            k = words_for(per_image)
+        if k < 1 or probes < 1:
+            raise ValueError(f"an inverted file needs k >= 1 words and probes >= 1 "
+                             f"(got k={k}, probes={probes})")
         self.vocabulary = Vocabulary.train(all_codes, k, seed)
         self.probes = probes
         self._codes_of = codes_of
@@ -140,7 +171,7 @@ class InvertedFileMatcher:
         c = np.ascontiguousarray(codes, np.uint8)
         fw = FrameWords(codes, norms_u8(c) if len(c) else np.zeros(0),
                         self.vocabulary.nearest(c, self.probes) if len(c) else
-                        np.zeros((0, self.probes), np.int64))
+                        np.zeros((0, min(self.probes, self.vocabulary.k)), np.int64))
         if keep:
             with self._lock:
                 self._frame = fw
@@ -148,9 +179,21 @@ class InvertedFileMatcher:
 
     def match(self, codes: np.ndarray, image_ids: Sequence[int] | np.ndarray,
               delta: float = DEFAULT_DELTA) -> BatchMatch:
+        return self.match_pairs(codes, image_ids, delta)[0]
+
+    def match_pairs(self, codes: np.ndarray, image_ids: Sequence[int] | np.ndarray,
+                    delta: float = DEFAULT_DELTA, pairs_delta: float | None = None
+                    ) -> tuple[BatchMatch, list[Pairs] | None]:
+        """``match`` and, with ``pairs_delta``, each image's matched pairs (rows of
+        ``codes``, rows in the image) at that delta from the same scan (the two-view
+        geometry's, as ``match_batch_u8_pairs`` gives them)."""
         fw = self.frame_words(codes)
-        return match_batch_ivf(np.ascontiguousarray(codes, np.uint8), fw.norms, fw.words,
-                               [self.index(int(i)) for i in image_ids], delta)
+        idx = [self.index(int(i)) for i in image_ids]
+        r, pairs = match_batch_ivf(np.ascontiguousarray(codes, np.uint8), fw.norms, fw.words,
+                                   idx, delta, pairs_delta)
+        if pairs is not None:
+            pairs = [(rows, s.perm[cols]) for (rows, cols), s in zip(pairs, idx, strict=True)]
+        return r, pairs
 
     def pairs(self, codes: np.ndarray, image_id: int, delta: float
               ) -> tuple[np.ndarray, np.ndarray]:
