@@ -1,0 +1,83 @@
+"""The ``words`` matcher as the service's option (``SWARMLOC_MATCHER``): a map loaded with it
+compares frames through its inverted file, for the similarity and the geometry's kept pairs;
+with every word probed it is the exact matcher; bad values are refused."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from service.engine.localization_service import LocalizationService
+from service.engine.localizer import Localizer
+from service.maps.route_map import RouteMap, load_map, save_map
+from service.settings import Settings
+from service.vision.map_geometry import FramePairs
+from service.vision.vocabulary import words_for
+
+
+def _kept(m: RouteMap, codes: np.ndarray, ids: list[int], delta: float = 0.9
+          ) -> tuple[np.ndarray, FramePairs]:
+    kept = FramePairs(delta)
+    return m.similarity(codes, ids, kept), kept
+
+
+def test_bad_matcher_values_are_refused_with_the_choices(camera_map: RouteMap) -> None:
+    with pytest.raises(ValidationError, match="'exact' or 'words'"):
+        Settings(matcher="fast")
+    assert camera_map.path is not None
+    with pytest.raises(ValueError, match="unknown matcher 'fast': use one of exact, words"):
+        load_map(camera_map.path, matcher="fast")
+
+
+def test_every_word_probed_gives_the_exact_scores_and_kept_pairs(camera_map: RouteMap,
+                                                                 sunny2_features) -> None:
+    words = camera_map.with_words(k=16, probes=16)
+    ids = list(range(0, camera_map.n_images, 3))
+    for f in sunny2_features[:3]:
+        s_exact, k_exact = _kept(camera_map, f.codes, ids)
+        s_words, k_words = _kept(words, f.codes, ids)
+        assert np.array_equal(s_exact, s_words) and s_exact.max() > 0.1
+        for i in ids:
+            (re, ce), (rw, cw) = k_exact.get(i), k_words.get(i)  # type: ignore[misc]
+            assert np.array_equal(re, rw) and np.array_equal(ce, cw)
+
+
+def test_an_existing_map_loads_with_words_and_the_step_uses_them(camera_map: RouteMap,
+                                                                 sunny2_features) -> None:
+    assert camera_map.path is not None
+    m = load_map(camera_map.path, verify="lazy", matcher="words")
+    assert m.uses_words and not camera_map.uses_words
+    ivf = m.inverted_file  # trained at load, k from the map's features per image
+    assert ivf.vocabulary.k == words_for(float(np.median(np.diff(m.offsets))))
+    loc = Localizer(m, "dpso", {}, seed=0)
+    for i, f in enumerate(sunny2_features[:4]):
+        loc.step(f, float(i))
+    indexed = [i for i in range(m.n_images) if ivf._indexes[i] is not None]
+    assert len(indexed) >= 10  # the step compared frames through the inverted file ...
+    assert all(p is None for p in m._prepared)  # ... and never through the exact GEMM
+    # the geometry's kept pairs are the inverted file's, from the same pass
+    f = sunny2_features[5]
+    ids = indexed[:6]
+    scores, kept = _kept(m, f.codes, ids)
+    r, pairs = ivf.match_pairs(f.codes, ids, m.delta, 0.9)
+    assert pairs is not None and np.array_equal(scores, r.scores)
+    for i, (rows, cols) in zip(ids, pairs, strict=True):
+        got = kept.get(i)
+        assert got is not None and np.array_equal(got[0], rows) and np.array_equal(got[1], cols)
+    # fewer candidate pairs than the exact matcher's every pair
+    fw = ivf.frame_words(f.codes)
+    for i in ids:
+        idx = ivf.index(i)
+        sizes = np.diff(idx.starts)
+        assert sizes[fw.words].sum() < 0.2 * len(f.codes) * len(idx)
+
+
+def test_the_service_loads_its_maps_with_the_setting(tmp_path, small_map: RouteMap) -> None:
+    save_map(small_map, tmp_path / "small")
+    svc = LocalizationService(Settings(maps_dir=tmp_path, session_store="memory",
+                                       zenoh_enabled=False, matcher="words"))
+    try:
+        assert svc.maps["small"].uses_words
+    finally:
+        svc.close()
