@@ -143,3 +143,14 @@ def report(rows: Sequence[ApproxRow], say: Callable[[str], object] = print) -> N
             f"{r.extract_ms:.1f} | {se:.1f} / {sa:.1f} | "
             f"{se / r.extract_ms:.2f} / {sa / r.extract_ms:.2f} | {ee:.2f} / {ea:.2f} "
             f"({change:+.1f} %) | {r.count_ratio:.3f} | {100 * r.best_same:.0f} % |")
+
+
+def report_growth(rows: Sequence[ApproxRow], queries: int = 1,
+                  say: Callable[[str], object] = print) -> None:
+    """A sweep's growth (rows: ``queries`` per cap, caps in turn): each step's median over
+    the first cap's of the same query, beside the features'."""
+    for i, r in enumerate(rows[queries:], queries):
+        first = rows[i % queries]
+        f = r.features / first.features
+        say(f"{r.query}: features x{f:.2f}, step exact x{r.step_ms[0] / first.step_ms[0]:.2f}"
+            f", ivf x{r.step_ms[1] / first.step_ms[1]:.2f} (linear: x{f:.2f})")

@@ -78,16 +78,18 @@ def register(bench_app: typer.Typer) -> None:
         warmup: Annotated[int, typer.Option(min=0, help="frames of global convergence not "
                                                         "scored")] = 20,
         seed: int = 0,
-        max_features: Annotated[int, typer.Option(
-            min=0, help="features per frame capped at N with a low detector threshold (rich "
-                        "frames); 0: the default features")] = 0,
+        max_features: Annotated[str, typer.Option(
+            help="features per frame capped at N with a low detector threshold (rich "
+                 "frames); 0: the default features; N,N,...: a sweep (a map per N), with "
+                 "each step's growth")] = "0",
         exact_geometry: Annotated[bool, typer.Option(
             help="the two-view geometry on the exact matcher's pairs")] = False,
     ) -> None:
-        """The inverted-file matcher against the exact one on the same frames: localizer
-        step, step / extraction, mean error, match counts and the best image per frame."""
+        """The inverted-file matcher (the service's ``words`` matcher) against the exact one
+        on the same frames: localizer step, step / extraction, mean error, match counts and
+        the best image per frame; per feature cap of a sweep."""
         from client.dataset import DatasetError
-        from client.lab.bench_approx import bench_approx, report
+        from client.lab.bench_approx import bench_approx, report, report_growth
         from client.lab.bench_extract import split_rounds
 
         try:
@@ -95,13 +97,23 @@ def register(bench_app: typer.Typer) -> None:
         except DatasetError as exc:
             raise typer.BadParameter(str(exc)) from None
         wh = _sizes(size, "--size")[0]
+        try:
+            caps = [int(v) for v in max_features.split(",") if v.strip()]
+        except ValueError:
+            raise typer.BadParameter(f"--max-features takes N,N,..., got {max_features!r}"
+                                     ) from None
+        if not caps or min(caps) < 0:
+            raise typer.BadParameter("--max-features takes counts >= 0 (0: the default)")
         typer.echo(f"{dataset} map {map_round} at {wh[0]}x{wh[1]}"
-                   + (f", at most {max_features} features" if max_features else "")
                    + f"; inverted file k={words or 'auto'}, w={probes}"
                    + (" (similarity only, exact geometry)" if exact_geometry else "")
                    + f"; DPSO seed {seed}; one thread")
-        report(bench_approx(pairs, wh, frames, warmup, seed, words, probes, max_features,
-                            exact_geometry), typer.echo)
+        rows = [r for cap in caps for r in bench_approx(
+            [(f"{q} ({cap or 'default'} features)", m, r) for q, m, r in pairs], wh, frames,
+            warmup, seed, words, probes, cap, exact_geometry)]
+        report(rows, typer.echo)
+        if len(caps) > 1:
+            report_growth(rows, len(pairs), typer.echo)
 
     @bench_app.command("reuse")
     def reuse_cmd(

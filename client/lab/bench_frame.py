@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from client.lab.stats import percentile
+from service.api.models import Matcher
 
 STAGES = ("decode", "extract", "step", "prepare", "glue", "serialise", "transport", "request",
           "response")
@@ -70,6 +71,13 @@ class FrameBench:
     comparisons: float  # mean comparisons per frame
     paths: dict[str, PathTimes]
     identical: bool  # the three robots got identical estimates for every frame
+    matcher: str = "exact"  # the service's SWARMLOC_MATCHER
+
+    @property
+    def step_ratio(self) -> float:
+        """In process: p50 of the localizer step / p50 of the extraction."""
+        p = self.paths["in-process"]
+        return p.p("step", 50) / p.p("extract", 50)
 
     @property
     def beyond_extraction(self) -> float:
@@ -172,9 +180,10 @@ def _serialise_ms(transport: str, est: Any, repeats: int = 3) -> float:
 
 def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int = 10,
                 seed: int = 0, transports: tuple[str, ...] = ("http", "zenoh"),
-                workers: int = 0) -> FrameBench:
+                workers: int = 0, matcher: Matcher = "exact") -> FrameBench:
     """Per-frame stage times in process and over each transport, in one run (see the module
-    docstring). ``maps_dir`` must hold one map (or a map named ``demo``)."""
+    docstring). ``maps_dir`` must hold one map (or a map named ``demo``); ``matcher``: the
+    service's ``SWARMLOC_MATCHER``."""
     import cv2
 
     from client.dataset import read_round
@@ -191,7 +200,8 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
     settings = Settings(maps_dir=Path(maps_dir), host="127.0.0.1", port=free_port(),
                         zenoh_enabled="zenoh" in transports, zenoh_listen=[endpoint],
                         zenoh_multicast_scouting=False, workers=workers,
-                        session_store="memory")  # the transports' cost, not the store's
+                        session_store="memory",  # the transports' cost, not the store's
+                        matcher=matcher)
     limit_native_threads(settings)  # as ``swarmloc serve`` does
     warm_up()
     service = LocalizationService(settings)
@@ -252,13 +262,14 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
         img = cv2.imdecode(np.frombuffer(frame, np.uint8), cv2.IMREAD_GRAYSCALE)
         features.append(len(extract(img, params)))
     return FrameBench(route_map.name, route_map.n_images, frames, float(np.mean(features)),
-                      float(np.mean(comparisons)), paths, identical)
+                      float(np.mean(comparisons)), paths, identical, matcher)
 
 
 def report(b: FrameBench, emit: Callable[[str], None] = print) -> None:
     """The breakdown table and the issue's ratios."""
-    emit(f"map '{b.map_name}' ({b.map_images} images); {b.frames} frames per path after the "
-         f"warm-up; {b.features:.0f} features and {b.comparisons:.1f} comparisons per frame")
+    emit(f"map '{b.map_name}' ({b.map_images} images), matcher {b.matcher}; {b.frames} frames "
+         f"per path after the warm-up; {b.features:.0f} features and {b.comparisons:.1f} "
+         "comparisons per frame")
     head = f"{'stage (ms)':<12}" + "".join(f"{n + ' p50':>14}{'p90':>8}" for n in b.paths)
     emit(head)
     for stage in (*STAGES, "total"):
@@ -273,6 +284,8 @@ def report(b: FrameBench, emit: Callable[[str], None] = print) -> None:
     beyond = float(np.median(np.array(ip.total) - np.array(ip.stages["extract"])))
     emit(f"in process: beyond extraction p50 {beyond:.2f} ms / extraction p50 "
          f"{ip.p('extract', 50):.2f} ms = {100 * b.beyond_extraction:.0f} % (target <= 50 %)")
+    emit(f"in process, matcher {b.matcher}: step p50 {ip.p('step', 50):.2f} ms / extraction "
+         f"p50 {ip.p('extract', 50):.2f} ms = {b.step_ratio:.2f} (target <= 0.5)")
     for name in b.paths:
         if name != "in-process":
             emit(f"{name} p50 {b.paths[name].p('total', 50):.2f} ms / in-process p50 "

@@ -4,9 +4,12 @@ that the CLI's start-up imports none of the benchmark's modules."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, cast
 
 import typer
+
+if TYPE_CHECKING:
+    from service.api.models import Matcher
 
 
 def register(bench_app: typer.Typer) -> None:
@@ -22,16 +25,29 @@ def register(bench_app: typer.Typer) -> None:
                                                  "counted")] = 10,
         via: Annotated[str, typer.Option(help="transports beside in-process")] = "http,zenoh",
         seed: int = 0,
+        matcher: Annotated[str, typer.Option(help="the service's matcher(s), comma-separated "
+                                                  "(exact, words): one run each, in turn")]
+        = "exact",
     ) -> None:
         """Per-frame cost breakdown (decode, extraction, localizer step, serialisation,
         transport) in process and through each transport, with the issue's ratios."""
         from client.lab.bench_frame import bench_frame, report
+        from service.api.models import MATCHERS
 
         transports = tuple(t.strip() for t in via.split(",") if t.strip())
         unknown = [t for t in transports if t not in ("http", "zenoh")]
         if unknown:
             raise typer.BadParameter(f"unknown transport(s) {unknown}: use http and/or zenoh")
-        report(bench_frame(maps_dir, round_dir, frames, warmup, seed, transports))
+        matchers = [m.strip() for m in matcher.split(",") if m.strip()]
+        bad = [m for m in matchers if m not in MATCHERS]
+        if bad or not matchers:
+            raise typer.BadParameter(f"unknown matcher(s) {bad}: use {', '.join(MATCHERS)}")
+        runs = [bench_frame(maps_dir, round_dir, frames, warmup, seed, transports,
+                            matcher=cast("Matcher", m)) for m in matchers]
+        for b in runs:
+            report(b)
+        for b in runs:
+            typer.echo(f"matcher {b.matcher}: step / extraction p50 = {b.step_ratio:.2f}")
 
     @bench_app.command("first-frame")
     def first_frame_cmd(

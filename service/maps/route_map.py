@@ -475,6 +475,14 @@ class RouteMap:
             return self.inverted_file.pairs(codes, image_id, delta)
         return match_pairs(codes, self.prepared(image_id), delta)
 
+    def image_pairs(self, image_id: int, other: int, delta: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """``pairs`` of map image ``image_id``'s codes with map image ``other`` (a structure's
+        matches; the words matcher keeps each image's own words)."""
+        if self.uses_words:
+            return self.inverted_file.image_pairs(image_id, other, delta)
+        return self.pairs(self.codes_of(image_id), other, delta)
+
     def codes_of(self, image_id: int) -> np.ndarray:
         """One image's descriptor codes (a memory-mapped view; verified with lazy loading)."""
         self._check_image(image_id)

@@ -52,6 +52,9 @@ class _Images(Protocol):  # what this module needs of a RouteMap (service/maps/r
     def pairs(self, codes: np.ndarray, image_id: int, delta: float
               ) -> tuple[np.ndarray, np.ndarray]: ...
 
+    def image_pairs(self, image_id: int, other: int, delta: float
+                    ) -> tuple[np.ndarray, np.ndarray]: ...
+
 
 @dataclass(frozen=True)
 class GeometryParams:
@@ -176,7 +179,7 @@ class MapGeometry:
         if j is not None:
             baseline = float(np.linalg.norm(self.images.positions[j]
                                              - self.images.positions[image_id]))
-            pairs = self.images.pairs(self.images.codes_of(image_id), j, p.delta)
+            pairs = self.images.image_pairs(image_id, j, p.delta)
             try:
                 st = triangulate(self.images.keypoints_of(image_id),
                                  self.images.keypoints_of(j), pairs, baseline, self.k,

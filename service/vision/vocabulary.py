@@ -112,9 +112,11 @@ class WordIndex:
         return len(self.desc)
 
 
-def index_image(codes: np.ndarray, vocabulary: Vocabulary) -> WordIndex:
+def index_image(codes: np.ndarray, vocabulary: Vocabulary, word: np.ndarray | None = None
+                ) -> WordIndex:
+    """``codes`` sorted by their nearest word (``word``, when known)."""
     codes = np.ascontiguousarray(codes, np.uint8)
-    word = vocabulary.nearest(codes)[:, 0]
+    word = vocabulary.nearest(codes)[:, 0] if word is None else word
     perm = np.argsort(word, kind="stable")
     desc = np.ascontiguousarray(codes[perm])
     starts = np.searchsorted(word[perm], np.arange(vocabulary.k + 1)).astype(np.int64)
@@ -150,6 +152,7 @@ class InvertedFileMatcher:
         self.probes = probes
         self._codes_of = codes_of
         self._indexes: list[WordIndex | None] = [None] * n_images
+        self._image_words: list[FrameWords | None] = [None] * n_images
         self._frame: FrameWords | None = None
         self._lock = threading.Lock()
 
@@ -157,9 +160,20 @@ class InvertedFileMatcher:
         """Map image ``image_id`` sorted by word (kept after first use)."""
         found = self._indexes[image_id]
         if found is None:
-            found = index_image(self._codes_of(image_id), self.vocabulary)
+            words = self._words_of(image_id)
+            found = index_image(words.codes, self.vocabulary,
+                                words.words[:, 0] if len(words.codes) else None)
             self._indexes[image_id] = found
         return found
+
+    def _words_of(self, image_id: int) -> FrameWords:
+        """Map image ``image_id``'s words as a frame's (kept after first use: its index and
+        the structures' matches use them)."""
+        fw = self._image_words[image_id]
+        if fw is None:
+            fw = self.frame_words(np.asarray(self._codes_of(image_id)), keep=False)
+            self._image_words[image_id] = fw
+        return fw
 
     def frame_words(self, codes: np.ndarray, keep: bool = True) -> FrameWords:
         """The frame's words, computed once for the frame (the last frame's are kept;
@@ -199,10 +213,19 @@ class InvertedFileMatcher:
               ) -> tuple[np.ndarray, np.ndarray]:
         """Matched feature indices (in ``codes``, in the image) for the two-view geometry,
         through the vocabulary as the similarity's."""
-        c = np.ascontiguousarray(codes, np.uint8)
+        return self._pairs(self.frame_words(codes, keep=False), image_id, delta)
+
+    def image_pairs(self, image_id: int, other: int, delta: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """``pairs`` of map image ``image_id`` (its words kept after first use) with
+        ``other``."""
+        return self._pairs(self._words_of(image_id), other, delta)
+
+    def _pairs(self, fw: FrameWords, image_id: int, delta: float
+               ) -> tuple[np.ndarray, np.ndarray]:
         idx = self.index(image_id)
-        fw = self.frame_words(codes, keep=False)
-        rows, cols = pairs_ivf(c, fw.norms, fw.words, idx, delta)
+        rows, cols = pairs_ivf(np.ascontiguousarray(fw.codes, np.uint8), fw.norms, fw.words,
+                               idx, delta)
         return rows, idx.perm[cols]
 
     def similarity(self, codes: np.ndarray, image_ids: Sequence[int] | np.ndarray,
