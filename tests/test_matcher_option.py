@@ -13,6 +13,7 @@ from service.engine.localizer import Localizer
 from service.maps.route_map import RouteMap, load_map, save_map
 from service.settings import Settings
 from service.vision.map_geometry import FramePairs
+from service.vision.matcher import compiled_signatures, warm_up
 from service.vision.vocabulary import words_for
 
 
@@ -50,9 +51,12 @@ def test_an_existing_map_loads_with_words_and_the_step_uses_them(camera_map: Rou
     assert m.uses_words and not camera_map.uses_words
     ivf = m.inverted_file  # trained at load, k from the map's features per image
     assert ivf.vocabulary.k == words_for(float(np.median(np.diff(m.offsets))))
+    warm_up()
+    compiled = compiled_signatures()
     loc = Localizer(m, "dpso", {}, seed=0)
     for i, f in enumerate(sunny2_features[:4]):
         loc.step(f, float(i))
+    assert compiled_signatures() == compiled  # warm_up covers the words path too
     indexed = [i for i in range(m.n_images) if ivf._indexes[i] is not None]
     assert len(indexed) >= 10  # the step compared frames through the inverted file ...
     assert all(p is None for p in m._prepared)  # ... and never through the exact GEMM
