@@ -63,17 +63,20 @@ class ApproxRow:
     train_ms: float  # its training (what a load with the words matcher adds)
 
 
-def _run(loc: Localizer, feats: Sequence[Any], truth: np.ndarray, warmup: int
-         ) -> tuple[list[float], list[float]]:
-    ms, err = [], []
+def _run(locs: Sequence[Localizer], feats: Sequence[Any], truth: np.ndarray, warmup: int
+         ) -> list[tuple[list[float], list[float]]]:
+    """Each localizer's step times (ms) and errors (m) after the warm-up, the localizers
+    stepping in turn on each frame (a change of the machine's load hits both alike)."""
+    out: list[tuple[list[float], list[float]]] = [([], []) for _ in locs]
     for i, f in enumerate(feats):
-        t0 = time.perf_counter()
-        est = loc.step(f, float(i))
-        took = 1e3 * (time.perf_counter() - t0)
-        if i >= warmup:
-            ms.append(took)
-            err.append(float(np.hypot(est.x - truth[i, 0], est.y - truth[i, 1])))
-    return ms, err
+        for loc, (ms, err) in zip(locs, out, strict=True):
+            t0 = time.perf_counter()
+            est = loc.step(f, float(i))
+            took = 1e3 * (time.perf_counter() - t0)
+            if i >= warmup:
+                ms.append(took)
+                err.append(float(np.hypot(est.x - truth[i, 0], est.y - truth[i, 1])))
+    return out
 
 
 def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], frames: int,
@@ -92,8 +95,7 @@ def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], fram
     exact = Localizer(m, "dpso", {}, seed)
     approx = Localizer(cast(RouteMap, _ExactGeometry(wm, m)) if exact_geometry else wm, "dpso",
                        {}, seed)
-    ms_e, err_e = _run(exact, feats, truth, warmup)
-    ms_a, err_a = _run(approx, feats, truth, warmup)
+    (ms_e, err_e), (ms_a, err_a) = _run([exact, approx], feats, truth, warmup)
     got, want, same = 0, 0, 0
     for i, f in enumerate(feats):
         ids = np.argsort(np.linalg.norm(m.positions - truth[i], axis=1))[:images]
