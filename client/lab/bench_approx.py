@@ -1,12 +1,16 @@
-"""``swarmloc bench approx``: the inverted-file matcher (service/vision/vocabulary.py) against
-the exact one, side by side, on the same map, frames and seed.
+"""``swarmloc bench approx``: the service's ``words`` matcher (the inverted file,
+service/vision/vocabulary.py; ``SWARMLOC_MATCHER=words``) against the exact one, side by
+side, on the same map, frames and seed.
 
 Per query round, two localizers with one map, one estimator (DPSO, the service's defaults)
-and one seed step through the same extracted frames: one with the exact similarity
-(``RouteMap.similarity``), one with the inverted file's, for the similarity and (unless
-``--exact-geometry``) for the two-view geometry's matches (every other part is the map's
-own). Printed per round:
+and one seed step in turn through the same extracted frames: one on the map with the exact
+matcher, one on the same map with the ``words`` matcher (``RouteMap.with_words``: the
+similarity and the two-view geometry's kept pairs and structures through the inverted file;
+``--exact-geometry``: the geometry on the exact matcher's pairs, the similarity keeping
+none). Printed per round:
 
+- ``k``, ``train ms``: the map's vocabulary and its training (what loading the map with the
+  ``words`` matcher adds);
 - ``step ms``: the median ``Localizer.step`` over the frames after the warm-up (one thread,
   as ``swarmloc serve`` runs), and step / extraction;
 - ``error m``: the mean distance of the estimate to the frame's recorded position after the
