@@ -148,10 +148,11 @@ def test_cli_approx_bench_prints_both_matchers_side_by_side(rounds_dir: Path) ->
                                    "--query", "sunny2", "--words", "16", "--frames", "4",
                                    "--warmup", "6", "--exact-geometry"])
     assert out.exit_code == 0, out.output
-    [row] = _rows(out.output, "sunny2")
-    steps = [float(v) for v in row[3].split(" / ")]
+    [row] = _rows(out.output, "sunny2 (default features)")
+    assert row[2] == "16" and float(row[3]) > 0  # k, its training ms
+    steps = [float(v) for v in row[5].split(" / ")]
     assert len(steps) == 2 and min(steps) > 0
-    assert 0.5 < float(row[6]) < 1.5  # the inverted file's counts near the exact ones
+    assert 0.5 < float(row[8]) < 1.5  # the words matcher's counts near the exact ones
     assert "similarity only" in out.output
     bad = CliRunner().invoke(app, ["bench", "approx", str(rounds_dir), "--query", "nope"])
     assert bad.exit_code != 0

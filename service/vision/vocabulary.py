@@ -1,9 +1,12 @@
-"""An approximate m(A, B) that does less work: a visual vocabulary (inverted file).
+"""An approximate m(A, B) that does less work: a visual vocabulary (inverted file), the
+service's ``words`` matcher (``SWARMLOC_MATCHER=words``, ``RouteMap.inverted_file``).
 
 The exact matcher (service/vision/matcher.py) computes every dot product between a frame's
 descriptors and each compared map image's, about 18 times per frame. Here the descriptors
 of a map are clustered once into ``k`` visual words (spherical k-means on a sample of the
-map's unit descriptors, seeded: one map always gives one vocabulary). Each map image's
+map's unit descriptors, seeded: one map always gives one vocabulary; k from the map's
+features per image, ``words_for``; the centroids quantised to uint8, so that a descriptor's
+words come from the exact uint8 GEMM). Each map image's
 features are sorted by their nearest word, once per image (``WordIndex``); a frame's
 features are assigned to their ``w`` nearest words once per frame (``FrameWords``), shared
 by all the comparisons of its step. A comparison then scores only the pairs (a, b) where b's
