@@ -26,7 +26,7 @@ import hashlib
 import threading
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -94,7 +94,7 @@ def smoothed(images: list[NewImage], seqs: list[int], k: int = SMOOTH_FRAMES
             continue
         a = np.column_stack([np.ones(int(near.sum())), s[near] - s[i]])
         coef, *_ = np.linalg.lstsq(a, xy[near], rcond=None)
-        out.append(NewImage(f.codes, f.keypoints, coef[0], f.name))
+        out.append(replace(f, xy=coef[0]))
     return out
 
 
@@ -111,7 +111,7 @@ def same_light_level(m: RouteMap) -> float:
     if not len(ok):
         return 1.0
     pick = ok[np.linspace(0, len(ok) - 1, min(LEVEL_SAMPLE, len(ok))).astype(int)]
-    return float(np.median([m.similarity(np.asarray(m.codes_of(int(i))), [int(i) + 1])[0]
+    return float(np.median([m.similarity(m.image_features(int(i)), [int(i) + 1])[0]
                             for i in pick]))
 
 
@@ -161,11 +161,8 @@ class Learner:
     def observe(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
                 features: Features, est: Estimate) -> None:
         """One estimate of a learning session: collect the frame if it passes the gates,
-        hand the collection to the writer when it is full (no map write here). A map of
-        two feature types learns nothing (sessions on it cannot ask to learn; this one's map
-        was replaced by such a map meanwhile)."""
-        if m.second is not None:
-            return
+        hand the collection to the writer when it is full (no map write here). On a map of
+        two feature types the frame's both sets are kept."""
         with self._lock:
             t = self._trails.get(robot_id)
             if t is None or t.map_name != m.name:
@@ -189,9 +186,12 @@ class Learner:
                 t.refuse(gate or "located")
                 return
             t.taught += 1
-            t.pending.append(NewImage(np.array(features.codes), np.array(features.keypoints,
-                                                                          np.float32),
-                                      at, f"{t.exp_id}/{est.seq:06d}"))
+            second = features.second if m.second is not None else None
+            t.pending.append(NewImage(
+                np.array(features.codes), np.array(features.keypoints, np.float32), at,
+                f"{t.exp_id}/{est.seq:06d}",
+                None if second is None else np.array(second.codes),
+                None if second is None else np.array(second.keypoints, np.float32)))
             t.seqs.append(est.seq)
             full = len(t.pending) >= self.gates.commit_images
         if full:
@@ -228,7 +228,7 @@ class Learner:
         ids = self._near_images(m, xy)
         if not len(ids):
             return False
-        best = float(np.max(m.similarity(features.codes, ids)))
+        best = float(np.max(m.similarity(features, ids)))
         return best < self.gates.weak_ratio * self.level(m)
 
     @staticmethod
@@ -243,7 +243,7 @@ class Learner:
         if geometry is None:
             return xy
         ids = self._near_images(m, xy)
-        order = ids[np.argsort(-m.similarity(features.codes, ids), kind="stable")]
+        order = ids[np.argsort(-m.similarity(features, ids), kind="stable")]
         p = GeometryParams()
         spacing = base_spacing(m)
         for image in order[:GEOMETRY_TRIES]:

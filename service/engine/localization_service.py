@@ -254,11 +254,6 @@ class LocalizationService:
         if config.initial_pose is not None:
             self.check_pose(route_map, config.initial_pose.x, config.initial_pose.y,
                             "initial_pose")
-        if config.learn and route_map.second is not None:
-            raise InvalidParameters(
-                f"invalid parameter: learn: map '{map_name}' holds two feature types "
-                "(clahe-rootsift+xfeat), whose experiences this swarmloc cannot learn yet; "
-                "create the session without learn, or learn on a map of one feature type")
         try:
             loc = Localizer(route_map, estimator, config.params, config.seed)
         except ParamError as exc:
