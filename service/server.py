@@ -5,6 +5,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
+import random
 import socket
 import threading
 import time
@@ -177,18 +179,56 @@ def session_store_name(settings: Settings) -> str:
     return store
 
 
-def free_port(host: str = "127.0.0.1") -> int:
-    return free_ports(1, host)[0]
+# Ports for the servers that tools and tests start on loopback. By default the system picks
+# them (its ephemeral range). With SWARMLOC_PORT_RANGE=LO-HI they come from that range, tried
+# from a random start: processes side by side (the test suite's workers) get disjoint ranges
+# below the ephemeral one, so no other process takes a port between its pick and its bind.
+PORT_RANGE_ENV = "SWARMLOC_PORT_RANGE"
+
+
+def port_range() -> tuple[int, int] | None:
+    """``SWARMLOC_PORT_RANGE`` as (lo, hi), hi exclusive; None when unset."""
+    raw = os.environ.get(PORT_RANGE_ENV, "").strip()
+    if not raw:
+        return None
+    lo_s, sep, hi_s = raw.partition("-")
+    try:
+        lo, hi = int(lo_s), int(hi_s)
+    except ValueError:
+        lo, hi = 0, 0
+    if not sep or not 1024 <= lo < hi <= 65536:
+        raise ValueError(f"{PORT_RANGE_ENV}={raw!r}: expected LO-HI with 1024 <= LO < HI <= "
+                         "65536, e.g. 20000-26000")
+    return lo, hi
 
 
 def free_ports(n: int, host: str = "127.0.0.1") -> list[int]:
-    """``n`` distinct free ports: the sockets are held open together while the ports are read
-    (one at a time, the system may hand the same port out twice)."""
+    """``n`` distinct ports that nothing listens on at the time of the call."""
+    bounds = port_range()
     with contextlib.ExitStack() as stack:
-        socks = [stack.enter_context(socket.socket()) for _ in range(n)]
-        for s in socks:
-            s.bind((host, 0))
-        return [int(s.getsockname()[1]) for s in socks]
+        if bounds is None:
+            socks = [stack.enter_context(socket.socket()) for _ in range(n)]
+            for s in socks:
+                s.bind((host, 0))
+            return [int(s.getsockname()[1]) for s in socks]
+        lo, hi = bounds
+        start = random.SystemRandom().randrange(lo, hi)
+        found: list[int] = []
+        for k in range(hi - lo):
+            port = lo + (start - lo + k) % (hi - lo)
+            s = stack.enter_context(socket.socket())
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+            found.append(port)
+            if len(found) == n:
+                return found
+        raise RuntimeError(f"{PORT_RANGE_ENV}: fewer than {n} free ports in {lo}-{hi}")
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    return free_ports(1, host)[0]
 
 
 @contextlib.contextmanager

@@ -6,6 +6,7 @@ Everything is rendered here, into pytest's temporary directories; nothing from .
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import os
 import subprocess
 import sys
@@ -21,7 +22,7 @@ from client.lab.world import World
 from service.api.round_format import camera_from_hfov
 from service.engine.localization_service import LocalizationService
 from service.maps.route_map import RouteMap, build_map, load_map, save_map
-from service.server import free_port, running_server
+from service.server import PORT_RANGE_ENV, free_port, running_server
 from service.settings import Settings
 from service.vision.features import Features, extract
 from service.vision.metric_pose import Camera
@@ -39,6 +40,14 @@ os.environ.setdefault("SWARMLOC_SESSION_STORE", "memory")
 # products beside servers in threads and processes were up to 100x slower with OpenBLAS's
 # spinning pool on a busy 2-core machine. Results do not depend on it.
 threadpool_limits(1, "blas")
+# The suite runs in pytest-xdist workers (pyproject's addopts). Each worker picks the ports of
+# the servers it starts from its own range, below the system's ephemeral range: two workers
+# never pick the same port, and no client socket takes one between its pick and its bind.
+if "PYTEST_XDIST_WORKER" in os.environ:
+    _worker = int(os.environ["PYTEST_XDIST_WORKER"].removeprefix("gw"))
+    _width = 12_000 // max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    os.environ.setdefault(PORT_RANGE_ENV, f"{20_000 + _worker * _width}-"
+                                          f"{20_000 + (_worker + 1) * _width}")
 
 
 @pytest.fixture(scope="session")
@@ -135,9 +144,21 @@ def camera_map(tmp_path_factory: pytest.TempPathFactory, small_map: RouteMap,
 
 @pytest.fixture(scope="session")
 def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The project's wheel (``pip wheel . --no-deps``), built once for the packaging tests."""
-    out = tmp_path_factory.mktemp("wheel")
-    res = subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "-q",
-                          "-w", str(out)], capture_output=True, text=True, check=False)
-    assert res.returncode == 0, res.stdout + res.stderr
-    return next(out.glob("swarmloc-*.whl"))
+    """The project's wheel (``pip wheel . --no-deps``), built once for the packaging tests: by
+    the first worker that needs it, under a lock in the run's shared temporary directory (two
+    builds at once would share the tree's ``build/``)."""
+    run_dir = tmp_path_factory.getbasetemp()  # a worker's is popen-gwN in the run's own
+    out = (run_dir.parent if "PYTEST_XDIST_WORKER" in os.environ else run_dir) / "wheel"
+    out.mkdir(exist_ok=True)
+    with open(out / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        built = sorted(out.glob("swarmloc-*.whl"))
+        if not built:
+            res = subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps",
+                                  "-q", "-w", str(out / "tmp")],
+                                 capture_output=True, text=True, check=False)
+            assert res.returncode == 0, res.stdout + res.stderr
+            for whl in (out / "tmp").glob("swarmloc-*.whl"):
+                whl.rename(out / whl.name)
+            built = sorted(out.glob("swarmloc-*.whl"))
+    return built[0]

@@ -3,6 +3,7 @@ Zenoh); a token or an explicit host opens it; the images and compose bind 0.0.0.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import socket
@@ -90,3 +91,36 @@ def test_the_images_and_compose_bind_all_interfaces_by_name() -> None:
     compose = yaml.safe_load((ROOT / "deploy" / "compose.yaml").read_text())
     for name in ("replica-1", "replica-2"):
         assert compose["services"][name]["environment"]["SWARMLOC_HOST"] == "0.0.0.0"
+
+
+def test_free_ports_come_from_the_given_range_and_skip_taken_ones(monkeypatch) -> None:
+    """``SWARMLOC_PORT_RANGE`` (the suite's workers get disjoint ones): every port is in the
+    range, distinct, and a port something listens on is never handed out."""
+    from service.server import PORT_RANGE_ENV, free_ports
+
+    taken = _free_block(4)  # below every range the suite's workers and the system use
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", taken))
+        held.listen()
+        monkeypatch.setenv(PORT_RANGE_ENV, f"{taken}-{taken + 4}")
+        ports = free_ports(3)
+        assert sorted(ports) == [taken + 1, taken + 2, taken + 3]
+        with pytest.raises(RuntimeError, match="fewer than 4 free ports"):
+            free_ports(4)
+    for bad in ("20000", "x-y", "30000-20000", "80-90"):
+        monkeypatch.setenv(PORT_RANGE_ENV, bad)
+        with pytest.raises(ValueError, match="expected LO-HI"):
+            free_ports(1)
+
+
+def _free_block(n: int, start: int = 15_000) -> int:
+    """The first port from ``start`` on with ``n`` consecutive ports free on loopback."""
+    for lo in range(start, start + 4_000, n):
+        with contextlib.ExitStack() as stack:
+            try:
+                for port in range(lo, lo + n):
+                    stack.enter_context(socket.socket()).bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        return lo
+    raise AssertionError("no free block of ports")

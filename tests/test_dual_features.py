@@ -18,11 +18,12 @@ from typer.testing import CliRunner
 from client.cli import app
 from client.dataset import Round
 from client.lab.world import World
-from service.api.errors import InvalidParameters
 from service.api.models import SessionConfig
 from service.api.round_format import camera_from_hfov
+from service.engine.experience_writer import Batch
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
+from service.maps.experiences import NewImage, add_experience, remove_experience
 from service.maps.route_map import (
     MAGIC,
     MapError,
@@ -165,8 +166,8 @@ def test_a_damaged_xfeat_array_is_refused_naming_the_file_and_the_fix(
     lazy = load_map(path, verify="lazy")  # opens; the image is refused when first used
     frame = dual_map.image_features(image)
     lazy.similarity(frame, [image + 1])
-    with pytest.raises(MapError, match=rf"broken\.swmap: the XFeat features of image {image} "
-                                       rf".*{fix}"):
+    with pytest.raises(MapError, match=rf"broken\.swmap: image {image} .* XFeat features .*"
+                                       rf"{fix}"):
         lazy.similarity(frame, [image])
 
 
@@ -206,17 +207,52 @@ def test_an_older_service_is_told_to_rebuild(dual_map: RouteMap, tmp_path: Path)
         load_map(path)
 
 
-def test_a_learning_session_on_a_dual_map_is_refused(dual_map: RouteMap, tmp_path: Path
-                                                     ) -> None:
+def test_a_learning_session_on_a_dual_map_learns_both_sets(dual_map: RouteMap, cloudy1: Round,
+                                                           tmp_path: Path) -> None:
+    """A learning robot on a map of two feature types: each learned image keeps the frame's
+    RootSIFT and XFeat features (the file verified on load), the batch handed over through
+    Redis carries both, and removing the experience gives back the map's own images."""
     assert dual_map.path is not None
     (tmp_path / "dual.swmap").write_bytes(dual_map.path.read_bytes())
-    svc = LocalizationService(Settings(maps_dir=tmp_path, zenoh_enabled=False))
+    svc = LocalizationService(Settings(maps_dir=tmp_path, zenoh_enabled=False,
+                                       session_store="memory", learn_commit_images=5,
+                                       learn_accuracy_m=2.0))
     try:
-        with pytest.raises(InvalidParameters, match=r"learn.*two feature types"):
-            svc.put_session("learner", SessionConfig(map="dual", learn=True))
-        svc.put_session("plain", SessionConfig(map="dual"))  # without learning it serves
+        svc.put_session("learner", SessionConfig(map="dual", learn=True, condition="cloudy"))
+        for i in range(30):
+            svc.process_frame("learner", cloudy1.image_path(i).read_bytes(), t=float(i))
+        svc.delete_session("learner")
+        assert svc.writer.wait(120)
+        (e,) = svc.map_summary("dual").experiences
+        path = svc.get_map("dual").path
     finally:
         svc.close()
+    assert path is not None
+    m = load_map(path, verify=True)
+    assert m.second is not None and e.images > 0
+    learned = np.flatnonzero(m.layers == e.layer)
+    assert len(learned) == e.images and m.n_images == dual_map.n_images + e.images
+    params = named_params(DUAL)
+    for i in learned[:2]:  # the image is frame seq - 1's features, both sets
+        frame = extract(cloudy1.load_image(int(m.image_names[i].rsplit("/", 1)[1]) - 1), params)
+        got = m.image_features(int(i))
+        assert got.second is not None and frame.second is not None
+        assert np.array_equal(got.codes, frame.codes)
+        assert np.array_equal(got.second.codes, frame.second.codes)
+    own = m.image_features(0)  # the map's own images keep their sets
+    assert own.second is not None and dual_map.second is not None
+    assert np.array_equal(own.second.codes, dual_map.second.codes[dual_map.second.rows(0)])
+    images = [NewImage(frame.codes, frame.keypoints, np.zeros(2), "n", frame.second.codes,
+                       frame.second.keypoints)]
+    (back,) = Batch.decode(Batch("dual", "e", images, None, "r").encode()).images
+    assert back.codes2 is not None and np.array_equal(back.codes2, frame.second.codes)
+    gone = remove_experience(m, path, e.id)
+    assert gone.n_images == dual_map.n_images and gone.second is not None
+    assert np.array_equal(gone.second.offsets, dual_map.second.offsets)
+    with pytest.raises(MapError, match="lack the second set"):
+        add_experience(gone, path, "x", [NewImage(frame.codes, frame.keypoints,
+                                                  gone.positions[3], "y")],
+                       condition=None, robot=None, now=0.0, budget_bytes=10**9)
 
 
 def test_the_cli_builds_a_dual_map(tmp_path: Path, sunny1: Round) -> None:

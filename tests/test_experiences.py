@@ -20,7 +20,7 @@ from client.lab.world import World
 from service.api.errors import NotFound
 from service.api.models import Estimate, MapSummary, PosePrior, SessionConfig
 from service.api.round_format import camera_from_hfov
-from service.engine.learning import Learner, LearnGates, _Trail
+from service.engine.learning import LearnPath, path_gate
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
 from service.maps.experiences import (
@@ -269,23 +269,55 @@ def test_deleting_an_experience_and_unknown_ones(map_copy: RouteMap, tmp_path: P
 
 
 def test_learner_gates_need_a_continuous_path() -> None:
-    """Gate 2: a frame right after a jump (or the first frames) does not teach."""
-    learner = Learner(LearnGates(1.5, 0.6, 10), lambda *a: None)
-    trail = _Trail("e", "m", None)
+    """Gate 2: a frame right after a jump (or the first frames) does not teach; a frame that
+    is not confident (gate 1) clears the path."""
 
-    def est(seq: int, x: float) -> Estimate:
+    def est(seq: int, x: float, status: str = "tracking") -> Estimate:
         return Estimate(seq=seq, stamp=None, frame_id="m", estimator="dpso", x=x, y=0.0,
-                        heading=0.0, speed=0.0, status="tracking", lost=False, score=0.5,
+                        heading=0.0, speed=0.0, status=status, lost=False, score=0.5,
                         comparisons=1, covariance=[[0.1, 0], [0, 0.1]],
                         pose_covariance=[0.0] * 36, accuracy_m=0.5, nearest_image=0,
                         nearest_image_name="x", spread_m=0.1)
 
-    ok = [learner._confident(trail, e, np.array([e.x, e.y]))
-          for e in (est(1, 0.0), est(2, 0.6), est(3, 1.2), est(4, 9.0), est(5, 9.6),
-                    est(6, 10.2))]
+    path: LearnPath = []
+    stopped = []
+    for e in (est(1, 0.0), est(2, 0.6), est(3, 1.2), est(4, 9.0), est(5, 9.6), est(6, 10.2),
+              est(7, 10.8, "recovering"), est(8, 11.4), est(9, 12.0), est(10, 12.6)):
+        path, gate = path_gate(path, e, 1.5)
+        stopped.append(gate)
     # the first two frames have no path yet; the jump breaks it until two frames agree again
-    assert ok == [False, False, True, False, False, True]
-    assert trail.refused == {"path": 4}
+    assert stopped == ["path", "path", None, "path", "path", None, "confident", "path",
+                       "path", None]
+
+
+def test_a_robot_behind_an_http_round_robin_teaches_its_map(
+        camera_maps: Path, tmp_path: Path, cloudy1: Round, redis_srv, rdb) -> None:
+    """Two replicas on one Redis store and one maps directory; the learning robot's frames
+    alternate between them (an HTTP round robin). The path is kept with the stored session, so
+    both replicas' frames pass gate 2 (before, each replica saw every other frame and taught
+    nothing), and each writes what it collected into the one experience."""
+    d = tmp_path / "maps"
+    shutil.copytree(camera_maps, d)
+    replicas = [LocalizationService(Settings(maps_dir=d, session_store=redis_srv.url,
+                                             replica_id=f"r{k}", **LEARN)) for k in (0, 1)]
+    try:
+        replicas[0].put_session("rr", SessionConfig(map="route", learn=True))
+        for i in range(LEARN_FRAMES):
+            replicas[i % 2].process_frame("rr", cloudy1.image_path(i).read_bytes(), t=float(i))
+        taught = [r.learner.stats("rr")["taught"] for r in replicas]
+        assert all(n > 0 for n in taught), taught
+        replicas[0].delete_session("rr")  # replica 0 writes its collection at the end ...
+        replicas[1].learner.flush_idle(0.0)  # ... replica 1 once the robot left it
+        for r in replicas:
+            assert r.writer.wait(120)
+        (e,) = replicas[1].map_summary("route").experiences
+        m = replicas[1].get_map("route")
+    finally:
+        for r in replicas:
+            r.close()
+    seqs = {int(n.rsplit("/", 1)[1]) for n, k in zip(m.image_names, m.layers == e.layer,
+                                                     strict=True) if k}
+    assert {q % 2 for q in seqs} == {0, 1}, seqs  # frames served by each replica
 
 
 def test_http_lists_and_deletes_experiences(map_copy: RouteMap,

@@ -97,6 +97,8 @@ def test_two_robots_live_and_one_gets_lost(viewer_server, sunny2) -> None:
             assert li.get_attribute("data-color") == STATUS_COLORS["tracking"]
             assert "m/s" in li.locator(".speed").inner_text()
             assert li.locator(".comparisons").inner_text().isdigit()
+            # the layer the frame was matched with: the map's own images (no experience)
+            assert li.locator(".experience").inner_text() == "map"
             assert "2 robots" in page.locator("#fleet-summary").inner_text()
 
             for i in range(4):  # frames that match nothing

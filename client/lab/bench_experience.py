@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from client.dataset import Round, read_round
+from service.engine.learning import LearnPath, path_gate
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
 from service.maps.experiences import experience_list
@@ -69,10 +70,13 @@ def replay(m: RouteMap, rnd: Round, feats: list[Features], *, seed: int = 0,
     loc = Localizer(m, seed=seed)
     dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and len(rnd) > 1 else 1.0
     est, comps = [], []
+    path: LearnPath = []
     for i, f in enumerate(feats):
         e = loc.step(f, t=i * dt)
         if teach is not None:
-            teach[0].learner.observe("teacher", 0.0, teach[1], m, f, e)
+            svc = teach[0]
+            path, stopped = path_gate(path, e, svc.settings.learn_accuracy_m)
+            svc.learner.observe("teacher", 0.0, teach[1], m, f, e, stopped)
         est.append((e.x, e.y))
         comps.append(e.comparisons)
     err = np.linalg.norm(np.array(est) - rnd.reference_xy[: len(est)], axis=1)[WARMUP:]

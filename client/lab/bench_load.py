@@ -5,6 +5,7 @@ is read from /proc. Numbers are printed, never asserted."""
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import os
 import tempfile
 import threading
@@ -350,6 +351,8 @@ def bench_fuzz(minutes: float, seed: int | None = None,
     # the suite's examples take about FUZZ_SUITE_S; scale them to the wanted minutes
     os.environ["SWARMLOC_FUZZ_SCALE"] = f"{max(1.0, 60.0 * minutes / FUZZ_SUITE_S):.2f}"
     args = ["-q", "-x", "-p", "no:cacheprovider", *map(str, files)]
+    if importlib.util.find_spec("xdist") is not None:
+        args += ["-n", "0"]  # one process (the project's addopts ask for a worker per core)
     if seed is not None:
         args.append(f"--hypothesis-seed={seed}")
     t0 = time.perf_counter()

@@ -37,9 +37,9 @@ def redis_server_binary() -> str:
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    from service.server import free_port  # the server's import only when a port is picked
+
+    return free_port()
 
 
 class RedisServer:

@@ -68,7 +68,9 @@ class Batch:
         return dumps({"map": self.map, "exp_id": self.exp_id, "condition": self.condition,
                       "robot": self.robot,
                       "images": [{"codes": f.codes, "keypoints": f.keypoints,
-                                  "xy": np.asarray(f.xy, float), "name": f.name}
+                                  "xy": np.asarray(f.xy, float), "name": f.name,
+                                  **({} if f.codes2 is None else
+                                     {"codes2": f.codes2, "keypoints2": f.keypoints2})}
                                  for f in self.images]})
 
     @staticmethod
@@ -76,8 +78,8 @@ class Batch:
         """A batch from ``encode`` (StateError: damaged or not one)."""
         d = loads(blob)
         try:
-            images = [NewImage(i["codes"], i["keypoints"], i["xy"], str(i["name"]))
-                      for i in d["images"]]
+            images = [NewImage(i["codes"], i["keypoints"], i["xy"], str(i["name"]),
+                               i.get("codes2"), i.get("keypoints2")) for i in d["images"]]
             return Batch(str(d["map"]), str(d["exp_id"]), images, d["condition"],
                          str(d["robot"]))
         except (KeyError, TypeError) as exc:

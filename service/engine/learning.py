@@ -17,16 +17,21 @@ only when every gate holds (a kidnapped or lost robot never does):
 Taught frames are kept (one per place) until ``learn_commit_images`` are collected or the
 session ends or is reset; then the map admin writes them into the map as a new version
 (service/maps/experiences.py). The collected frames stay in this process's memory, not in the
-stored session: a replica that dies loses at most one batch, never a map.
+stored session: a replica that dies loses at most one batch, never a map. Gates 1 and 2 read
+only the session's recent path (``path_gate``), which is kept with the stored session: a robot
+whose frames alternate between replicas (an HTTP round robin on a shared store) keeps its path,
+each replica collects the frames it served into the same experience (its id comes from the
+robot and the session's creation), and a replica writes a collection its robot has left for
+``idle_s`` (``flush_idle``).
 """
 
 from __future__ import annotations
 
 import hashlib
 import threading
-from collections import deque
+import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -49,6 +54,7 @@ LOCATED_TOLERANCE_M = 1.0  # and this close to where the geometry locates the fr
 LEVEL_SAMPLE = 40  # consecutive image pairs of a map whose median similarity is its level
 GEOMETRY_TRIES = 3  # images near the estimate the geometry tries, best match first
 SMOOTH_FRAMES = 4  # learned positions: a line through the taught frames this many frames away
+LEARN_IDLE_S = 30.0  # a replica writes what it collected of a robot that sent it nothing so long
 
 Commit = Callable[[str, str, list[NewImage], str | None, str], None]
 # (map name, experience id, images, condition, robot id) -> written (the map admin's)
@@ -68,7 +74,7 @@ class _Trail:
     exp_id: str
     map_name: str
     condition: str | None
-    path: deque[tuple[int, np.ndarray]] = field(default_factory=lambda: deque(maxlen=2))
+    last_seen: float = 0.0  # when the robot's last frame here was observed (time.monotonic)
     pending: list[NewImage] = field(default_factory=list)
     taught: int = 0  # frames that passed the gates
     seen: int = 0
@@ -94,8 +100,26 @@ def smoothed(images: list[NewImage], seqs: list[int], k: int = SMOOTH_FRAMES
             continue
         a = np.column_stack([np.ones(int(near.sum())), s[near] - s[i]])
         coef, *_ = np.linalg.lstsq(a, xy[near], rcond=None)
-        out.append(NewImage(f.codes, f.keypoints, coef[0], f.name))
+        out.append(replace(f, xy=coef[0]))
     return out
+
+
+LearnPath = list[tuple[int, float, float]]  # (estimate seq, x, y) of the last two frames
+
+
+def path_gate(path: LearnPath, est: Estimate, accuracy_m: float) -> tuple[LearnPath, str | None]:
+    """Gates 1 and 2 of a frame: the session's new path, and the gate that stops the frame
+    (``confident`` or ``path``; None: it passes). The path holds the frames that passed gate 1,
+    cleared by one that does not."""
+    if est.status != "tracking" or est.lost or est.accuracy_m > accuracy_m:
+        return [], "confident"
+    new = [*path, (est.seq, est.x, est.y)][-2:]
+    if len(path) < 2 or path[0][0] != est.seq - 2 or path[1][0] != est.seq - 1:
+        return new, "path"
+    predicted = 2 * np.array(path[1][1:]) - np.array(path[0][1:])
+    if float(np.linalg.norm(predicted - np.array([est.x, est.y]))) > PATH_TOLERANCE_M:
+        return new, "path"
+    return new, None
 
 
 def same_light_level(m: RouteMap) -> float:
@@ -111,7 +135,7 @@ def same_light_level(m: RouteMap) -> float:
     if not len(ok):
         return 1.0
     pick = ok[np.linspace(0, len(ok) - 1, min(LEVEL_SAMPLE, len(ok))).astype(int)]
-    return float(np.median([m.similarity(np.asarray(m.codes_of(int(i))), [int(i) + 1])[0]
+    return float(np.median([m.similarity(m.image_features(int(i)), [int(i) + 1])[0]
                             for i in pick]))
 
 
@@ -159,21 +183,21 @@ class Learner:
                     **t.refused}
 
     def observe(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
-                features: Features, est: Estimate) -> None:
-        """One estimate of a learning session: collect the frame if it passes the gates,
-        hand the collection to the writer when it is full (no map write here). A map of
-        two feature types learns nothing (sessions on it cannot ask to learn; this one's map
-        was replaced by such a map meanwhile)."""
-        if m.second is not None:
-            return
+                features: Features, est: Estimate, stopped: str | None) -> None:
+        """One estimate of a learning session, ``stopped`` by gate 1 or 2 (``path_gate`` on
+        the session's path) or not: collect the frame if it passes the other gates, hand the
+        collection to the writer when it is full (no map write here). On a map of two
+        feature types the frame's both sets are kept."""
         with self._lock:
             t = self._trails.get(robot_id)
             if t is None or t.map_name != m.name:
                 t = self._trails[robot_id] = _Trail(experience_id(robot_id, created), m.name,
                                                     condition)
             t.seen += 1
+            t.last_seen = time.monotonic()
             xy = np.array([est.x, est.y])
-            if not self._confident(t, est, xy):
+            if stopped is not None:
+                t.refuse(stopped)
                 return
         at: np.ndarray | None = None
         gate: str | None = "appearance"
@@ -189,27 +213,16 @@ class Learner:
                 t.refuse(gate or "located")
                 return
             t.taught += 1
-            t.pending.append(NewImage(np.array(features.codes), np.array(features.keypoints,
-                                                                          np.float32),
-                                      at, f"{t.exp_id}/{est.seq:06d}"))
+            second = features.second if m.second is not None else None
+            t.pending.append(NewImage(
+                np.array(features.codes), np.array(features.keypoints, np.float32), at,
+                f"{t.exp_id}/{est.seq:06d}",
+                None if second is None else np.array(second.codes),
+                None if second is None else np.array(second.keypoints, np.float32)))
             t.seqs.append(est.seq)
             full = len(t.pending) >= self.gates.commit_images
         if full:
             self.flush(robot_id)
-
-    def _confident(self, t: _Trail, est: Estimate, xy: np.ndarray) -> bool:
-        """Gates 1 and 2; remembers the frame as part of the path when gate 1 holds."""
-        if est.status != "tracking" or est.lost or est.accuracy_m > self.gates.accuracy_m:
-            t.path.clear()
-            t.refuse("confident")
-            return False
-        path = list(t.path)
-        t.path.append((est.seq, xy))
-        if len(path) < 2 or path[0][0] != est.seq - 2 or path[1][0] != est.seq - 1 or \
-                float(np.linalg.norm(2 * path[1][1] - path[0][1] - xy)) > PATH_TOLERANCE_M:
-            t.refuse("path")
-            return False
-        return True
 
     def level(self, m: RouteMap) -> float:
         """The map's same-light level, kept per version."""
@@ -228,7 +241,7 @@ class Learner:
         ids = self._near_images(m, xy)
         if not len(ids):
             return False
-        best = float(np.max(m.similarity(features.codes, ids)))
+        best = float(np.max(m.similarity(features, ids)))
         return best < self.gates.weak_ratio * self.level(m)
 
     @staticmethod
@@ -243,7 +256,7 @@ class Learner:
         if geometry is None:
             return xy
         ids = self._near_images(m, xy)
-        order = ids[np.argsort(-m.similarity(features.codes, ids), kind="stable")]
+        order = ids[np.argsort(-m.similarity(features, ids), kind="stable")]
         p = GeometryParams()
         spacing = base_spacing(m)
         for image in order[:GEOMETRY_TRIES]:
@@ -266,9 +279,18 @@ class Learner:
                 return
             images, t.pending = t.pending, []
             seqs, t.seqs = t.seqs, []
-            t.path.clear()
         if images:
             self._commit(t.map_name, t.exp_id, smoothed(images, seqs), t.condition, robot_id)
+
+    def flush_idle(self, idle_s: float, now: float | None = None) -> None:
+        """Write the collections of robots that sent this replica no frame for ``idle_s``
+        (their frames go to another replica now, or they stopped; the trail stays)."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            robots = [rid for rid, t in self._trails.items()
+                      if t.pending and now - t.last_seen > idle_s]
+        for rid in robots:
+            self.flush(rid)
 
     def flush_all(self) -> None:
         """At shutdown: write every learning robot's collected images (they live in memory

@@ -39,7 +39,7 @@ from service.api.models import (
 from service.api.params import ParamError
 from service.engine.events import EventHub
 from service.engine.experience_writer import Batch, ExperienceWriter, RedisHandover
-from service.engine.learning import Learner, LearnGates
+from service.engine.learning import LEARN_IDLE_S, Learner, LearnGates, path_gate
 from service.engine.localizer import Localizer
 from service.engine.map_admin import MapAdmin
 from service.engine.metrics import Metrics
@@ -255,11 +255,6 @@ class LocalizationService:
         if config.initial_pose is not None:
             self.check_pose(route_map, config.initial_pose.x, config.initial_pose.y,
                             "initial_pose")
-        if config.learn and route_map.second is not None:
-            raise InvalidParameters(
-                f"invalid parameter: learn: map '{map_name}' holds two feature types "
-                "(clahe-rootsift+xfeat), whose experiences this swarmloc cannot learn yet; "
-                "create the session without learn, or learn on a map of one feature type")
         try:
             loc = Localizer(route_map, estimator, config.params, config.seed)
         except ParamError as exc:
@@ -343,6 +338,7 @@ class LocalizationService:
                 s.localizer.reset((near.x, near.y), near.radius)
             s.last_t = None
             s.last_input_seq = None
+            s.learn_path = []
             s.last_used = time.time()
         self.learner.flush(robot_id)  # a reset breaks the path: its images are written
         return s.info()
@@ -360,6 +356,9 @@ class LocalizationService:
         for rid in gone:
             self.events.remove(rid)
             self.learner.flush(rid, end=True)
+        # a learning robot whose frames now go to another replica, or that stopped: what this
+        # replica collected is written (the session may live on in a shared store)
+        self.learner.flush_idle(LEARN_IDLE_S)
         return gone
 
     def claim(self, robot_id: str) -> bool:
@@ -441,13 +440,17 @@ class LocalizationService:
                 particles = self.events.particles_due(robot_id, s.localizer)
                 ran_on, learn, created, condition = (s.localizer.map, s.learn, s.created,
                                                      s.condition)
+                stopped = None
+                if learn:  # gates 1 and 2 on the path kept with the session (any replica)
+                    s.learn_path, stopped = path_gate(s.learn_path, est,
+                                                      self.settings.learn_accuracy_m)
         except Exception as exc:
             self.metrics.rejected.labels(type(exc).__name__).inc()
             raise
         if est.experience is not None:
             self.learner.used(ran_on.name, est.experience, time.time())
         if learn:  # outside the session's lock; a full collection is handed to the writer
-            self.learner.observe(robot_id, created, condition, ran_on, features, est)
+            self.learner.observe(robot_id, created, condition, ran_on, features, est, stopped)
         self.metrics.frames.labels(transport).inc()
         self.metrics.comparisons.inc(est.comparisons)
         elapsed = time.perf_counter() - t0

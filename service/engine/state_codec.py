@@ -26,7 +26,7 @@ import importlib
 import struct
 import zlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import msgpack
@@ -301,6 +301,9 @@ class SessionState:
     last_input_seq: int | None = None  # the robot's seq of the last applied frame
     learn: bool = False  # the session's confident frames teach its map (experiences)
     condition: str | None = None  # the light of its frames, as the robot gave it
+    # a learning session's last two frames that passed gate 1 (service/engine/learning.py
+    # ``path_gate``): (estimate seq, x, y); kept here so that any replica continues the path
+    learn_path: list[tuple[int, float, float]] = field(default_factory=list)
 
 
 MapResolver = Callable[[str, "str | None"], RouteMap]  # (map name, checksum) -> the map
@@ -313,6 +316,7 @@ def encode_session(s: SessionState) -> bytes:
         "robot_id": s.robot_id, "created": s.created, "last_used": s.last_used,
         "last_t": s.last_t, "last_input_seq": s.last_input_seq,
         "learn": s.learn, "condition": s.condition,
+        "learn_path": [[int(q), float(x), float(y)] for q, x, y in s.learn_path],
         "map": loc.map.name, "map_checksum": loc.map.meta.get("checksum"),
         "estimator_name": loc.estimator_name, "seed": loc.seed, "params": loc.params,
         "last": loc.last.model_dump(mode="python") if loc.last is not None else None,
@@ -335,6 +339,10 @@ def decode_session(blob: bytes, resolve_map: MapResolver) -> SessionState:
         loc.last = Estimate.model_validate(d["last"]) if d["last"] is not None else None
         return SessionState(d["robot_id"], loc, d["created"], d["last_used"], d["last_t"],
                             d["last_input_seq"], bool(d.get("learn", False)),
-                            d.get("condition"))
+                            d.get("condition"),
+                            [(int(q), float(x), float(y))  # absent before it was kept
+                             for q, x, y in d.get("learn_path") or []])
     except KeyError as exc:
         raise StateError(f"session state lacks {exc}") from None
+    except (TypeError, ValueError) as exc:  # e.g. a learn_path entry that is not (seq, x, y)
+        raise StateError(f"session state is malformed: {exc}") from None

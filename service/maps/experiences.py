@@ -87,18 +87,30 @@ def image_bytes(m: RouteMap, ids: np.ndarray) -> int:
     per_feature = m.codes.shape[1] * m.codes.dtype.itemsize + 8
     place = m.place_index.dims * 4 if m.place_index is not None else 0
     names = sum(len(m.image_names[int(i)].encode()) + 4 for i in ids)
-    return feats * per_feature + len(ids) * (16 + 8 + 8 + 16 + place) + names
+    second = 0
+    if m.second is not None:  # its codes, keypoints, offset and digest
+        feats2 = int(np.sum(m.second.offsets[ids + 1] - m.second.offsets[ids]))
+        second = feats2 * _per_feature2(m) + len(ids) * (8 + 16)
+    return feats * per_feature + len(ids) * (16 + 8 + 8 + 16 + place) + names + second
+
+
+def _per_feature2(m: RouteMap) -> int:
+    """Bytes per feature of the map's second set (codes and float32 keypoints)."""
+    assert m.second is not None
+    return m.second.codes.shape[1] * m.second.codes.dtype.itemsize + 8
 
 
 @dataclass(frozen=True)
 class NewImage:
     """A frame to learn: its descriptor codes and keypoints (the map's feature type) and its
-    estimated position."""
+    estimated position; on a map of two feature types also the second set's (XFeat)."""
 
     codes: np.ndarray
     keypoints: np.ndarray
     xy: np.ndarray
     name: str
+    codes2: np.ndarray | None = None
+    keypoints2: np.ndarray | None = None
 
 
 def _rewrite(m: RouteMap, path: Path, keep: np.ndarray, new: Sequence[NewImage],
@@ -120,19 +132,37 @@ def _rewrite(m: RouteMap, path: Path, keep: np.ndarray, new: Sequence[NewImage],
         place = PlaceIndex(place.words, place.mean, place.projection,
                            np.concatenate([np.asarray(place.descriptors)[kept], extra]))
 
-    def chunks() -> Iterator[Chunk]:
-        for a in range(0, len(kept), 512):  # whole images, bounded memory
-            ids = kept[a: a + 512]
-            parts = [slice(int(m.offsets[i]), int(m.offsets[i + 1])) for i in ids]
-            yield (np.concatenate([m.codes[s] for s in parts]),
-                   np.concatenate([m.keypoints[s] for s in parts]), counts_old[a: a + 512])
-        if new:
-            yield (np.concatenate([f.codes for f in new]),
-                   np.concatenate([f.keypoints for f in new]).astype(np.float32),
-                   counts[len(kept):])
-
-    out = write_map(path, m.name, meta, positions, names, layers, counts, chunks(), place)
+    second: tuple[np.ndarray, Iterator[Chunk]] | None = None
+    if m.second is not None:
+        missing = [f.name for f in new if f.codes2 is None or f.keypoints2 is None]
+        if missing:
+            raise MapError(f"map '{m.name}' holds two feature types: the learned images "
+                           f"{missing[:3]} lack the second set (XFeat)")
+        s2 = m.second
+        new2 = [(np.asarray(f.codes2), np.asarray(f.keypoints2, np.float32)) for f in new]
+        counts2 = np.concatenate([np.diff(s2.offsets)[kept], [len(c) for c, _ in new2]]
+                                 ).astype(np.int64)
+        second = (counts2, _chunks(s2.codes, s2.keypoints, s2.offsets, kept, new2))
+    new1 = [(f.codes, np.asarray(f.keypoints, np.float32)) for f in new]
+    out = write_map(path, m.name, meta, positions, names, layers, counts,
+                    _chunks(m.codes, m.keypoints, m.offsets, kept, new1), place, second)
     return load_map(out, verify=True)
+
+
+def _chunks(codes: np.ndarray, keypoints: np.ndarray, offsets: np.ndarray, kept: np.ndarray,
+            new: Sequence[tuple[np.ndarray, np.ndarray]]) -> Iterator[Chunk]:
+    """One feature set's chunks for ``write_map``: the kept images' rows (whole images, 512 at
+    a time, bounded memory), then the new images' (codes, keypoints)."""
+    for a in range(0, len(kept), 512):
+        ids = kept[a: a + 512]
+        parts = [slice(int(offsets[i]), int(offsets[i + 1])) for i in ids]
+        yield (np.concatenate([codes[s] for s in parts]),
+               np.concatenate([keypoints[s] for s in parts]),
+               np.diff(offsets)[ids].astype(np.int64))
+    if new:
+        yield (np.concatenate([c for c, _ in new]),
+               np.concatenate([k for _, k in new]).astype(np.float32),
+               np.array([len(c) for c, _ in new], np.int64))
 
 
 def _history(m: RouteMap) -> list[str]:
@@ -214,8 +244,11 @@ def add_experience(m: RouteMap, path: Path, exp_id: str, images: Sequence[NewIma
 
 def _new_bytes(m: RouteMap, f: NewImage) -> int:
     place = m.place_index.dims * 4 if m.place_index is not None else 0
+    second = 0
+    if m.second is not None and f.codes2 is not None:
+        second = len(f.codes2) * _per_feature2(m) + 8 + 16
     return (len(f.codes) * (m.codes.shape[1] * m.codes.dtype.itemsize + 8)
-            + 16 + 8 + 8 + 16 + place + len(f.name.encode()) + 4)
+            + 16 + 8 + 8 + 16 + place + len(f.name.encode()) + 4 + second)
 
 
 def remove_experience(m: RouteMap, path: Path, exp_id: str, usage: Usage | None = None

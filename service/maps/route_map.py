@@ -215,27 +215,26 @@ class RouteMap:
     def _check_image(self, image_id: int) -> None:
         """With lazy verification: the image's codes and keypoints against their digests,
         once (a corrupted image raises MapError instead of being matched)."""
-        if self.lazy_digests is None or self._checked[image_id]:
-            return
         a, b = int(self.offsets[image_id]), int(self.offsets[image_id + 1])
-        if _image_digest(self.codes[a:b], self.keypoints[a:b]) != \
-                bytes(self.lazy_digests[image_id]):
-            raise MapError(f"{self.path}: image {image_id} ('{self.image_names[image_id]}') "
-                           "does not match its digest, the file is corrupted; rebuild the map")
-        self._checked[image_id] = True
+        self._verify(image_id, self.lazy_digests, self._checked, self.codes[a:b],
+                     self.keypoints[a:b], "does not match its digest", "rebuild the map")
 
     def _check_second(self, image_id: int) -> None:
         """``_check_image`` for the second feature set."""
         s = self.second
         assert s is not None
-        if s.lazy_digests is None or self._checked2[image_id]:
-            return
         rows = s.rows(image_id)
-        if _image_digest(s.codes[rows], s.keypoints[rows]) != bytes(s.lazy_digests[image_id]):
-            raise MapError(f"{self.path}: the XFeat features of image {image_id} "
-                           f"('{self.image_names[image_id]}') do not match their digest, the "
-                           f"file is corrupted; {REBUILD_DUAL}")
-        self._checked2[image_id] = True
+        self._verify(image_id, s.lazy_digests, self._checked2, s.codes[rows], s.keypoints[rows],
+                     "has XFeat features that do not match their digest", REBUILD_DUAL)
+
+    def _verify(self, image_id: int, digests: np.ndarray | None, checked: np.ndarray,
+                codes: np.ndarray, keypoints: np.ndarray, defect: str, remedy: str) -> None:
+        if digests is None or checked[image_id]:
+            return
+        if _image_digest(codes, keypoints) != bytes(digests[image_id]):
+            raise MapError(f"{self.path}: image {image_id} ('{self.image_names[image_id]}') "
+                           f"{defect}, the file is corrupted; {remedy}")
+        checked[image_id] = True
 
     @property
     def n_layers(self) -> int:
