@@ -85,3 +85,18 @@ def test_the_service_loads_its_maps_with_the_setting(tmp_path, small_map: RouteM
         assert svc.maps["small"].uses_words
     finally:
         svc.close()
+
+
+def test_a_learned_version_keeps_the_matcher(tmp_path, small_map: RouteMap,
+                                             sunny2_features) -> None:
+    """A new map version written by learning (an experience) is loaded with the same matcher
+    (the service serves it in place of the old one)."""
+    from service.maps.experiences import NewImage, add_experience
+
+    assert small_map.path is not None
+    m = load_map(save_map(small_map, tmp_path / "small"), matcher="words")
+    f = sunny2_features[10]
+    new, _ = add_experience(m, tmp_path / "small.swmap", "e1",
+                            [NewImage(f.codes, f.keypoints, m.positions[10] + 0.1, "e1/1")],
+                            condition=None, robot=None, now=0.0, budget_bytes=10**9)
+    assert new.n_images == m.n_images + 1 and new.uses_words

@@ -146,7 +146,7 @@ def _rewrite(m: RouteMap, path: Path, keep: np.ndarray, new: Sequence[NewImage],
     new1 = [(f.codes, np.asarray(f.keypoints, np.float32)) for f in new]
     out = write_map(path, m.name, meta, positions, names, layers, counts,
                     _chunks(m.codes, m.keypoints, m.offsets, kept, new1), place, second)
-    return load_map(out, verify=True)
+    return load_map(out, verify=True, matcher=m.matcher)  # a new version, the same matcher
 
 
 def _chunks(codes: np.ndarray, keypoints: np.ndarray, offsets: np.ndarray, kept: np.ndarray,
