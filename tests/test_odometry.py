@@ -188,3 +188,30 @@ def test_a_located_position_the_odometry_contradicts_waits_for_a_second_one() ->
     # off, or no prediction yet (the reported position restarted): taken
     assert gate.admit(np.array([50.0, 0.0]), pred, 0.6, 0.0)
     assert gate.admit(np.array([50.0, 0.0]), None, 0.6, 1.5)
+
+
+def test_a_move_made_by_a_look_alike_is_undone_by_the_track_before_it() -> None:
+    """Regression (seed 11, cloudy frames 66-78): two frames in a row located 0.35 m apart
+    at a look-alike 5.4 m behind the odometry's prediction were taken as a move, and the
+    estimate stayed 4-6 m off for ten frames although a located frame on the old track came
+    four frames later. For ``keep_frames`` frames after a move, a located frame on the track
+    the odometry carried before it (moved by the same steps) undoes the move."""
+    step = np.array([0.6, 0.0])
+    gate, pred = LocatedGate(), np.array([10.0, 0.0])
+    assert not gate.admit(np.array([4.6, 0.0]), pred, 0.6, 1.5)  # the look-alike
+    pred = pred + step
+    assert gate.admit(np.array([4.9, 0.2]), pred, 0.6, 1.5) and gate.moved  # again: a move
+    new = np.array([4.9, 0.2])  # the reported position restarts there
+    for _ in range(2):  # two frames not located, both tracks carried by the odometry
+        new, pred = new + step, pred + step
+        assert gate.admit(None, new, 0.6, 1.5)
+    new, pred = new + step, pred + step
+    # located on the old track, 5.6 m from the new one: the move is undone
+    assert gate.admit(pred + np.array([0.3, -0.2]), new, 0.6, 1.5) and gate.moved
+    # nor one older than keep_frames frames
+    gate, pred = LocatedGate(), np.array([10.0, 0.0])
+    assert not gate.admit(np.array([4.6, 0.0]), pred, 0.6, 1.5)
+    assert gate.admit(np.array([4.9, 0.2]), pred, 0.6, 1.5) and gate.moved
+    for _ in range(LocatedGate.keep_frames):
+        assert gate.admit(None, new, 0.6, 1.5)
+    assert not gate.admit(pred, new, 0.6, 1.5)

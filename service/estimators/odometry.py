@@ -191,7 +191,14 @@ class LocatedGate:
     only: after a kidnap the odometry's map heading is wrong). One wrong match (an
     unmatchable stretch's look-alike image) then moves nothing; images that keep saying
     another place (the odometry's drift, a kidnap) are taken at the second frame, and then
-    in full (``moved``: the reported position restarts there, the heading fit forgets)."""
+    in full (``moved``: the reported position restarts there, the heading fit forgets).
+
+    A move can be wrong: two frames in a row located at the same look-alike agree with each
+    other. For ``keep_frames`` frames after a move, the track the odometry carried before it
+    is kept (as its offset from the new track: the same odometry steps move both); a
+    located frame that contradicts the new track but lies within ``gate_m`` of the old one
+    undoes the move (one located frame and the odometry's track against the two frames
+    that made it)."""
 
     keep_frames = 5
 
@@ -199,6 +206,11 @@ class LocatedGate:
         self.reset()
 
     def reset(self) -> None:
+        self._clear_pending()
+        self.undo: np.ndarray | None = None  # the track before the last move, from the
+        self.undo_age = 0  # prediction (m); frames since the move
+
+    def _clear_pending(self) -> None:
         self.pending: np.ndarray | None = None  # the last located position held back, m
         self.pending_age = 0  # frames since
         self.pending_travel = 0.0  # odometry distance travelled since, m
@@ -214,13 +226,24 @@ class LocatedGate:
             self.pending_age += 1
             self.pending_travel += travel
             if self.pending_age > self.keep_frames:
-                self.reset()
-        if located is None or predicted is None or gate_m <= 0 or \
-                float(np.linalg.norm(located - predicted)) <= gate_m:
+                self._clear_pending()
+        if self.undo is not None:
+            self.undo_age += 1
+            if self.undo_age > self.keep_frames:
+                self.undo = None
+        if located is None or predicted is None or gate_m <= 0:
+            return True
+        if float(np.linalg.norm(located - predicted)) <= gate_m:
+            return True
+        if self.undo is not None and \
+                float(np.linalg.norm(located - (predicted + self.undo))) <= gate_m:
+            self._clear_pending()  # back on the track the odometry carried before the move
+            self.undo, self.moved = None, True
             return True
         if self.pending is not None and float(np.linalg.norm(located - self.pending)) \
                 <= self.pending_travel + 0.5 * gate_m:
-            self.reset()
+            self._clear_pending()
+            self.undo, self.undo_age = predicted - located, 0
             self.moved = True
             return True
         self.pending, self.pending_age, self.pending_travel = np.array(located, float), 0, 0.0
