@@ -215,3 +215,17 @@ def test_a_move_made_by_a_look_alike_is_undone_by_the_track_before_it() -> None:
     for _ in range(LocatedGate.keep_frames):
         assert gate.admit(None, new, 0.6, 1.5)
     assert not gate.admit(pred, new, 0.6, 1.5)
+
+
+def test_a_gate_stored_before_the_undo_still_admits_frames() -> None:
+    """A durable session written by the version before the undo: its gate's state has no
+    ``undo`` (the state codec sets only the stored attributes); it goes on working."""
+    from service.engine.state_codec import dumps, loads
+
+    old = LocatedGate()
+    del old.undo, old.undo_age  # what that version stored
+    back = loads(dumps({"gate": old}))["gate"]
+    pred = np.array([10.0, 0.0])
+    assert back.admit(pred + 0.2, pred, 1.0, 1.5)
+    assert not back.admit(pred + 5.0, pred, 1.0, 1.5)  # held back, as before
+    assert back.admit(pred + 5.5, pred, 1.0, 1.5) and back.moved  # the second agrees: a move

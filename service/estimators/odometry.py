@@ -201,14 +201,18 @@ class LocatedGate:
     that made it)."""
 
     keep_frames = 5
+    # class defaults: a gate stored by a version without the undo (a durable session from
+    # before it) reads these until its first move
+    undo: np.ndarray | None = None  # the track before the last move, from the prediction (m)
+    undo_age = 0  # frames since the move
 
     def __init__(self) -> None:
         self.reset()
 
     def reset(self) -> None:
         self._clear_pending()
-        self.undo: np.ndarray | None = None  # the track before the last move, from the
-        self.undo_age = 0  # prediction (m); frames since the move
+        self.undo = None
+        self.undo_age = 0
 
     def _clear_pending(self) -> None:
         self.pending: np.ndarray | None = None  # the last located position held back, m
