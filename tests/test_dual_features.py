@@ -19,10 +19,12 @@ from client.cli import app
 from client.dataset import Round
 from client.lab.world import World
 from service.api.models import SessionConfig
+from service.api.params import DPSOParams
 from service.api.round_format import camera_from_hfov
 from service.engine.experience_writer import Batch
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
+from service.estimators.lost_detection import DistinctnessMonitor
 from service.maps.experiences import NewImage, add_experience, remove_experience
 from service.maps.route_map import (
     MAGIC,
@@ -34,6 +36,7 @@ from service.maps.route_map import (
 )
 from service.settings import Settings
 from service.vision.features import DualParams, SiftParams, extract, named_params
+from service.vision.fusion import Fusion
 from service.vision.xfeat import XFeatParams
 
 DUAL = "clahe-rootsift+xfeat"
@@ -95,11 +98,8 @@ def test_a_dual_map_round_trips_both_sets_as_format_5(dual_map: RouteMap,
     np.testing.assert_array_equal(dual_map.similarity(img, ids), lazy.similarity(img, ids))
     first, second = dual_map.type_similarities(img, ids)
     assert int(np.argmax(first)) == int(np.argmax(second)) == 7
-    mapped = fusion.first_chance + (second - fusion.second_chance) * (
-        (fusion.first_typical - fusion.first_chance)
-        / (fusion.second_typical - fusion.second_chance))
-    np.testing.assert_allclose(dual_map.similarity(img, ids),
-                               np.maximum((first + mapped) / 2, 0))
+    np.testing.assert_allclose(dual_map.similarity(img, ids), (
+        first + second * fusion.first_typical / fusion.second_typical) / 2)
     with pytest.raises(ValueError, match=r"two feature types.*Features"):
         dual_map.similarity(img.codes, ids)  # codes alone cannot be fused
 
@@ -280,3 +280,48 @@ def test_the_http_api_accepts_the_name(server) -> None:
     r = httpx.post(f"{server['url']}/maps/dualbuilt/build", content=b"",
                    params={"features": "surf"}, headers={"content-type": "application/zip"})
     assert r.status_code == 422 and DUAL in r.text
+
+
+def test_a_wrong_place_does_not_stand_out_on_the_fused_scale(dual_map: RouteMap,
+                                                             cloudy1: Round) -> None:
+    """Lost detection on a dual map (issue 28, dusk): the fused m keeps XFeat's chance level
+    (zero stays zero), so DPSO's ratio to the far images (``distinct_ratio``) means "times
+    chance" as on a single-type map. Mapping XFeat's chance level onto RootSIFT's ~0 (the
+    first rule) made the best-looking wrong place of every darkened frame stand out."""
+    fusion = dual_map.fusion
+    assert fusion is not None and fusion.rule == "mean-scaled"
+    p = DPSOParams()
+    rng = np.random.default_rng(0)
+    pos = np.asarray(dual_map.positions)
+    ids = np.arange(dual_map.n_images)
+    frames = range(5, len(cloudy1) - 5, 7)
+    true_good = wrong_good = 0
+    for i in frames:  # cloudy frames darkened towards dusk
+        img = cloudy1.load_image(i).astype(float) * 0.25 + rng.normal(0, 2.0, (240, 320))
+        f = extract(np.clip(img, 0, 255).astype(np.uint8), dual_map.feature_params)
+        m = dual_map.similarity(f, ids)
+        truth = np.asarray(cloudy1.xy[i])
+        far = np.linalg.norm(pos - truth, axis=1) > 15.0
+        wrong = pos[far][int(np.argmax(m[far]))]  # the best-looking place elsewhere
+        for where, good_at_truth in ((truth, True), (wrong, False)):
+            monitor = DistinctnessMonitor(p.distinct_ratio, p.distinct_floor_m,
+                                          p.distinct_far_m, p.ema_alpha)
+            ev = monitor.judge(pos, m, where, p.species_radius_m)
+            true_good += ev.good and good_at_truth
+            wrong_good += ev.good and not good_at_truth
+    assert true_good >= len(frames) - 2  # the right place still stands out
+    assert wrong_good <= 0.7 * len(frames)  # mean-affine: every one of them (20 of 20)
+
+
+def test_a_map_of_the_first_fusion_rule_fuses_as_it_did() -> None:
+    """Maps built with ``mean-affine`` keep their similarities bit for bit; an unknown rule
+    is refused."""
+    old = Fusion(0.002, 0.3, 0.025, 0.5, "mean-affine")
+    first, second = np.array([0.0, 0.1, 0.0]), np.array([0.01, 0.3, 0.05])
+    mapped = 0.002 + (second - 0.025) * (0.3 - 0.002) / (0.5 - 0.025)
+    np.testing.assert_array_equal(old.fuse(first, second),
+                                  np.maximum((first + mapped) / 2.0, 0.0))
+    new = Fusion.from_dict({**old.as_dict(), "rule": "mean-scaled"})
+    np.testing.assert_allclose(new.fuse(first, second), (first + second * 0.6) / 2.0)
+    with pytest.raises(ValueError, match=r"unknown fusion rule 'max'.*mean-scaled"):
+        Fusion(0.002, 0.3, 0.025, 0.5, "max")
