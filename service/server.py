@@ -216,11 +216,13 @@ def free_ports(n: int, host: str = "127.0.0.1") -> list[int]:
         found: list[int] = []
         for k in range(hi - lo):
             port = lo + (start - lo + k) % (hi - lo)
-            s = stack.enter_context(socket.socket())
+            s = socket.socket()
             try:
                 s.bind((host, port))
             except OSError:
+                s.close()  # a taken port's socket is not held: a full range has many
                 continue
+            stack.enter_context(s)
             found.append(port)
             if len(found) == n:
                 return found

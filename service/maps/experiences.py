@@ -139,11 +139,11 @@ def _rewrite(m: RouteMap, path: Path, keep: np.ndarray, new: Sequence[NewImage],
             raise MapError(f"map '{m.name}' holds two feature types: the learned images "
                            f"{missing[:3]} lack the second set (XFeat)")
         s2 = m.second
-        new2 = [(np.asarray(f.codes2), np.asarray(f.keypoints2, np.float32)) for f in new]
+        new2 = [(np.asarray(f.codes2), np.asarray(f.keypoints2)) for f in new]
         counts2 = np.concatenate([np.diff(s2.offsets)[kept], [len(c) for c, _ in new2]]
                                  ).astype(np.int64)
         second = (counts2, _chunks(s2.codes, s2.keypoints, s2.offsets, kept, new2))
-    new1 = [(f.codes, np.asarray(f.keypoints, np.float32)) for f in new]
+    new1 = [(f.codes, f.keypoints) for f in new]
     out = write_map(path, m.name, meta, positions, names, layers, counts,
                     _chunks(m.codes, m.keypoints, m.offsets, kept, new1), place, second)
     return load_map(out, verify=True, matcher=m.matcher)  # a new version, the same matcher
