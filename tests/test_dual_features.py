@@ -18,10 +18,11 @@ from typer.testing import CliRunner
 from client.cli import app
 from client.dataset import Round
 from client.lab.world import World
-from service.api.models import SessionConfig
+from service.api.models import PosePrior, SessionConfig
 from service.api.params import DPSOParams
 from service.api.round_format import camera_from_hfov
 from service.engine.experience_writer import Batch
+from service.engine.learning import Learner, LearnGates
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
 from service.estimators.lost_detection import DistinctnessMonitor
@@ -37,6 +38,7 @@ from service.maps.route_map import (
 from service.settings import Settings
 from service.vision.features import DualParams, SiftParams, extract, named_params
 from service.vision.fusion import Fusion
+from service.vision.map_geometry import GeometryParams
 from service.vision.xfeat import XFeatParams
 
 DUAL = "clahe-rootsift+xfeat"
@@ -325,3 +327,50 @@ def test_a_map_of_the_first_fusion_rule_fuses_as_it_did() -> None:
     np.testing.assert_allclose(new.fuse(first, second), (first + second * 0.6) / 2.0)
     with pytest.raises(ValueError, match=r"unknown fusion rule 'max'.*mean-scaled"):
         Fusion(0.002, 0.3, 0.025, 0.5, "max")
+
+
+def test_the_learner_locates_a_dark_frame_with_the_second_set(dual_map: RouteMap,
+                                                              sunny2: Round) -> None:
+    """Gate 4 on a map of two types: where RootSIFT's geometry cannot locate a dark frame,
+    XFeat's does, at its true place; the localizer keeps RootSIFT's (``geometry``)."""
+    assert dual_map.second_geometry is not None
+    learner = Learner(LearnGates(1.5, 0.4, 40), lambda *a: None)
+    rng = np.random.default_rng(0)
+    p = GeometryParams()
+    by_first = by_learner = 0
+    frames = range(20, len(sunny2) - 20, 15)
+    for i in frames:
+        img = sunny2.load_image(i).astype(float) * 0.05 + rng.normal(0, 1.5, (240, 320))
+        f = extract(np.clip(img, 0, 255).astype(np.uint8), dual_map.feature_params)
+        truth = np.asarray(sunny2.xy[i], float)
+        near = int(dual_map.nearest(truth[None, :])[0][0])
+        by_first += dual_map.geometry.locate(f, near, p) is not None  # type: ignore[union-attr]
+        at = learner._located(dual_map, f, truth)
+        by_learner += bool(at is not None and np.linalg.norm(at - truth) <= 1.0)
+    assert by_first <= len(frames) // 4  # RootSIFT's matches cannot locate the dark frames
+    assert by_learner >= len(frames) // 2
+
+
+def test_a_confidently_wrong_session_on_a_dual_map_learns_nothing(
+        dual_map: RouteMap, sunny1: Round, cloudy1: Round, tmp_path: Path) -> None:
+    """The poisoning case of tests/test_experiences.py on a map of two types (gate 4 tries
+    XFeat's geometry too): frames with a forced prior half the route away teach nothing."""
+    assert dual_map.path is not None
+    (tmp_path / "dual.swmap").write_bytes(dual_map.path.read_bytes())
+    svc = LocalizationService(Settings(maps_dir=tmp_path, zenoh_enabled=False,
+                                       session_store="memory", learn_commit_images=5))
+    try:
+        svc.put_session("liar", SessionConfig(map="dual", learn=True, condition="cloudy"))
+        xy, n = sunny1.xy, len(sunny1.xy)
+        for i in range(30):
+            there = xy[(i + n // 2) % n]
+            svc.process_frame("liar", cloudy1.image_path(i).read_bytes(), t=float(i),
+                              prior=PosePrior(x=float(there[0]), y=float(there[1]),
+                                              radius=1.0))
+        stats = svc.learner.stats("liar")
+        svc.delete_session("liar")
+        assert svc.writer.wait(120)
+        assert stats["seen"] == 30 and stats.get("taught", 0) == 0, stats
+        assert svc.map_summary("dual").experiences == []
+    finally:
+        svc.close()

@@ -290,6 +290,26 @@ def test_learner_gates_need_a_continuous_path() -> None:
                        "path", None]
 
 
+def test_a_tracked_frame_above_the_accuracy_gate_keeps_the_path() -> None:
+    """Gate 1 on a tracked frame whose accuracy_m is above the gate: it stays on the path
+    (gate 2 holds for the frames after it) and is stopped as ``accuracy``: it teaches only
+    where the learner's own geometry locates it (Learner.observe)."""
+
+    def est(seq: int, x: float, accuracy: float) -> Estimate:
+        return Estimate(seq=seq, stamp=None, frame_id="m", estimator="dpso", x=x, y=0.0,
+                        heading=0.0, speed=0.0, status="tracking", lost=False, score=0.5,
+                        comparisons=1, covariance=[[0.1, 0], [0, 0.1]],
+                        pose_covariance=[0.0] * 36, accuracy_m=accuracy, nearest_image=0,
+                        nearest_image_name="x", spread_m=0.1)
+
+    path: LearnPath = []
+    stopped = []
+    for e in (est(1, 0.0, 0.5), est(2, 0.6, 1.7), est(3, 1.2, 1.7), est(4, 1.8, 0.5)):
+        path, gate = path_gate(path, e, 1.5)
+        stopped.append(gate)
+    assert stopped == ["path", "path", "accuracy", None]
+
+
 def test_a_robot_behind_an_http_round_robin_teaches_its_map(
         camera_maps: Path, tmp_path: Path, cloudy1: Round, redis_srv, rdb) -> None:
     """Two replicas on one Redis store and one maps directory; the learning robot's frames

@@ -3,16 +3,19 @@
 A session created with ``learn`` hands each estimate to ``Learner.observe``. A frame teaches
 only when every gate holds (a kidnapped or lost robot never does):
 
-1. the estimate is ``tracking`` with ``accuracy_m`` at most ``learn_accuracy_m``;
-2. it agrees with the recent path: the two frames before were taught-worthy estimates of the
-   same session, and the constant-velocity prediction from them lies within ``PATH_TOLERANCE_M``;
+1. the estimate is ``tracking`` with ``accuracy_m`` at most ``learn_accuracy_m`` or, where it
+   is tracking with a larger ``accuracy_m``, gate 4 locates it (the learner's own two-view
+   geometry confirms the estimate within ``LOCATED_TOLERANCE_M``);
+2. it agrees with the recent path: the two frames before were tracked estimates of the same
+   session, and the constant-velocity prediction from them lies within ``PATH_TOLERANCE_M``;
 3. the map's layers match it weakly there: the best similarity of the nearest image of every
    layer near the estimate is below ``learn_weak_ratio`` of the map's same-light level (the
    median similarity of its consecutive images, ``same_light_level``), so the frame adds a
    new appearance;
 4. where the map has the camera, two-view geometry locates the frame at one of those images,
-   within ``LOCATED_TOLERANCE_M`` of the estimate; the located position is the image's
-   position in the experience (the estimate where the map has no camera).
+   within ``LOCATED_TOLERANCE_M`` of the estimate (on a map of two feature types with either
+   type's matches); the located position is the image's position in the experience (the
+   estimate where the map has no camera).
 
 Taught frames are kept (one per place) until ``learn_commit_images`` are collected or the
 session ends or is reset; then the map admin writes them into the map as a new version
@@ -109,9 +112,11 @@ LearnPath = list[tuple[int, float, float]]  # (estimate seq, x, y) of the last t
 
 def path_gate(path: LearnPath, est: Estimate, accuracy_m: float) -> tuple[LearnPath, str | None]:
     """Gates 1 and 2 of a frame: the session's new path, and the gate that stops the frame
-    (``confident`` or ``path``; None: it passes). The path holds the frames that passed gate 1,
-    cleared by one that does not."""
-    if est.status != "tracking" or est.lost or est.accuracy_m > accuracy_m:
+    (``confident``, ``path`` or ``accuracy``; None: it passes). The path holds the tracked
+    frames, cleared by one that is not tracked (``confident``). ``accuracy``: a tracked frame
+    on the path whose ``accuracy_m`` is above ``accuracy_m``; it teaches only where the
+    learner's own two-view geometry locates it (``Learner.observe``)."""
+    if est.status != "tracking" or est.lost:
         return [], "confident"
     new = [*path, (est.seq, est.x, est.y)][-2:]
     if len(path) < 2 or path[0][0] != est.seq - 2 or path[1][0] != est.seq - 1:
@@ -119,7 +124,7 @@ def path_gate(path: LearnPath, est: Estimate, accuracy_m: float) -> tuple[LearnP
     predicted = 2 * np.array(path[1][1:]) - np.array(path[0][1:])
     if float(np.linalg.norm(predicted - np.array([est.x, est.y]))) > PATH_TOLERANCE_M:
         return new, "path"
-    return new, None
+    return new, ("accuracy" if est.accuracy_m > accuracy_m else None)
 
 
 def same_light_level(m: RouteMap) -> float:
@@ -196,14 +201,16 @@ class Learner:
             t.seen += 1
             t.last_seen = time.monotonic()
             xy = np.array([est.x, est.y])
-            if stopped is not None:
-                t.refuse(stopped)
+            if stopped not in (None, "accuracy"):
+                t.refuse(str(stopped))
                 return
         at: np.ndarray | None = None
         gate: str | None = "appearance"
         if self._new_appearance(m, features, xy):
             at = self._located(m, features, xy)
             gate = None if at is not None else "located"
+            if stopped == "accuracy" and (gate is not None or m.geometry is None):
+                gate = "confident"  # neither the estimate nor the geometry is sure of it
         with self._lock:
             radius = PLACE_SPACINGS * base_spacing(m)
             if gate is None and any(float(np.linalg.norm(f.xy - xy)) < radius
@@ -251,10 +258,15 @@ class Learner:
 
     def _located(self, m: RouteMap, features: Features, xy: np.ndarray) -> np.ndarray | None:
         """Gate 4: where the geometry places the frame, near the estimate; None where it does
-        not (maps without the camera: the estimate, the gate does not apply)."""
+        not (maps without the camera: the estimate, the gate does not apply). On a map of two
+        feature types an image the first set (RootSIFT) does not locate the frame at is tried
+        with the second (XFeat)."""
         geometry = m.geometry
         if geometry is None:
             return xy
+        tries = [(geometry, features)]
+        if m.second_geometry is not None and features.second is not None:
+            tries.append((m.second_geometry, features.second))
         ids = self._near_images(m, xy)
         order = ids[np.argsort(-m.similarity(features, ids), kind="stable")]
         p = GeometryParams()
@@ -262,13 +274,17 @@ class Learner:
         for image in order[:GEOMETRY_TRIES]:
             image = int(image)
             tangent = path_tangent(m.positions, image, spacing)
-            off = geometry.locate(features, image, p) if tangent is not None else None
-            if off is None or tangent is None:
+            if tangent is None:
                 continue
             right = np.array([tangent[1], -tangent[0]])
-            at = m.positions[image] + off.right_m * right + off.ahead_m * tangent
-            if np.isfinite(at).all() and float(np.linalg.norm(at - xy)) <= LOCATED_TOLERANCE_M:
-                return np.asarray(at, float)
+            for geo, feats in tries:
+                off = geo.locate(feats, image, p)
+                if off is None:
+                    continue
+                at = m.positions[image] + off.right_m * right + off.ahead_m * tangent
+                if np.isfinite(at).all() and \
+                        float(np.linalg.norm(at - xy)) <= LOCATED_TOLERANCE_M:
+                    return np.asarray(at, float)
         return None
 
     def flush(self, robot_id: str, end: bool = False) -> None:
