@@ -301,7 +301,7 @@ class SessionState:
     last_input_seq: int | None = None  # the robot's seq of the last applied frame
     learn: bool = False  # the session's confident frames teach its map (experiences)
     condition: str | None = None  # the light of its frames, as the robot gave it
-    # a learning session's last two frames that passed gate 1 (service/engine/learning.py
+    # a learning session's last two tracked frames (service/engine/learning.py
     # ``path_gate``): (estimate seq, x, y); kept here so that any replica continues the path
     learn_path: list[tuple[int, float, float]] = field(default_factory=list)
 
