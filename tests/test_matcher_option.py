@@ -100,3 +100,21 @@ def test_a_learned_version_keeps_the_matcher(tmp_path, small_map: RouteMap,
                             [NewImage(f.codes, f.keypoints, m.positions[10] + 0.1, "e1/1")],
                             condition=None, robot=None, now=0.0, budget_bytes=10**9)
     assert new.n_images == m.n_images + 1 and new.uses_words
+
+
+def test_the_lab_keeps_the_words_similarities_apart_from_the_exact_ones(
+        tmp_path, camera_map: RouteMap, sunny2) -> None:
+    """`swarmloc experiment --matcher words` caches its similarity table beside the exact
+    one, never in it: the same map checksum must not hand the exact scores to the words
+    runs (or the reverse)."""
+    from client.lab.experiment_cli import cached_table, save_table
+
+    (tmp_path / ".maps").mkdir()
+    exact = cached_table(tmp_path, camera_map, sunny2)
+    exact.table[:] = 0.5  # a filled exact table, as a finished run leaves it
+    save_table(exact)
+    words = cached_table(tmp_path, camera_map.with_words(k=16), sunny2)
+    assert words.cache_path != exact.cache_path
+    assert np.isnan(words.table).all()  # nothing of the exact run's scores
+    again = cached_table(tmp_path, camera_map, sunny2)
+    assert np.all(again.table == 0.5)

@@ -54,7 +54,8 @@ def cached_table(dataset: Path, m: RouteMap, rnd: Round) -> SimilarityTable:
     from client.lab.experiments import SimilarityTable
 
     table = SimilarityTable.from_round(m, rnd)
-    path = dataset / ".maps" / f"{m.meta['checksum'][:16]}-{rnd.name}.table.npy"
+    kind = "-words" if m.uses_words else ""  # the words matcher's similarities differ
+    path = dataset / ".maps" / f"{m.meta['checksum'][:16]}{kind}-{rnd.name}.table.npy"
     if path.is_file():
         saved = np.load(path)
         if saved.shape == table.table.shape:
@@ -128,12 +129,16 @@ def experiment(
         help="feature type of the map for our estimators: clahe-rootsift, xfeat or "
              "clahe-rootsift+xfeat (the papers' variants always use the papers' SIFT)")]
     = "clahe-rootsift",
+    matcher: Annotated[str, typer.Option(
+        help="matcher of our maps: exact, or words (the inverted file, SWARMLOC_MATCHER)")]
+    = "exact",
 ) -> None:
     """Every estimator's error (mean, median, within 5 m), comparisons, share of frames in
     recovery, accuracy_m calibration (tracked frames within it), honesty (frames with error
     > 10 m reported lost or recovering), speed error and kidnap recovery (back within 5 m
     for 5 frames)."""
     from client.dataset import read_round
+    from service.api.models import MATCHERS
     from service.vision.features import FEATURE_TYPES
 
     chosen = [x for x in methods.split(",") if x]
@@ -143,8 +148,12 @@ def experiment(
     if features not in FEATURE_TYPES:
         raise typer.BadParameter(f"unknown feature type {features!r}; choose from "
                                  f"{list(FEATURE_TYPES)}")
+    if matcher not in MATCHERS:
+        raise typer.BadParameter(f"unknown matcher {matcher!r}; choose from {list(MATCHERS)}")
     maps = {papers: map_for(dataset, map_round, papers, features)
             for papers in {METHODS[c].papers_map for c in chosen}}
+    if matcher == "words" and False in maps:
+        maps[False] = maps[False].with_words()
     for q in [x for x in query.split(",") if x]:
         rnd = read_round(dataset / q)
         tables = {papers: cached_table(dataset, m, rnd) for papers, m in maps.items()}
