@@ -54,7 +54,8 @@ def cached_table(dataset: Path, m: RouteMap, rnd: Round) -> SimilarityTable:
     from client.lab.experiments import SimilarityTable
 
     table = SimilarityTable.from_round(m, rnd)
-    kind = "-words" if m.uses_words else ""  # the words matcher's similarities differ
+    # the words matcher's similarities differ (and with its exact pass on the best images)
+    kind = (f"-words{m.exact_top or ''}" if m.uses_words else "")
     path = dataset / ".maps" / f"{m.meta['checksum'][:16]}{kind}-{rnd.name}.table.npy"
     if path.is_file():
         saved = np.load(path)
@@ -89,8 +90,9 @@ def _runs(m: RouteMap, table: SimilarityTable, rnd: Round, method: Method,
           starts: list[int], seed: int, kidnap: bool = False) -> list[Run]:
     from client.lab.experiments import run
 
-    return [run(m, table, rnd, method.estimator, method.params, seed=seed + k, start=s,
-                kidnap=kidnap) for k, s in enumerate(starts)]
+    return [run(m, table.fresh() if m.exact_top else table, rnd, method.estimator,
+                method.params, seed=seed + k, start=s, kidnap=kidnap)
+            for k, s in enumerate(starts)]
 
 
 def _kidnap(m: RouteMap, table: SimilarityTable, rnd: Round, method: Method,
@@ -132,6 +134,9 @@ def experiment(
     matcher: Annotated[str, typer.Option(
         help="matcher of our maps: exact, or words (the inverted file, SWARMLOC_MATCHER)")]
     = "exact",
+    exact_top: Annotated[int, typer.Option(
+        help="with --matcher words: the best N images of each comparison matched again "
+             "exactly")] = 0,
 ) -> None:
     """Every estimator's error (mean, median, within 5 m), comparisons, share of frames in
     recovery, accuracy_m calibration (tracked frames within it), honesty (frames with error
@@ -153,7 +158,7 @@ def experiment(
     maps = {papers: map_for(dataset, map_round, papers, features)
             for papers in {METHODS[c].papers_map for c in chosen}}
     if matcher == "words" and False in maps:
-        maps[False] = maps[False].with_words()
+        maps[False] = maps[False].with_words(exact_top=exact_top)
     for q in [x for x in query.split(",") if x]:
         rnd = read_round(dataset / q)
         tables = {papers: cached_table(dataset, m, rnd) for papers, m in maps.items()}

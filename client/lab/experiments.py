@@ -36,6 +36,12 @@ class SimilarityTable:
         params = route_map.feature_params
         return cls(route_map, [extract(rnd.load_image(i), params) for i in range(len(rnd))])
 
+    def fresh(self) -> SimilarityTable:
+        """An empty table of the same map and frames (a similarity that depends on which
+        images a frame compares together, the words matcher's exact pass, is not shared
+        between runs)."""
+        return SimilarityTable(self.map, self.queries)
+
     def scores(self, q: int, ids: np.ndarray) -> np.ndarray:
         row = self.table[q]
         missing = ids[np.isnan(row[ids])]
