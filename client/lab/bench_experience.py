@@ -28,7 +28,12 @@ from client.dataset import Round, read_round
 from service.engine.learning import LearnPath, path_gate
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
-from service.maps.experiences import experience_list
+from service.maps.experiences import (
+    GAP_SPACINGS,
+    base_spacing,
+    experience_layers,
+    experience_list,
+)
 from service.maps.route_map import RouteMap
 from service.settings import Settings
 from service.vision.features import Features, extract
@@ -41,6 +46,7 @@ class Replay:
     mean_error_m: float
     comparisons: float  # per frame
     frames: int
+    on_experience: float = 0.0  # share of the scored frames matched with an experience
 
 
 @dataclass(frozen=True)
@@ -55,6 +61,9 @@ class Case:
     file_growth_bytes: int
     budget_bytes: int
     learn_s: float
+    coverage: float  # share of round 2's frames within GAP_SPACINGS of a learned image
+    placed_m: float  # mean distance of the learned images from the truth (round 1's frames)
+    gates: dict[str, int]  # the teaching session's frames, taught and stopped by each gate
 
 
 def _features(rnd: Round, m: RouteMap, frames: int) -> list[Features]:
@@ -69,7 +78,7 @@ def replay(m: RouteMap, rnd: Round, feats: list[Features], *, seed: int = 0,
     written into the map when the run ends."""
     loc = Localizer(m, seed=seed)
     dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and len(rnd) > 1 else 1.0
-    est, comps = [], []
+    est, comps, on = [], [], []
     path: LearnPath = []
     for i, f in enumerate(feats):
         e = loc.step(f, t=i * dt)
@@ -79,19 +88,39 @@ def replay(m: RouteMap, rnd: Round, feats: list[Features], *, seed: int = 0,
             svc.learner.observe("teacher", 0.0, teach[1], m, f, e, stopped)
         est.append((e.x, e.y))
         comps.append(e.comparisons)
+        on.append(e.experience is not None)
     err = np.linalg.norm(np.array(est) - rnd.reference_xy[: len(est)], axis=1)[WARMUP:]
-    return Replay(float(err.mean()), float(np.mean(comps)), len(est))
+    return Replay(float(err.mean()), float(np.mean(comps)), len(est),
+                  float(np.mean(on[WARMUP:])) if len(on) > WARMUP else 0.0)
+
+
+def learned_fit(m: RouteMap, first: Round, second: Round, frames: int) -> tuple[float, float]:
+    """(coverage, placed): the share of round 2's first ``frames`` frames whose true place lies
+    within ``GAP_SPACINGS`` map spacings of a learned image, and the mean distance of the
+    learned images from the true place of the round-1 frames they came from (named
+    ``EXPERIENCE/SEQ``, SEQ counted from 1)."""
+    layers = set(experience_layers(m).values())
+    ids = np.flatnonzero(np.isin(np.asarray(m.layers), list(layers)))
+    if not len(ids):
+        return 0.0, float("nan")
+    truth = second.reference_xy[:frames]
+    d = np.min(np.linalg.norm(truth[:, None, :] - m.positions[ids][None, :, :], axis=2), axis=1)
+    coverage = float(np.mean(d <= GAP_SPACINGS * base_spacing(m)))
+    seqs = np.array([int(m.image_names[int(i)].rsplit("/", 1)[1]) - 1 for i in ids])
+    placed = float(np.mean(np.linalg.norm(m.positions[ids] - first.reference_xy[seqs], axis=1)))
+    return coverage, placed
 
 
 def run_case(dataset: Path, seed: int, condition: str, work: Path, budget_mb: float,
-             frames: int) -> Case:
-    """One world and condition: the four runs above, ``frames`` images of each round."""
+             frames: int, features: str = "clahe-rootsift") -> Case:
+    """One world and condition: the four runs above, ``frames`` images of each round;
+    ``features``: the maps' feature type (``clahe-rootsift+xfeat``: both, fused)."""
     from client.lab.experiment_cli import map_for
 
-    sunny = map_for(dataset, "sunny1", papers=False)
-    same = map_for(dataset, f"{condition}1", papers=False)
+    sunny = map_for(dataset, "sunny1", papers=False, features=features)
+    same = map_for(dataset, f"{condition}1", papers=False, features=features)
     first, second = (read_round(dataset / f"{condition}{k}") for k in (1, 2))
-    maps_dir = work / f"w{seed}-{condition}"
+    maps_dir = work / f"w{seed}-{condition}-{features}"
     shutil.rmtree(maps_dir, ignore_errors=True)
     maps_dir.mkdir(parents=True)
     assert sunny.path is not None
@@ -113,10 +142,14 @@ def run_case(dataset: Path, seed: int, condition: str, work: Path, budget_mb: fl
     learned = replay(m, second, test_feats)
     images = sum(int(e["images"]) for e in experience_list(m))
     growth = (maps_dir / "sunny1.swmap").stat().st_size - before
+    coverage, placed = learned_fit(m, first, second, frames)
     service.close()
-    print(f"seed {seed} {condition}: learning gates {stats}", flush=True)
+    print(f"seed {seed} {condition}: learning gates {stats}; coverage {coverage:.2f}, learned "
+          f"images {placed:.2f} m from the truth, frames on an experience "
+          f"{learned.on_experience:.2f}", flush=True)
     return Case(seed, condition, unlearned, learned, same_light, images,
-                stats.get("taught", 0), growth, int(budget_mb * 1024 * 1024), learn_s)
+                stats.get("taught", 0), growth, int(budget_mb * 1024 * 1024), learn_s,
+                coverage, placed, stats)
 
 
 def table(cases: list[Case]) -> str:
@@ -134,6 +167,22 @@ def table(cases: list[Case]) -> str:
             f"{100 * (c.learned.comparisons / c.unlearned.comparisons - 1):+.0f} % | "
             f"{c.learned_images} | {c.file_growth_bytes / 1e6:.1f} MB "
             f"({c.budget_bytes / 1e6:.0f} MB) |")
+    return "\n".join([head, *rows])
+
+
+GATES = ("confident", "path", "appearance", "located", "place")
+
+
+def gates_table(cases: list[Case]) -> str:
+    """The teaching session's frames: stopped by each gate (learning.py), taught; the learned
+    images' coverage of round 2 and distance from the truth; round 2's frames matched with an
+    experience."""
+    head = ("| world | light | frames | " + " | ".join(GATES) + " | taught | coverage | "
+            "learned images from the truth | frames on the experience |\n|" + "---|" * 12)
+    rows = [f"| seed {c.seed} | {c.condition} | {c.gates.get('seen', 0)} | "
+            + " | ".join(str(c.gates.get(g, 0)) for g in GATES)
+            + f" | {c.gates.get('taught', 0)} | {100 * c.coverage:.0f} % | {c.placed_m:.2f} m | "
+            f"{100 * c.learned.on_experience:.0f} % |" for c in cases]
     return "\n".join([head, *rows])
 
 

@@ -25,12 +25,20 @@ def register(bench_app: typer.Typer) -> None:
         frames: Annotated[int, typer.Option(help="images of each round (from its first)")]
         = 10_000,
         budget_mb: Annotated[float, typer.Option(help="SWARMLOC_EXPERIENCE_BUDGET_MB")] = 64.0,
+        features: Annotated[str, typer.Option(help="the maps' feature type: clahe-rootsift, "
+                                                   "xfeat or clahe-rootsift+xfeat (both)")]
+        = "clahe-rootsift",
         work: Annotated[Path, typer.Option(help="where the learning maps are written")]
         = Path("out/experiences"),
     ) -> None:
         """A sunny map learns one round of another light, then localizes a second round of it:
         errors against the unlearned map and a map in that light, comparisons, file growth."""
-        from client.lab.bench_experience import run_case, summary, table
+        from client.lab.bench_experience import gates_table, run_case, summary, table
+        from service.vision.features import FEATURE_TYPES
+
+        if features not in FEATURE_TYPES:
+            raise typer.BadParameter(f"unknown feature type {features!r}; choose one of "
+                                     f"{', '.join(FEATURE_TYPES)}")
 
         cases = []
         for seed in [int(s) for s in seeds.split(",") if s.strip()]:
@@ -40,7 +48,8 @@ def register(bench_app: typer.Typer) -> None:
                     raise typer.BadParameter(f"{world} has no round {cond}2; render it with "
                                              f"swarmloc world render {world} --seed {seed} "
                                              "--rounds sunny1,cloudy1,cloudy2,dusk1,dusk2")
-                cases.append(run_case(world, seed, cond, work, budget_mb, frames))
+                cases.append(run_case(world, seed, cond, work, budget_mb, frames, features))
                 typer.echo(table(cases[-1:]).splitlines()[-1], err=True)
         typer.echo(table(cases))
+        typer.echo(gates_table(cases))
         typer.echo(summary(cases))
