@@ -1,0 +1,191 @@
+"""Which frames far off are reported ``tracking``, and what the lost detection saw there.
+
+Replays ``swarmloc experiment``'s runs (``client.lab.experiments.run``, the same starts and
+seeds, the world's cached map and similarity table, read only: nothing is written) and records
+per frame the error, the status, ``accuracy_m`` and the lost detection's evidence (best m near
+the reported place, the far images' background, distinctiveness, good). For each frame more
+than ``WRONG_M`` off that is not flagged it prints where it lies in its excursion (the run of
+consecutive frames more than ``WRONG_M`` off) and the evidence of the frames around it.
+
+    PYTHONPATH=. python -m client.lab.honesty_study data/w7 --query dusk1 \
+        --features clahe-rootsift+xfeat [--param lost_frames=2] [--csv out.csv]
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+
+from client.runs import BAD_STATUS, WRONG_M, Run, run_metrics
+from service.estimators.lost_detection import DistinctnessMonitor, Evidence
+from service.estimators.multi_swarm_dpso import MultiSwarmDPSO
+
+app = typer.Typer(add_completion=False)
+
+
+@contextmanager
+def recorded_evidence() -> Iterator[tuple[list[Evidence], list[tuple[np.ndarray, Any]]]]:
+    """Every ``DistinctnessMonitor.judge`` verdict and every ``_located`` call (the image
+    estimate it was given, the located camera or None) while inside, in call order (one
+    each per DPSO frame)."""
+    seen: list[Evidence] = []
+    placed: list[tuple[np.ndarray, Any]] = []
+    judge = DistinctnessMonitor.judge
+    located = MultiSwarmDPSO._located
+
+    def spy(self: DistinctnessMonitor, *args: Any, **kwargs: Any) -> Evidence:
+        ev = judge(self, *args, **kwargs)
+        seen.append(ev)
+        return ev
+
+    def spy_located(self: MultiSwarmDPSO, fitness: Any, status: Any, pos: np.ndarray,
+                    *args: Any) -> Any:
+        out = located(self, fitness, status, pos, *args)
+        placed.append((np.array(pos, float), None if out is None else out[0]))
+        return out
+
+    DistinctnessMonitor.judge = spy  # type: ignore[method-assign]
+    MultiSwarmDPSO._located = spy_located  # type: ignore[method-assign]
+    try:
+        yield seen, placed
+    finally:
+        DistinctnessMonitor.judge = judge  # type: ignore[method-assign]
+        MultiSwarmDPSO._located = located  # type: ignore[method-assign]
+
+
+def excursions(wrong: np.ndarray) -> list[tuple[int, int]]:
+    """(first frame, length) of each stretch of consecutive True."""
+    out, start = [], None
+    for i, w in enumerate([*wrong.tolist(), False]):
+        if w and start is None:
+            start = i
+        elif not w and start is not None:
+            out.append((start, i - start))
+            start = None
+    return out
+
+
+def _value(raw: str) -> Any:
+    for cast in (int, float):
+        try:
+            return cast(raw)
+        except ValueError:
+            pass
+    return raw
+
+
+def _table(dataset: Path, m: Any, rnd: Any, features: str, query: str) -> Any:
+    """``cached_table``, with the query round's features kept in /tmp between runs of this
+    script (extraction dominates its time)."""
+    import pickle
+
+    from client.lab.experiment_cli import cached_table
+    from client.lab.experiments import SimilarityTable
+
+    keep = Path("/tmp") / f"honesty-{dataset.resolve().name}-{query}-{features}.pkl"
+    if not keep.is_file():
+        table = cached_table(dataset, m, rnd)
+        keep.write_bytes(pickle.dumps(table.queries))
+        return table
+    table = SimilarityTable(m, pickle.loads(keep.read_bytes()))
+    path = dataset / ".maps" / f"{m.meta['checksum'][:16]}-{rnd.name}.table.npy"
+    if path.is_file():
+        saved = np.load(path)
+        if saved.shape == table.table.shape:
+            table.table = saved
+    return table
+
+
+@app.command()
+def main(
+    dataset: Annotated[Path, typer.Argument(help="rendered world with .maps cached")],
+    map_round: Annotated[str, typer.Option("--map")] = "sunny1",
+    query: str = "dusk1",
+    features: str = "clahe-rootsift+xfeat",
+    starts: int = 4,
+    warmup: int = 20,
+    seed: int = 0,
+    param: Annotated[list[str] | None, typer.Option(help="DPSO parameter NAME=VALUE")] = None,
+    against: Annotated[list[str] | None, typer.Option(
+        help="NAME=VALUE: also replay with this parameter changed, on the same table")] = None,
+    csv_out: Annotated[Path | None, typer.Option("--csv")] = None,
+    context: Annotated[int, typer.Option(help="frames shown before each unflagged one")] = 3,
+) -> None:
+    from client.dataset import read_round
+    from client.lab.experiment_cli import map_for
+
+    params_v = {k: _value(v) for k, v in (x.split("=", 1) for x in (param or []))}
+    m = map_for(dataset, map_round, False, features)
+    rnd = read_round(dataset / query)
+    table = _table(dataset, m, rnd, features, query)  # read; never saved here
+    fusion = m.meta.get("fusion")
+    typer.echo(f"{dataset} {map_round} vs {query}, {features}, fusion "
+               f"{fusion.get('rule') if isinstance(fusion, dict) else '-'}")
+    variants = [params_v] + [{**params_v, k: _value(v)} for k, v in
+                             (x.split("=", 1) for x in (against or []))]
+    for n, pv in enumerate(variants):
+        rows = _study(m, table, rnd, pv, starts, warmup, seed, context)
+        if csv_out is not None and rows:
+            out = csv_out if n == 0 else csv_out.with_suffix(f".{n}.csv")
+            with out.open("w", newline="") as fh:
+                w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+                w.writeheader()
+                w.writerows(rows)
+
+
+def _study(m: Any, table: Any, rnd: Any, params_v: dict[str, Any], starts: int, warmup: int,
+           seed: int, context: int) -> list[dict[str, Any]]:
+    from client.lab.experiment_cli import _starts, metrics
+    from client.lab.experiments import run
+
+    typer.echo(f"params {params_v}")
+    runs: list[Run] = []
+    rows: list[dict[str, Any]] = []
+    for k, s in enumerate(_starts(len(rnd), starts)):
+        with recorded_evidence() as (evs, placed):
+            r = run(m, table, rnd, "dpso", params_v or None, seed=seed + k, start=s)
+        runs.append(r)
+        err = r.errors
+        for i in range(len(err)):
+            ev = evs[i]
+            img_pos, cam = placed[i]
+            jump = float("nan") if cam is None else float(np.linalg.norm(cam - img_pos))
+            img_err = float(np.linalg.norm(img_pos - r.true_xy[i]))
+            rows.append({"run": k, "i": i, "frame": int(r.frames[i]), "err": float(err[i]),
+                         "jump": jump, "img_err": img_err,
+                         "status": r.status[i], "acc": float(r.accuracy_m[i]),
+                         "best_m": ev.best_m, "bg": ev.background, "distinct": ev.distinct,
+                         "good": ev.good, "located": bool(r.located[i])})
+        mt = run_metrics(r, warmup)
+        wrong = err[warmup:] > WRONG_M
+        admits = np.isin(np.array(r.status[warmup:]), BAD_STATUS)
+        typer.echo(f"run {k} (start {s}): mean {mt['error_mean_m']:.2f} m, wrong "
+                   f"{int(wrong.sum())}, flagged {int((wrong & admits).sum())}, honesty "
+                   f"{mt['honesty']}")
+        for a, n in excursions(wrong):
+            a += warmup
+            typer.echo(f"  excursion frames {a}..{a + n - 1} ({n}): statuses "
+                       f"{[x[0] for x in r.status[a:a + n]]}")
+            for j in range(max(warmup, a - context), a + n):
+                row = rows[len(rows) - len(err) + j]
+                typer.echo(f"    {j:4d} err {row['err']:6.1f} {row['status']:11s} "
+                           f"acc {row['acc']:5.1f} best {row['best_m']:.4f} bg "
+                           f"{row['bg']:.4f} distinct {row['distinct']:6.2f} good "
+                           f"{int(row['good'])} located {int(row['located'])} jump "
+                           f"{row['jump']:5.1f} image estimate off {row['img_err']:5.1f}")
+    s = metrics(runs, warmup)
+    typer.echo(f"summary {params_v}: mean {s['error_mean_m']:.2f} median "
+               f"{s['error_median_m']:.2f} within 5 m {100 * s['within_5m']:.1f} % calib "
+               f"{100 * (s['calibration'] or 0):.1f} % honest {s['honesty']} recovering "
+               f"{100 * s['bad_status_share']:.1f} %")
+    return rows
+
+
+if __name__ == "__main__":
+    app()
