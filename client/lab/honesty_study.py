@@ -51,7 +51,7 @@ def recorded_evidence() -> Iterator[tuple[list[Evidence], list[tuple[np.ndarray,
         return out
 
     DistinctnessMonitor.judge = spy  # type: ignore[method-assign]
-    MultiSwarmDPSO._located = spy_located  # type: ignore[method-assign]
+    MultiSwarmDPSO._located = spy_located  # type: ignore[method-assign,assignment]
     try:
         yield seen, placed
     finally:
@@ -102,6 +102,32 @@ def _table(dataset: Path, m: Any, rnd: Any, features: str, query: str) -> Any:
     return table
 
 
+def _refused(dataset: Path, m: Any, query: str, rule: str, fused: np.ndarray) -> np.ndarray:
+    """The table of a two-type map under another fusion ``rule`` (set on ``m`` in memory):
+    each type's m from the single-type maps' cached tables (the same matchers, the same
+    values), completed from the recorded rule's fused values where those invert exactly
+    (``mean-affine`` above its clip at 0); NaN (computed on use) elsewhere."""
+    from service.maps.route_map import load_map
+    from service.vision.fusion import Fusion
+
+    old = Fusion.from_dict(m.meta["fusion"])
+    singles = []
+    for name in ("sunny1", "sunny1-xfeat"):
+        single = load_map(dataset / ".maps" / f"{name}.swmap")
+        path = dataset / ".maps" / f"{single.meta['checksum'][:16]}-{query}.table.npy"
+        singles.append(np.load(path) if path.is_file() else np.full(fused.shape, np.nan))
+    first, second = singles
+    if old.rule == "mean-affine":
+        k = 2 * fused - old.first_chance + old.slope * old.second_chance  # = m1 + slope m2
+        ok = fused > 0
+        second = np.where(ok & np.isnan(second), (k - first) / old.slope, second)
+        first = np.where(ok & np.isnan(first), k - old.slope * second, first)
+    m.meta["fusion"] = {**m.meta["fusion"], "rule": rule}
+    m.__dict__.pop("fusion", None)  # a cached_property: parsed again with the new rule
+    new = Fusion.from_dict(m.meta["fusion"])
+    return np.asarray(new.fuse(first, second), np.float64)
+
+
 @app.command()
 def main(
     dataset: Annotated[Path, typer.Argument(help="rendered world with .maps cached")],
@@ -114,6 +140,9 @@ def main(
     param: Annotated[list[str] | None, typer.Option(help="DPSO parameter NAME=VALUE")] = None,
     against: Annotated[list[str] | None, typer.Option(
         help="NAME=VALUE: also replay with this parameter changed, on the same table")] = None,
+    rule: Annotated[str | None, typer.Option(
+        help="replay a two-type map with this fusion rule instead of the one it records "
+             "(its table recomposed from the single-type maps' cached tables)")] = None,
     csv_out: Annotated[Path | None, typer.Option("--csv")] = None,
     context: Annotated[int, typer.Option(help="frames shown before each unflagged one")] = 3,
 ) -> None:
@@ -124,6 +153,8 @@ def main(
     m = map_for(dataset, map_round, False, features)
     rnd = read_round(dataset / query)
     table = _table(dataset, m, rnd, features, query)  # read; never saved here
+    if rule is not None:
+        table.table = _refused(dataset, m, query, rule, table.table)
     fusion = m.meta.get("fusion")
     typer.echo(f"{dataset} {map_round} vs {query}, {features}, fusion "
                f"{fusion.get('rule') if isinstance(fusion, dict) else '-'}")
@@ -161,7 +192,8 @@ def _study(m: Any, table: Any, rnd: Any, params_v: dict[str, Any], starts: int, 
                          "jump": jump, "img_err": img_err,
                          "status": r.status[i], "acc": float(r.accuracy_m[i]),
                          "best_m": ev.best_m, "bg": ev.background, "distinct": ev.distinct,
-                         "good": ev.good, "located": bool(r.located[i])})
+                         "good": ev.good,
+                         "located": bool(r.located is not None and r.located[i])})
         mt = run_metrics(r, warmup)
         wrong = err[warmup:] > WRONG_M
         admits = np.isin(np.array(r.status[warmup:]), BAD_STATUS)
@@ -179,11 +211,11 @@ def _study(m: Any, table: Any, rnd: Any, params_v: dict[str, Any], starts: int, 
                            f"{row['bg']:.4f} distinct {row['distinct']:6.2f} good "
                            f"{int(row['good'])} located {int(row['located'])} jump "
                            f"{row['jump']:5.1f} image estimate off {row['img_err']:5.1f}")
-    s = metrics(runs, warmup)
-    typer.echo(f"summary {params_v}: mean {s['error_mean_m']:.2f} median "
-               f"{s['error_median_m']:.2f} within 5 m {100 * s['within_5m']:.1f} % calib "
-               f"{100 * (s['calibration'] or 0):.1f} % honest {s['honesty']} recovering "
-               f"{100 * s['bad_status_share']:.1f} %")
+    t = metrics(runs, warmup)
+    typer.echo(f"summary {params_v}: mean {t['error_mean_m']:.2f} median "
+               f"{t['error_median_m']:.2f} within 5 m {100 * t['within_5m']:.1f} % calib "
+               f"{100 * (t['calibration'] or 0):.1f} % honest {t['honesty']} recovering "
+               f"{100 * t['bad_status_share']:.1f} %")
     return rows
 
 
