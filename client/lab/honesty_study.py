@@ -25,8 +25,10 @@ import typer
 from client.runs import BAD_STATUS, WRONG_M, Run, run_metrics
 from service.estimators.lost_detection import DistinctnessMonitor, Evidence
 from service.estimators.multi_swarm_dpso import MultiSwarmDPSO
+from service.estimators.odometry import LocatedGate
 
 app = typer.Typer(add_completion=False)
+HELD: list[int] = []  # one entry per located frame a LocatedGate held back
 
 
 @contextmanager
@@ -38,11 +40,18 @@ def recorded_evidence() -> Iterator[tuple[list[Evidence], list[tuple[np.ndarray,
     placed: list[tuple[np.ndarray, Any]] = []
     judge = DistinctnessMonitor.judge
     located = MultiSwarmDPSO._located
+    admit = LocatedGate.admit
 
     def spy(self: DistinctnessMonitor, *args: Any, **kwargs: Any) -> Evidence:
         ev = judge(self, *args, **kwargs)
         seen.append(ev)
         return ev
+
+    def spy_admit(self: LocatedGate, where: Any, *args: Any) -> bool:
+        ok = admit(self, where, *args)
+        if not ok:
+            HELD.append(1)
+        return ok
 
     def spy_located(self: MultiSwarmDPSO, fitness: Any, status: Any, pos: np.ndarray,
                     *args: Any) -> Any:
@@ -52,11 +61,13 @@ def recorded_evidence() -> Iterator[tuple[list[Evidence], list[tuple[np.ndarray,
 
     DistinctnessMonitor.judge = spy  # type: ignore[method-assign]
     MultiSwarmDPSO._located = spy_located  # type: ignore[method-assign,assignment]
+    LocatedGate.admit = spy_admit  # type: ignore[method-assign,assignment]
     try:
         yield seen, placed
     finally:
         DistinctnessMonitor.judge = judge  # type: ignore[method-assign]
         MultiSwarmDPSO._located = located  # type: ignore[method-assign]
+        LocatedGate.admit = admit  # type: ignore[method-assign]
 
 
 def excursions(wrong: np.ndarray) -> list[tuple[int, int]]:
@@ -182,6 +193,8 @@ def _study(m: Any, table: Any, rnd: Any, params_v: dict[str, Any], starts: int, 
         with recorded_evidence() as (evs, placed):
             r = run(m, table, rnd, "dpso", params_v or None, seed=seed + k, start=s)
         runs.append(r)
+        typer.echo(f"run {k}: {len(HELD)} located frames held back by the gate")
+        HELD.clear()
         err = r.errors
         for i in range(len(err)):
             ev = evs[i]
