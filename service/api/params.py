@@ -305,12 +305,6 @@ class DPSOParams(CommonParams):
         "this from the odometry's prediction of the reported position is held back until "
         "the next located frame agrees with it within half this distance "
         "(service/estimators/odometry.py LocatedGate); 0: off (m)")
-    image_locate_gate_m: float = Field(
-        8.0, ge=0, le=1e5, description="without odometry, a located frame farther than this "
-        "from the images' estimate is held back until the next located frame agrees with it "
-        "(the same LocatedGate, the step kept by the tracked velocity for the distance "
-        "travelled); 8 m, metric_search_m: a camera located beyond the radius the images "
-        "were searched in is one the images do not vouch for; 0: off (m)")
     metric_pose: bool = Field(
         True, description="while tracking, locate the camera between map images by two-view "
         "geometry against the best-matching map image near the estimate "

@@ -202,14 +202,6 @@ class MultiSwarmDPSO(DPSO):
                 self.smoother.reset()  # reported position restarts at the located one,
                 if self.odometry is not None:  # and the heading fit's pairs may belong to
                     self.odometry.forget()  # the place the robot is not at
-        elif not self.gate.admit(None if camera is None else camera[0], pos,
-                                 self._travel(), p.image_locate_gate_m):
-            # without odometry the images' estimate stands in for the prediction: one frame
-            # the geometry places far from where the images put it (a look-alike's offset)
-            # moves nothing until a second located frame agrees
-            camera = None
-        elif self.gate.moved:
-            self.smoother.reset()
         located = camera[0] if camera is not None else None
 
         # attractors: the seeds where the robot will be at the next frame (the tracked step
@@ -268,10 +260,6 @@ class MultiSwarmDPSO(DPSO):
         noise = self.rng.normal(0.0, sigma, self.x.shape) if sigma > 0 else 0.0
         self.x = np.clip(self.x + d + noise, self.lower, self.upper)
         return d
-
-    def _travel(self) -> float:
-        """The distance the robot moves per frame by the tracked velocity (m; 0 unknown)."""
-        return float(np.linalg.norm(self.ema_step)) if self.ema_step is not None else 0.0
 
     def _geometry_runs(self, fitness: FrameFitness) -> bool:
         """Whether frames are located by two-view geometry: ``metric_pose`` is on and the
