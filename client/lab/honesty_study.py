@@ -156,6 +156,10 @@ def main(
              "(its table recomposed from the single-type maps' cached tables)")] = None,
     csv_out: Annotated[Path | None, typer.Option("--csv")] = None,
     context: Annotated[int, typer.Option(help="frames shown before each unflagged one")] = 3,
+    disagree_m: Annotated[float, typer.Option(
+        help="also print what a report-only rule would give: a tracked frame located farther "
+             "than this from the images' estimate reported 'recovering', its accuracy_m "
+             "widened to the distance (positions untouched)")] = 8.0,
 ) -> None:
     from client.dataset import read_round
     from client.lab.experiment_cli import map_for
@@ -173,12 +177,46 @@ def main(
                              (x.split("=", 1) for x in (against or []))]
     for n, pv in enumerate(variants):
         rows = _study(m, table, rnd, pv, starts, warmup, seed, context)
+        typer.echo(what_if(rows, warmup, disagree_m))
         if csv_out is not None and rows:
             out = csv_out if n == 0 else csv_out.with_suffix(f".{n}.csv")
             with out.open("w", newline="") as fh:
                 w = csv.DictWriter(fh, fieldnames=list(rows[0]))
                 w.writeheader()
                 w.writerows(rows)
+
+
+def what_if(rows: list[dict[str, Any]], warmup: int, disagree_m: float) -> str:
+    """Honesty and calibration as recorded, and with a tracked frame located more than
+    ``disagree_m`` from the images' estimate reported ``recovering`` (accuracy_m at least
+    that distance): a report-only rule, the positions (so the errors) unchanged."""
+    out = []
+    for rule in (False, True):
+        honest, calib, flagged, wrong_n, wrong_flagged = [], [], 0, 0, 0
+        for k in sorted({r["run"] for r in rows}):
+            rr = [r for r in rows if r["run"] == k and r["i"] >= warmup]
+            err = np.array([r["err"] for r in rr])
+            status = np.array([r["status"] for r in rr])
+            acc = np.array([r["acc"] for r in rr])
+            jump = np.array([r["jump"] for r in rr])
+            if rule:
+                far = (jump > disagree_m) & (status == "tracking")  # NaN: not located
+                flagged += int(far.sum())
+                status = np.where(far, "recovering", status)
+                acc = np.where(far, np.maximum(acc, jump), acc)
+            bad, wrong = np.isin(status, BAD_STATUS), err > WRONG_M
+            wrong_n += int(wrong.sum())
+            wrong_flagged += int((bad & wrong).sum())
+            if wrong.any():
+                honest.append(float(bad[wrong].mean()))
+            tracked = status == "tracking"
+            if tracked.any():
+                calib.append(float(np.mean(err[tracked] <= acc[tracked])))
+        h = f"{100 * np.mean(honest):.1f} %" if honest else "-"
+        out.append(f"honest {h} ({wrong_flagged}/{wrong_n} frames), calib "
+                   f"{100 * np.mean(calib):.1f} %" + (f", {flagged} frames newly flagged"
+                                                      if rule else ""))
+    return f"what-if, located > {disagree_m:g} m from the images' estimate: {out[0]} -> {out[1]}"
 
 
 def _study(m: Any, table: Any, rnd: Any, params_v: dict[str, Any], starts: int, warmup: int,
