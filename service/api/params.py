@@ -295,11 +295,19 @@ class DPSOParams(CommonParams):
         "prediction is the odometry step; a correction beyond along_track_gate_m restarts "
         "it at the estimate) (no unit)")
     odom_alpha_weak: float = Field(
-        0.05, ge=0, le=1, description="with wheel odometry, the share of the correction "
+        0.0, ge=0, le=1, description="with wheel odometry, the share of the correction "
         "(along and across the path) the reported position takes from a frame the images "
         "do not confirm (not located where the map's geometry runs; weak without it); the "
         "odometry's prediction carries the rest, and such a frame farther than "
         "along_track_gate_m from it is not taken at all (no unit)")
+    odom_carry_frames: int = Field(
+        20, ge=0, le=100000, description="with wheel odometry, frames the reported position "
+        "is carried by the odometry alone while the swarm has lost the place and searches "
+        "(the lost detection fires where no match stands out, e.g. a stretch the map does "
+        "not show); the search's own estimate is reported after that, and on its first "
+        "tracked frame the images correct the carried position as usual (a kidnap: the "
+        "located gate, or along_track_gate_m, moves it); 0: the search's estimate at once "
+        "(frames)")
     odom_locate_gate_m: float = Field(
         1.5, ge=0, le=1e5, description="with wheel odometry, a located frame farther than "
         "this from the odometry's prediction of the reported position is held back until "

@@ -343,6 +343,16 @@ class MultiSwarmDPSO(DPSO):
         direction is taken at the compared image nearest ``pos`` (the estimate is their
         centre, so no map-wide query is needed)."""
         p = self.params
+        carried = None if odom_d is None else self.smoother.predicted(odom_d)
+        far = carried is not None and \
+            float(np.linalg.norm(pos - carried)) > p.along_track_gate_m
+        if status is not Status.TRACKING and odom_d is not None and carried is not None \
+                and not far and \
+                self.smoother.carried < p.odom_carry_frames:
+            # the place is lost where no match stands out: the odometry carries the
+            # position the images last confirmed while the search's estimate stays near it
+            # (one far from it, as after a kidnap, is reported at once)
+            return self.smoother.carry(odom_d)
         if status is not Status.TRACKING or p.along_track_alpha >= 1 or not len(ids):
             self.smoother.reset()
             return pos
@@ -350,6 +360,8 @@ class MultiSwarmDPSO(DPSO):
                                               compared_xy - pos))])
         tangent = path_tangent(self._map_positions, nearest, self._spacing)
         if odom_d is not None:  # the odometry predicts, the images correct a share of it
+            if self.smoother.carried and far:
+                self.smoother.reset()  # the search found the place far from the carried one
             gain = p.odom_alpha if confirmed else p.odom_alpha_weak
             return self.smoother.update(pos, tangent, gain, p.along_track_gate_m,
                                         self.ema_step, motion=odom_d, across=gain,
