@@ -238,7 +238,7 @@ class MultiSwarmDPSO(DPSO):
         confirmed = located is not None if geometry else self.weak_frames == 0
         reported = self._reported(pos, status, ids, compared_xy,
                                   self._along_alpha(geometry, located is not None), odom_d,
-                                  confirmed)
+                                  confirmed, ev.good)
         self.odom_observe(odom, pos, status is Status.TRACKING and confirmed,
                           lost or self.recovering)
         cam = camera[1] if camera is not None else None
@@ -336,22 +336,25 @@ class MultiSwarmDPSO(DPSO):
 
     def _reported(self, pos: np.ndarray, status: Status, ids: np.ndarray,
                   compared_xy: np.ndarray, alpha: float, odom_d: np.ndarray | None = None,
-                  confirmed: bool = True) -> np.ndarray:
+                  confirmed: bool = True, good: bool = True) -> np.ndarray:
         """The position reported for the estimate ``pos``: smoothed along the map's path
         while tracking (service/estimators/along_track.py; ``alpha`` of the along-path correction),
         ``pos`` itself otherwise. The path's
         direction is taken at the compared image nearest ``pos`` (the estimate is their
-        centre, so no map-wide query is needed)."""
+        centre, so no map-wide query is needed). With odometry (``odom_d``), the odometry
+        predicts and a frame the images confirm corrects a share (``odom_alpha``); while
+        the place is lost, the odometry carries the position alone (``odom_carry_frames``)
+        unless the search finds a ``good`` place beyond ``along_track_gate_m``."""
         p = self.params
         carried = None if odom_d is None else self.smoother.predicted(odom_d)
         far = carried is not None and \
             float(np.linalg.norm(pos - carried)) > p.along_track_gate_m
         if status is not Status.TRACKING and odom_d is not None and carried is not None \
-                and not far and \
-                self.smoother.carried < p.odom_carry_frames:
+                and not (far and good) and self.smoother.carried < p.odom_carry_frames:
             # the place is lost where no match stands out: the odometry carries the
-            # position the images last confirmed while the search's estimate stays near it
-            # (one far from it, as after a kidnap, is reported at once)
+            # position the images last confirmed (for at most odom_carry_frames frames);
+            # a place the search finds far from it (a match that stands out there, as after
+            # a kidnap) is reported at once
             return self.smoother.carry(odom_d)
         if status is not Status.TRACKING or p.along_track_alpha >= 1 or not len(ids):
             self.smoother.reset()
