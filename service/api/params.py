@@ -302,13 +302,18 @@ class DPSOParams(CommonParams):
         "along_track_gate_m from it is not taken at all; 0, because such an image "
         "estimate lags the robot where the map's images look alike (no unit)")
     odom_carry_frames: int = Field(
-        20, ge=0, le=100000, description="with wheel odometry, frames the reported position "
+        8, ge=0, le=100000, description="with wheel odometry, frames the reported position "
         "is carried by the odometry alone while the swarm has lost the place and searches "
         "(the lost detection fires where no match stands out, e.g. a stretch the map does "
         "not show); the search's own estimate is reported after that, or at once where it "
         "lies beyond along_track_gate_m and a match stands out there (a kidnap); back to "
         "tracking, the images correct the carried position as usual; 0: the search's "
         "estimate at once (frames)")
+    odom_restart_heading: bool = Field(
+        True, description="with wheel odometry, a jump of the estimate beyond "
+        "along_track_gate_m from the odometry's track (a kidnap) also restarts the "
+        "odometry's map heading (the direction of motion until a new fit; "
+        "service/estimators/odometry.py)")
     odom_locate_gate_m: float = Field(
         1.5, ge=0, le=1e5, description="with wheel odometry, a located frame farther than "
         "this from the odometry's prediction of the reported position is held back until "

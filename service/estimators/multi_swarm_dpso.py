@@ -357,19 +357,30 @@ class MultiSwarmDPSO(DPSO):
             # a kidnap) is reported at once
             return self.smoother.carry(odom_d)
         if status is not Status.TRACKING or p.along_track_alpha >= 1 or not len(ids):
+            if far:
+                self._odom_restart()
             self.smoother.reset()
             return pos
         nearest = int(ids[np.argmin(np.einsum("ij,ij->i", compared_xy - pos,
                                               compared_xy - pos))])
         tangent = path_tangent(self._map_positions, nearest, self._spacing)
         if odom_d is not None:  # the odometry predicts, the images correct a share of it
-            if self.smoother.carried and far:
-                self.smoother.reset()  # the search found the place far from the carried one
+            if far and (confirmed or self.smoother.carried):
+                # the images (or the search after a carried stretch) place the robot far
+                # from the odometry's track: the estimate restarts there, and so does the
+                # odometry's map heading
+                self._odom_restart()
+                self.smoother.reset()
             gain = p.odom_alpha if confirmed else p.odom_alpha_weak
             return self.smoother.update(pos, tangent, gain, p.along_track_gate_m,
                                         self.ema_step, motion=odom_d, across=gain,
                                         hold=not confirmed)
         return self.smoother.update(pos, tangent, alpha, p.along_track_gate_m, self.ema_step)
+
+    def _odom_restart(self) -> None:
+        """After a jump beyond along_track_gate_m: the odometry's map heading restarts."""
+        if self.odometry is not None and self.params.odom_restart_heading:
+            self.odometry.restart()
 
     def mean_evidence(self) -> np.ndarray:
         """Each particle's evidence as a decayed mean of the fitness along its path (A with
