@@ -155,6 +155,8 @@ def experiment(
                                  f"{list(FEATURE_TYPES)}")
     if matcher not in MATCHERS:
         raise typer.BadParameter(f"unknown matcher {matcher!r}; choose from {list(MATCHERS)}")
+    if exact_top and matcher != "words":
+        raise typer.BadParameter("--exact-top goes with --matcher words")
     maps = {papers: map_for(dataset, map_round, papers, features)
             for papers in {METHODS[c].papers_map for c in chosen}}
     if matcher == "words" and False in maps:
