@@ -28,16 +28,17 @@ from service.estimators.multi_swarm_dpso import MultiSwarmDPSO
 from service.estimators.odometry import LocatedGate
 
 app = typer.Typer(add_completion=False)
-HELD: list[int] = []  # one entry per located frame a LocatedGate held back
 
 
 @contextmanager
-def recorded_evidence() -> Iterator[tuple[list[Evidence], list[tuple[np.ndarray, Any]]]]:
+def recorded_evidence() -> Iterator[tuple[list[Evidence], list[tuple[np.ndarray, Any]],
+                                           list[int]]]:
     """Every ``DistinctnessMonitor.judge`` verdict and every ``_located`` call (the image
     estimate it was given, the located camera or None) while inside, in call order (one
-    each per DPSO frame)."""
+    each per DPSO frame), and one entry per located frame a ``LocatedGate`` held back."""
     seen: list[Evidence] = []
     placed: list[tuple[np.ndarray, Any]] = []
+    held: list[int] = []
     judge = DistinctnessMonitor.judge
     located = MultiSwarmDPSO._located
     admit = LocatedGate.admit
@@ -50,7 +51,7 @@ def recorded_evidence() -> Iterator[tuple[list[Evidence], list[tuple[np.ndarray,
     def spy_admit(self: LocatedGate, where: Any, *args: Any) -> bool:
         ok = admit(self, where, *args)
         if not ok:
-            HELD.append(1)
+            held.append(1)
         return ok
 
     def spy_located(self: MultiSwarmDPSO, fitness: Any, status: Any, pos: np.ndarray,
@@ -63,7 +64,7 @@ def recorded_evidence() -> Iterator[tuple[list[Evidence], list[tuple[np.ndarray,
     MultiSwarmDPSO._located = spy_located  # type: ignore[method-assign,assignment]
     LocatedGate.admit = spy_admit  # type: ignore[method-assign,assignment]
     try:
-        yield seen, placed
+        yield seen, placed, held
     finally:
         DistinctnessMonitor.judge = judge  # type: ignore[method-assign]
         MultiSwarmDPSO._located = located  # type: ignore[method-assign]
@@ -97,20 +98,13 @@ def _table(dataset: Path, m: Any, rnd: Any, features: str, query: str) -> Any:
     import pickle
 
     from client.lab.experiment_cli import cached_table
-    from client.lab.experiments import SimilarityTable
 
     keep = Path("/tmp") / f"honesty-{dataset.resolve().name}-{query}-{features}.pkl"
     if not keep.is_file():
         table = cached_table(dataset, m, rnd)
         keep.write_bytes(pickle.dumps(table.queries))
         return table
-    table = SimilarityTable(m, pickle.loads(keep.read_bytes()))
-    path = dataset / ".maps" / f"{m.meta['checksum'][:16]}-{rnd.name}.table.npy"
-    if path.is_file():
-        saved = np.load(path)
-        if saved.shape == table.table.shape:
-            table.table = saved
-    return table
+    return cached_table(dataset, m, rnd, pickle.loads(keep.read_bytes()))
 
 
 def _refused(dataset: Path, m: Any, query: str, rule: str, fused: np.ndarray) -> np.ndarray:
@@ -118,6 +112,7 @@ def _refused(dataset: Path, m: Any, query: str, rule: str, fused: np.ndarray) ->
     each type's m from the single-type maps' cached tables (the same matchers, the same
     values), completed from the recorded rule's fused values where those invert exactly
     (``mean-affine`` above its clip at 0); NaN (computed on use) elsewhere."""
+    from client.lab.experiment_cli import table_path
     from service.maps.route_map import load_map
     from service.vision.fusion import Fusion
 
@@ -125,7 +120,7 @@ def _refused(dataset: Path, m: Any, query: str, rule: str, fused: np.ndarray) ->
     singles = []
     for name in ("sunny1", "sunny1-xfeat"):
         single = load_map(dataset / ".maps" / f"{name}.swmap")
-        path = dataset / ".maps" / f"{single.meta['checksum'][:16]}-{query}.table.npy"
+        path = table_path(dataset, single, query)
         singles.append(np.load(path) if path.is_file() else np.full(fused.shape, np.nan))
     first, second = singles
     if old.rule == "mean-affine":
@@ -228,11 +223,10 @@ def _study(m: Any, table: Any, rnd: Any, params_v: dict[str, Any], starts: int, 
     runs: list[Run] = []
     rows: list[dict[str, Any]] = []
     for k, s in enumerate(_starts(len(rnd), starts)):
-        with recorded_evidence() as (evs, placed):
+        with recorded_evidence() as (evs, placed, held):
             r = run(m, table, rnd, "dpso", params_v or None, seed=seed + k, start=s)
         runs.append(r)
-        typer.echo(f"run {k}: {len(HELD)} located frames held back by the gate")
-        HELD.clear()
+        typer.echo(f"run {k}: {len(held)} located frames held back by the gate")
         err = r.errors
         for i in range(len(err)):
             ev = evs[i]
