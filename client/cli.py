@@ -20,6 +20,7 @@ from client.lab.bench_load_cli import register as register_load_bench
 from client.lab.bench_odometry import register as register_odometry_bench
 from client.lab.experiment_cli import experiment, sweep
 from client.lab.scale_map_cli import register as register_scale_map
+from service.api.models import DEFAULT_FEATURES
 from service.cli import DebugOpt, run_cli, serve
 
 if TYPE_CHECKING:
@@ -90,10 +91,12 @@ def _read_round(path: Path) -> Round:
         _fail(str(exc))
 
 
+LAB_FEATURES = "clahe-rootsift"  # the evaluators' default: the published tables' maps
 FeaturesOpt = Annotated[str, typer.Option(
-    help="clahe-rootsift (default: contrast-normalised RootSIFT), sift (the papers'), "
-         "xfeat (learned features that hold at night; ONNX Runtime on the CPU) or "
-         "clahe-rootsift+xfeat (both per image, their similarities fused)")]
+    help="clahe-rootsift+xfeat (both per image, their similarities fused: the default of "
+         "map build), clahe-rootsift (contrast-normalised RootSIFT: the evaluators' "
+         "default), sift (the papers') or xfeat (learned features that hold at night; ONNX "
+         "Runtime on the CPU)")]
 PruneOpt = Annotated[bool, typer.Option(
     help="the papers' neighbour pruning (drops the features that survive lighting changes)")]
 
@@ -155,7 +158,7 @@ def world_eval(
     map_round: Path, query_round: Path,
     radius: Annotated[float, typer.Option(help="success radius, m")] = 3.0,
     every: Annotated[int, typer.Option(help="use every k-th query frame")] = 2,
-    features: FeaturesOpt = "clahe-rootsift",
+    features: FeaturesOpt = LAB_FEATURES,
     prune: PruneOpt = False,
 ) -> None:
     """Features per frame, pruning, and the fraction of query frames whose best-matching
@@ -238,7 +241,7 @@ def map_build(
     delta: Annotated[float, typer.Option(help="ratio-test threshold")] = 0.6,
     width: int = 320,
     height: int = 240,
-    features: FeaturesOpt = "clahe-rootsift",
+    features: FeaturesOpt = DEFAULT_FEATURES,
     prune: PruneOpt = False,
     hfov: Annotated[float | None, typer.Option(
         help="the camera's horizontal field of view (degrees; square pixels, centred), where "
@@ -395,7 +398,7 @@ def map_build_remote(
     new: Annotated[bool, typer.Option(help="fail if the map exists (If-None-Match: *)")]
     = False,
     token: Token = None,
-    features: FeaturesOpt = "clahe-rootsift",
+    features: FeaturesOpt = DEFAULT_FEATURES,
 ) -> None:
     """Zip a round, build its map on the service, follow the job with a progress bar."""
     import tempfile
@@ -674,7 +677,7 @@ def eval_split(
     height: int = 240,
     estimator: str = "dpso",
     seed: int = 0,
-    features: FeaturesOpt = "clahe-rootsift",
+    features: FeaturesOpt = LAB_FEATURES,
 ) -> None:
     """One traversal: map from the even frames, localize the odd frames (real-data check).
 
@@ -725,7 +728,7 @@ def eval_pair_cmd(
     passes: Annotated[int, typer.Option(min=1, help="replays along the route and back")] = 4,
     estimator: str = "dpso",
     seeds: Annotated[int, typer.Option(min=1, help="replays (one seed each)")] = 3,
-    features: FeaturesOpt = "clahe-rootsift",
+    features: FeaturesOpt = LAB_FEATURES,
     param: Annotated[list[str] | None, typer.Option(
         help="estimator parameter KEY=VALUE (repeatable), e.g. v0=0.05")] = None,
 ) -> None:

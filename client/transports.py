@@ -21,6 +21,7 @@ import httpx
 import numpy as np
 
 from service.api.models import (
+    DEFAULT_FEATURES,
     Estimate,
     JobInfo,
     MapDeleted,
@@ -219,7 +220,7 @@ class HttpClient:
 
     def build_map_remote(self, name: str, archive: str | Path | bytes,
                          if_none_match: str | None = None,
-                         features: str = "clahe-rootsift") -> JobInfo:
+                         features: str = DEFAULT_FEATURES) -> JobInfo:
         """Post a zip/tar(.gz) of a round; the service builds the map (of feature type
         ``features``) as a job."""
         headers = {"Content-Type": "application/octet-stream",
@@ -388,7 +389,7 @@ class ZenohClient:
 
     def build_map_remote(self, name: str, archive: str | Path | bytes,
                          if_none_match: str | None = None,
-                         features: str = "clahe-rootsift") -> JobInfo:
+                         features: str = DEFAULT_FEATURES) -> JobInfo:
         data = archive if isinstance(archive, bytes) else Path(archive).read_bytes()
         return JobInfo(**self._maps(name, data, action="build", if_none_match=if_none_match,
                                     features=features))

@@ -7,9 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.api.models import DEFAULT_FEATURES
 from service.demo import demo_round, ensure_demo_map
 from service.engine.localizer import Localizer
 from service.maps.route_map import load_map
+from service.vision.features import DUAL
 
 
 def test_demo_map_is_built_once_from_the_shipped_round(tmp_path: Path,
@@ -21,6 +23,7 @@ def test_demo_map_is_built_once_from_the_shipped_round(tmp_path: Path,
     assert m.name == "demo" and m.n_images == len(rnd) == 67
     np.testing.assert_allclose(m.positions, rnd.xy)
     assert m.meta["source"]["world_seed"] == 0
+    assert m.meta["feature"]["type"] == DUAL and DEFAULT_FEATURES == "clahe-rootsift+xfeat"
     stamp = path.stat().st_mtime_ns
     assert ensure_demo_map(tmp_path / "maps", progress=True) == path and \
         path.stat().st_mtime_ns == stamp

@@ -100,3 +100,44 @@ def test_a_learned_version_keeps_the_matcher(tmp_path, small_map: RouteMap,
                             [NewImage(f.codes, f.keypoints, m.positions[10] + 0.1, "e1/1")],
                             condition=None, robot=None, now=0.0, budget_bytes=10**9)
     assert new.n_images == m.n_images + 1 and new.uses_words
+
+
+def test_the_lab_keeps_the_words_similarities_apart_from_the_exact_ones(
+        tmp_path, camera_map: RouteMap, sunny2) -> None:
+    """`swarmloc experiment --matcher words` caches its similarity table beside the exact
+    one, never in it: the same map checksum must not hand the exact scores to the words
+    runs (or the reverse)."""
+    from client.lab.experiment_cli import cached_table, save_table
+
+    (tmp_path / ".maps").mkdir()
+    exact = cached_table(tmp_path, camera_map, sunny2)
+    exact.table[:] = 0.5  # a filled exact table, as a finished run leaves it
+    save_table(exact)
+    words = cached_table(tmp_path, camera_map.with_words(k=16), sunny2)
+    assert words.cache_path != exact.cache_path
+    assert np.isnan(words.table).all()  # nothing of the exact run's scores
+    again = cached_table(tmp_path, camera_map, sunny2)
+    assert np.all(again.table == 0.5)
+
+
+def test_the_words_matchers_best_images_are_matched_again_exactly(camera_map: RouteMap,
+                                                                 sunny2_features) -> None:
+    """``exact_top``: the best images of a comparison (by their words score) get the exact
+    scores and kept pairs, the others keep the inverted file's."""
+    ids = list(range(0, camera_map.n_images, 2))
+    coarse = camera_map.with_words(k=16, probes=1)
+    again = camera_map.with_words(k=16, probes=1, exact_top=3)
+    differs = 0
+    for f in sunny2_features[:4]:
+        s_exact, k_exact = _kept(camera_map, f.codes, ids)
+        s_words, _ = _kept(coarse, f.codes, ids)
+        s_again, k_again = _kept(again, f.codes, ids)
+        top = np.argsort(-s_words, kind="stable")[:3]
+        rest = np.setdiff1d(np.arange(len(ids)), top)
+        assert np.array_equal(s_again[top], s_exact[top])
+        assert np.array_equal(s_again[rest], s_words[rest])
+        for j in top:
+            (re, ce), (ra, ca) = k_exact.get(ids[j]), k_again.get(ids[j])  # type: ignore[misc]
+            assert np.array_equal(re, ra) and np.array_equal(ce, ca)
+        differs += int(not np.array_equal(s_words[top], s_exact[top]))
+    assert differs > 0  # one probe misses matches: the exact pass changed something

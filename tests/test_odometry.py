@@ -4,6 +4,7 @@ the estimators (a kidnap is still recovered) and the session state that carries 
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import httpx
 import numpy as np
@@ -229,3 +230,47 @@ def test_a_gate_stored_before_the_undo_still_admits_frames() -> None:
     assert back.admit(pred + 0.2, pred, 1.0, 1.5)
     assert not back.admit(pred + 5.0, pred, 1.0, 1.5)  # held back, as before
     assert back.admit(pred + 5.5, pred, 1.0, 1.5) and back.moved  # the second agrees: a move
+
+
+def _carried_track(small_map: RouteMap, sunny2: Round, table: SimilarityTable,
+                   params: dict) -> tuple[np.ndarray, list[str]]:
+    """Errors (m) and statuses of a DPSO run over sunny2 with its odometry whose frames
+    40-47 match every map image alike (a stretch the map does not show)."""
+    assert sunny2.odometry is not None
+    loc = Localizer(small_map, "dpso", params, seed=0)
+    errors, status = [], []
+    for k in range(48):
+        x, y, yaw = (float(v) for v in sunny2.odometry[k])
+        step = loc.take_odometry(Odometry(x=x, y=y, yaw=yaw))
+        sim = partial(table.scores, k) if k < 40 else (lambda ids: np.full(len(ids), 0.02))
+        res = loc.estimator.step(sim, float(k), None, step)
+        errors.append(float(np.linalg.norm(res.position - sunny2.reference_xy[k])))
+        status.append(res.status.value)
+    return np.asarray(errors), status
+
+
+def test_the_odometry_carries_the_position_while_no_match_stands_out(
+        small_map: RouteMap, sunny2: Round, table: SimilarityTable) -> None:
+    """Where no map image stands out the place is lost and the swarm searches the map; the
+    reported position is the one the images last gave, moved by the wheels
+    (``odom_carry_frames``), not the search's (``odom_carry_frames`` 0)."""
+    errors, status = _carried_track(small_map, sunny2, table, {})
+    assert status[39] == "tracking" and "recovering" in status[40:]
+    assert errors[39] < 2.0
+    assert errors[40:].max() < errors[39] + 1.0  # 8 frames of odometry drift, no jump
+    search, _ = _carried_track(small_map, sunny2, table, {"odom_carry_frames": 0})
+    assert search[40:].max() > errors[40:].max() + 1.0  # the search's estimate wanders
+
+
+def test_a_jump_restarts_the_odometry_map_heading() -> None:
+    """After a kidnap the map heading fitted at the old place is wrong: ``restart`` drops it
+    (and its pairs), so the direction of motion stands in until a new fit."""
+    h = OdomHeading()
+    for k in range(12):  # a straight drive east, located along a path heading north
+        h.advance(OdomStep(1.0, 0.0, 0.0, 0.0, 0.0))
+        h.observe(np.array([0.0, float(k + 1)]))
+    heading, _ = h.heading(None)
+    assert heading is not None and heading == pytest.approx(math.pi / 2, abs=1e-6)
+    h.restart()
+    assert h.heading(0.3) == (0.3, pytest.approx(math.radians(20.0)))
+    assert len(h.pairs) == 0

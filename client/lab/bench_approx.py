@@ -85,12 +85,12 @@ def _run(locs: Sequence[Localizer], feats: Sequence[Any], truth: np.ndarray, war
 
 def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], frames: int,
             warmup: int, seed: int, k: int, probes: int, cap: int = 0,
-            exact_geometry: bool = False, images: int = 18) -> ApproxRow:
+            exact_geometry: bool = False, images: int = 18, exact_top: int = 0) -> ApproxRow:
     params = capped_params("clahe-rootsift", size, cap) if cap else \
         named_params("clahe-rootsift", *size)
     m = build_map_from_rounds([map_rnd], params=params)
     t0 = time.perf_counter()
-    wm = m.with_words(k or None, probes)
+    wm = m.with_words(k or None, probes, exact_top)
     train_ms = 1e3 * (time.perf_counter() - t0)
     ivf = wm.inverted_file
     n = min(len(query), frames + warmup)
@@ -118,13 +118,14 @@ def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], fram
 
 def bench_approx(pairs: Sequence[tuple[str, Round, Round]], size: tuple[int, int],
                  frames: int = 60, warmup: int = 20, seed: int = 0, k: int = 0,
-                 probes: int = DEFAULT_PROBES, cap: int = 0, exact_geometry: bool = False
-                 ) -> list[ApproxRow]:
+                 probes: int = DEFAULT_PROBES, cap: int = 0, exact_geometry: bool = False,
+                 exact_top: int = 0) -> list[ApproxRow]:
     """One row per (name, map round, query round), OpenCV and BLAS on one thread; ``k`` 0:
     the map's own (``words_for`` its features per image); ``cap``:
     at most that many features per frame, with a low detector threshold (``bench extract``'s
     sweep), 0: the default features; ``exact_geometry``: the two-view geometry keeps the exact
-    matcher's pairs (only the similarity goes through the inverted file)."""
+    matcher's pairs (only the similarity goes through the inverted file); ``exact_top``: the
+    best N images of each comparison matched again exactly (``RouteMap.with_words``)."""
     from threadpoolctl import threadpool_limits
 
     threads = cv2.getNumThreads()
@@ -132,7 +133,7 @@ def bench_approx(pairs: Sequence[tuple[str, Round, Round]], size: tuple[int, int
     try:
         with threadpool_limits(1, "blas"):
             return [compare(mr, q, name, size, frames, warmup, seed, k, probes, cap,
-                            exact_geometry) for name, mr, q in pairs]
+                            exact_geometry, exact_top=exact_top) for name, mr, q in pairs]
     finally:
         cv2.setNumThreads(threads)
 

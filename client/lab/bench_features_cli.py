@@ -84,6 +84,8 @@ def register(bench_app: typer.Typer) -> None:
                  "each step's growth")] = "0",
         exact_geometry: Annotated[bool, typer.Option(
             help="the two-view geometry on the exact matcher's pairs")] = False,
+        exact_top: Annotated[int, typer.Option(
+            min=0, help="the best N images of each comparison matched again exactly")] = 0,
     ) -> None:
         """The inverted-file matcher (the service's ``words`` matcher) against the exact one
         on the same frames: localizer step, step / extraction, mean error, match counts and
@@ -107,10 +109,11 @@ def register(bench_app: typer.Typer) -> None:
         typer.echo(f"{dataset} map {map_round} at {wh[0]}x{wh[1]}"
                    + f"; inverted file k={words or 'auto'}, w={probes}"
                    + (" (similarity only, exact geometry)" if exact_geometry else "")
+                   + (f", the best {exact_top} images again exactly" if exact_top else "")
                    + f"; DPSO seed {seed}; one thread")
         rows = [r for cap in caps for r in bench_approx(
             [(f"{q} ({cap or 'default'} features)", m, r) for q, m, r in pairs], wh, frames,
-            warmup, seed, words, probes, cap, exact_geometry)]
+            warmup, seed, words, probes, cap, exact_geometry, exact_top)]
         report(rows, typer.echo)
         if len(caps) > 1:
             report_growth(rows, len(pairs), typer.echo)

@@ -4,8 +4,9 @@ Each estimator runs from evenly spaced start images of a query round against a m
 is scored after a warm-up of global convergence (``run_metrics``): error, share within 5 m,
 comparisons per frame, share of frames in recovery, accuracy-radius calibration, honesty (how
 many badly wrong frames admit it) and, with ``--kidnap``, the frames to recover from a
-kidnapping. The product's DPSO and the filters use the map's default features (CLAHE +
-RootSIFT, unpruned); the papers' DPSO runs on a map built as in the papers (SIFT, pruned).
+kidnapping. The product's DPSO and the filters use CLAHE + RootSIFT (unpruned) unless
+``--features`` names another type; the papers' DPSO runs on a map built as in the papers
+(SIFT, pruned).
 """
 
 from __future__ import annotations
@@ -18,10 +19,13 @@ import typer
 from client.lab.methods import METHODS, Method
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from client.dataset import Round
     from client.lab.experiments import SimilarityTable
     from client.runs import Run
     from service.maps.route_map import RouteMap
+    from service.vision.features import Features
 
 
 def map_for(dataset: Path, rounds: str, papers: bool, features: str = "clahe-rootsift"
@@ -46,15 +50,34 @@ def map_for(dataset: Path, rounds: str, papers: bool, features: str = "clahe-roo
     return load_map(save_map(m, path))  # loaded: with its checksum, memory-mapped
 
 
-def cached_table(dataset: Path, m: RouteMap, rnd: Round) -> SimilarityTable:
+def table_path(dataset: Path, m: RouteMap, query: str) -> Path:
+    """Where ``cached_table`` keeps the table of map ``m`` and query round ``query`` (keyed by
+    the map's checksum: a rebuilt map starts a new table; the words matcher's similarities,
+    and those with its exact pass on the best images, apart from the exact ones)."""
+    kind = (f"-words{m.exact_top or ''}" if m.uses_words else "")
+    return dataset / ".maps" / f"{m.meta['checksum'][:16]}{kind}-{query}.table.npy"
+
+
+def cached_table(dataset: Path, m: RouteMap, rnd: Round,
+                 queries: Sequence[Features] | None = None) -> SimilarityTable:
     """The similarity table of a map and a query round, kept in DATASET/.maps between runs
-    (keyed by the map's checksum: a rebuilt map starts a new table)."""
+    (``table_path``); ``queries``: the round's features when already extracted."""
+    from client.lab.experiments import round_features
+
+    return stored_table(dataset, m, rnd.name,
+                        round_features(m, rnd) if queries is None else queries)
+
+
+def stored_table(dataset: Path, m: RouteMap, query: str, queries: Sequence[Features]
+                 ) -> SimilarityTable:
+    """The table of map ``m`` and the features ``queries`` of round ``query``, with the
+    values kept at ``table_path`` (where ``save_table`` writes them back)."""
     import numpy as np
 
     from client.lab.experiments import SimilarityTable
 
-    table = SimilarityTable.from_round(m, rnd)
-    path = dataset / ".maps" / f"{m.meta['checksum'][:16]}-{rnd.name}.table.npy"
+    table = SimilarityTable(m, queries)
+    path = table_path(dataset, m, query)
     if path.is_file():
         saved = np.load(path)
         if saved.shape == table.table.shape:
@@ -88,8 +111,9 @@ def _runs(m: RouteMap, table: SimilarityTable, rnd: Round, method: Method,
           starts: list[int], seed: int, kidnap: bool = False) -> list[Run]:
     from client.lab.experiments import run
 
-    return [run(m, table, rnd, method.estimator, method.params, seed=seed + k, start=s,
-                kidnap=kidnap) for k, s in enumerate(starts)]
+    return [run(m, table.fresh() if m.exact_top else table, rnd, method.estimator,
+                method.params, seed=seed + k, start=s, kidnap=kidnap)
+            for k, s in enumerate(starts)]
 
 
 def _kidnap(m: RouteMap, table: SimilarityTable, rnd: Round, method: Method,
@@ -128,12 +152,19 @@ def experiment(
         help="feature type of the map for our estimators: clahe-rootsift, xfeat or "
              "clahe-rootsift+xfeat (the papers' variants always use the papers' SIFT)")]
     = "clahe-rootsift",
+    matcher: Annotated[str, typer.Option(
+        help="matcher of our maps: exact, or words (the inverted file, SWARMLOC_MATCHER)")]
+    = "exact",
+    exact_top: Annotated[int, typer.Option(
+        help="with --matcher words: the best N images of each comparison matched again "
+             "exactly")] = 0,
 ) -> None:
     """Every estimator's error (mean, median, within 5 m), comparisons, share of frames in
     recovery, accuracy_m calibration (tracked frames within it), honesty (frames with error
     > 10 m reported lost or recovering), speed error and kidnap recovery (back within 5 m
     for 5 frames)."""
     from client.dataset import read_round
+    from service.api.models import MATCHERS
     from service.vision.features import FEATURE_TYPES
 
     chosen = [x for x in methods.split(",") if x]
@@ -143,8 +174,14 @@ def experiment(
     if features not in FEATURE_TYPES:
         raise typer.BadParameter(f"unknown feature type {features!r}; choose from "
                                  f"{list(FEATURE_TYPES)}")
+    if matcher not in MATCHERS:
+        raise typer.BadParameter(f"unknown matcher {matcher!r}; choose from {list(MATCHERS)}")
+    if exact_top and matcher != "words":
+        raise typer.BadParameter("--exact-top goes with --matcher words")
     maps = {papers: map_for(dataset, map_round, papers, features)
             for papers in {METHODS[c].papers_map for c in chosen}}
+    if matcher == "words" and False in maps:
+        maps[False] = maps[False].with_words(exact_top=exact_top)
     for q in [x for x in query.split(",") if x]:
         rnd = read_round(dataset / q)
         tables = {papers: cached_table(dataset, m, rnd) for papers, m in maps.items()}

@@ -22,6 +22,12 @@ from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
 
 
+def round_features(route_map: RouteMap, rnd: Round) -> list[Features]:
+    """Every frame of ``rnd`` extracted with the map's feature parameters."""
+    params = route_map.feature_params
+    return [extract(rnd.load_image(i), params) for i in range(len(rnd))]
+
+
 class SimilarityTable:
     """m(query frame q, map image i), computed on first use and kept."""
 
@@ -33,8 +39,13 @@ class SimilarityTable:
 
     @classmethod
     def from_round(cls, route_map: RouteMap, rnd: Round) -> SimilarityTable:
-        params = route_map.feature_params
-        return cls(route_map, [extract(rnd.load_image(i), params) for i in range(len(rnd))])
+        return cls(route_map, round_features(route_map, rnd))
+
+    def fresh(self) -> SimilarityTable:
+        """An empty table of the same map and frames (a similarity that depends on which
+        images a frame compares together, the words matcher's exact pass, is not shared
+        between runs)."""
+        return SimilarityTable(self.map, self.queries)
 
     def scores(self, q: int, ids: np.ndarray) -> np.ndarray:
         row = self.table[q]

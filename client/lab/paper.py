@@ -29,7 +29,7 @@ import numpy as np
 
 # ---- the one place that imports the lab modules (client/lab/ after the move) ------------------
 from client.dataset import Round, read_round
-from client.lab.experiment_cli import map_for
+from client.lab.experiment_cli import map_for, stored_table
 from client.lab.experiments import SimilarityTable, run
 from client.lab.paper_engine import BatchResult, NearestGrid, run_batch
 from client.runs import frame_sequence
@@ -202,14 +202,8 @@ class Lab:
         key = (map_round, query, papers)
         if key not in self._tables:
             m = self.map(map_round, papers)
-            table = SimilarityTable(m, self.queries(query, papers))
-            path = self.dataset / ".maps" / f"{m.meta['checksum'][:16]}-{query}.table.npy"
-            if path.is_file():
-                saved = np.load(path)
-                if saved.shape == table.table.shape:
-                    table.table = saved
-            table.cache_path = path
-            self._tables[key] = table
+            self._tables[key] = stored_table(self.dataset, m, query,
+                                             self.queries(query, papers))
         return self._tables[key]
 
     def grid(self, map_round: str) -> NearestGrid:

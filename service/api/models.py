@@ -320,8 +320,11 @@ class MapDetail(MapSummary):
 
 JobState = Literal["queued", "running", "done", "failed"]
 FeatureTypeName = Literal["clahe-rootsift", "sift", "xfeat", "clahe-rootsift+xfeat"]
-"""A map's feature type: CLAHE + RootSIFT (the default), the papers' SIFT, XFeat (learned,
-holds at night), or CLAHE + RootSIFT and XFeat both, their similarities fused."""
+"""A map's feature type: CLAHE + RootSIFT, the papers' SIFT, XFeat (learned, holds at night),
+or CLAHE + RootSIFT and XFeat both, their similarities fused (the default)."""
+DEFAULT_FEATURES: FeatureTypeName = "clahe-rootsift+xfeat"
+"""The feature type of a map built without naming one (CLI, HTTP, Zenoh, the demo map):
+both types, which measured best across light (docs/research/lighting.md)."""
 
 
 class JobInfo(BaseModel):
@@ -335,7 +338,7 @@ class JobInfo(BaseModel):
     error: str | None = Field(None, description="why a failed job failed")
     status: int | None = Field(None, description="HTTP status of that failure")
     checksum: str | None = Field(None, description="version of the map a done job installed")
-    features: FeatureTypeName = Field("clahe-rootsift", description="the map's feature type")
+    features: FeatureTypeName = Field(DEFAULT_FEATURES, description="the map's feature type")
     created: float
     started: float | None = None
     finished: float | None = None

@@ -295,11 +295,25 @@ class DPSOParams(CommonParams):
         "prediction is the odometry step; a correction beyond along_track_gate_m restarts "
         "it at the estimate) (no unit)")
     odom_alpha_weak: float = Field(
-        0.05, ge=0, le=1, description="with wheel odometry, the share of the correction "
+        0.0, ge=0, le=1, description="with wheel odometry, the share of the correction "
         "(along and across the path) the reported position takes from a frame the images "
         "do not confirm (not located where the map's geometry runs; weak without it); the "
         "odometry's prediction carries the rest, and such a frame farther than "
-        "along_track_gate_m from it is not taken at all (no unit)")
+        "along_track_gate_m from it is not taken at all; 0, because such an image "
+        "estimate lags the robot where the map's images look alike (no unit)")
+    odom_carry_frames: int = Field(
+        8, ge=0, le=100000, description="with wheel odometry, frames the reported position "
+        "is carried by the odometry alone while the swarm has lost the place and searches "
+        "(the lost detection fires where no match stands out, e.g. a stretch the map does "
+        "not show); the search's own estimate is reported after that, or at once where it "
+        "lies beyond along_track_gate_m and a match stands out there (a kidnap); back to "
+        "tracking, the images correct the carried position as usual; 0: the search's "
+        "estimate at once (frames)")
+    odom_restart_heading: bool = Field(
+        True, description="with wheel odometry, a jump of the estimate beyond "
+        "along_track_gate_m from the odometry's track (a kidnap) also restarts the "
+        "odometry's map heading (the direction of motion until a new fit; "
+        "service/estimators/odometry.py)")
     odom_locate_gate_m: float = Field(
         1.5, ge=0, le=1e5, description="with wheel odometry, a located frame farther than "
         "this from the odometry's prediction of the reported position is held back until "

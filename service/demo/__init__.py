@@ -38,7 +38,9 @@ def demo_round(path: Path = DEMO_ROUND_DIR) -> UploadedRound:
 def ensure_demo_map(maps_dir: Path, name: str = "demo", progress: bool = False) -> Path:
     """Build ``maps_dir/NAME.swmap`` from the shipped round if it is missing; ``progress``:
     a progress bar on stderr while the features are extracted (about 10 s)."""
+    from service.api.models import DEFAULT_FEATURES
     from service.maps.route_map import build_map_from_rounds, list_maps, save_map
+    from service.vision.features import named_params
 
     path = maps_dir / f"{name}.swmap"
     if path in list_maps(maps_dir):
@@ -51,5 +53,6 @@ def ensure_demo_map(maps_dir: Path, name: str = "demo", progress: bool = False) 
         return tqdm(images, total=len(rnd), desc=f"building the demo map {path}",
                     unit="image", disable=not progress)
 
-    m = build_map_from_rounds([rnd], name=name, source=dict(DEMO_SOURCE), wrap=bar)
+    m = build_map_from_rounds([rnd], name=name, source=dict(DEMO_SOURCE), wrap=bar,
+                              params=named_params(DEFAULT_FEATURES))
     return save_map(m, path)

@@ -45,7 +45,14 @@ from service.api.errors import (
     PreconditionFailed,
     ServiceError,
 )
-from service.api.models import FeatureTypeName, JobInfo, JobState, MapDeleted, MapSummary
+from service.api.models import (
+    DEFAULT_FEATURES,
+    FeatureTypeName,
+    JobInfo,
+    JobState,
+    MapDeleted,
+    MapSummary,
+)
 from service.maps.experiences import (
     NewImage,
     add_experience,
@@ -121,7 +128,7 @@ class Job:
     workdir: Path
     if_match: str | None
     if_none_match: str | None
-    features: FeatureTypeName = "clahe-rootsift"
+    features: FeatureTypeName = DEFAULT_FEATURES
     state: JobState = "queued"
     done: int = 0
     error: str | None = None
@@ -375,7 +382,7 @@ class MapAdmin:
 
     def submit_build(self, name: str, archive: Path, if_match: str | None = None,
                      if_none_match: str | None = None,
-                     features: str = "clahe-rootsift") -> JobInfo:
+                     features: str = DEFAULT_FEATURES) -> JobInfo:
         """Extract and validate a round archive, queue its build with the feature type
         ``features``; the archive is removed."""
         metrics = self.service.metrics

@@ -40,13 +40,27 @@ def path_tangent(positions: np.ndarray, nearest: int, spacing: float) -> np.ndar
 class AlongTrackSmoother:
     """State of the filter: the smoothed position and its velocity (m per frame)."""
 
+    # frames carried by odometry alone since the last update (``carry``); a class default
+    # too, so a smoother stored before it existed (a durable session) restores with none
+    carried = 0
+
     def __init__(self) -> None:
         self.position: np.ndarray | None = None
         self.velocity = np.zeros(2)
+        self.carried = 0
 
     def reset(self) -> None:
         self.position = None
         self.velocity = np.zeros(2)
+        self.carried = 0
+
+    def carry(self, motion: np.ndarray) -> np.ndarray:
+        """The position moved by ``motion`` (m, an odometry step) with no measurement; call
+        only where there is a position (``predicted`` is not None)."""
+        assert self.position is not None
+        self.position = self.position + motion
+        self.carried += 1
+        return self.position.copy()
 
     def update(self, z: np.ndarray, tangent: np.ndarray | None, alpha: float, gate_m: float,
                velocity: np.ndarray | None = None, motion: np.ndarray | None = None,
@@ -59,6 +73,7 @@ class AlongTrackSmoother:
         taken; ``hold``: a correction beyond the gate is not taken (the prediction stands)
         instead of restarting at the measurement."""
         z = np.asarray(z, float)
+        self.carried = 0
         if self.position is None or tangent is None:
             return self._restart(z, velocity)
         predicted = self.position + (self.velocity if motion is None else motion)

@@ -238,7 +238,7 @@ class MultiSwarmDPSO(DPSO):
         confirmed = located is not None if geometry else self.weak_frames == 0
         reported = self._reported(pos, status, ids, compared_xy,
                                   self._along_alpha(geometry, located is not None), odom_d,
-                                  confirmed)
+                                  confirmed, ev.good)
         self.odom_observe(odom, pos, status is Status.TRACKING and confirmed,
                           lost or self.recovering)
         cam = camera[1] if camera is not None else None
@@ -336,25 +336,51 @@ class MultiSwarmDPSO(DPSO):
 
     def _reported(self, pos: np.ndarray, status: Status, ids: np.ndarray,
                   compared_xy: np.ndarray, alpha: float, odom_d: np.ndarray | None = None,
-                  confirmed: bool = True) -> np.ndarray:
+                  confirmed: bool = True, good: bool = True) -> np.ndarray:
         """The position reported for the estimate ``pos``: smoothed along the map's path
         while tracking (service/estimators/along_track.py; ``alpha`` of the along-path correction),
         ``pos`` itself otherwise. The path's
         direction is taken at the compared image nearest ``pos`` (the estimate is their
-        centre, so no map-wide query is needed)."""
+        centre, so no map-wide query is needed). With odometry (``odom_d``), the odometry
+        predicts and a frame the images confirm corrects a share (``odom_alpha``); while
+        the place is lost, the odometry carries the position alone (``odom_carry_frames``)
+        unless the search finds a ``good`` place beyond ``along_track_gate_m``."""
         p = self.params
+        carried = None if odom_d is None else self.smoother.predicted(odom_d)
+        far = carried is not None and \
+            float(np.linalg.norm(pos - carried)) > p.along_track_gate_m
+        if status is not Status.TRACKING and odom_d is not None and carried is not None \
+                and not (far and good) and self.smoother.carried < p.odom_carry_frames:
+            # the place is lost where no match stands out: the odometry carries the
+            # position the images last confirmed (for at most odom_carry_frames frames);
+            # a place the search finds far from it (a match that stands out there, as after
+            # a kidnap) is reported at once
+            return self.smoother.carry(odom_d)
         if status is not Status.TRACKING or p.along_track_alpha >= 1 or not len(ids):
+            if far:
+                self._odom_restart()
             self.smoother.reset()
             return pos
         nearest = int(ids[np.argmin(np.einsum("ij,ij->i", compared_xy - pos,
                                               compared_xy - pos))])
         tangent = path_tangent(self._map_positions, nearest, self._spacing)
         if odom_d is not None:  # the odometry predicts, the images correct a share of it
+            if far and (confirmed or self.smoother.carried):
+                # the images (or the search after a carried stretch) place the robot far
+                # from the odometry's track: the estimate restarts there, and so does the
+                # odometry's map heading
+                self._odom_restart()
+                self.smoother.reset()
             gain = p.odom_alpha if confirmed else p.odom_alpha_weak
             return self.smoother.update(pos, tangent, gain, p.along_track_gate_m,
                                         self.ema_step, motion=odom_d, across=gain,
                                         hold=not confirmed)
         return self.smoother.update(pos, tangent, alpha, p.along_track_gate_m, self.ema_step)
+
+    def _odom_restart(self) -> None:
+        """After a jump beyond along_track_gate_m: the odometry's map heading restarts."""
+        if self.odometry is not None and self.params.odom_restart_heading:
+            self.odometry.restart()
 
     def mean_evidence(self) -> np.ndarray:
         """Each particle's evidence as a decayed mean of the fitness along its path (A with

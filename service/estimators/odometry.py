@@ -157,6 +157,13 @@ class OdomHeading:
         self.pairs = np.zeros((0, 5))
         self.seen = None
 
+    def restart(self) -> None:
+        """The estimate jumped far from where the odometry carried it (a kidnap): the map
+        heading fitted at the old place says nothing of the new one, so the direction of
+        motion stands in until a new fit."""
+        self.forget()
+        self.offset, self.offset_sigma = None, math.pi
+
     def _fit(self) -> None:
         p = self.pairs
         if len(p) < 3:

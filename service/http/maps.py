@@ -18,7 +18,14 @@ from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.responses import StreamingResponse
 
 from service.api.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
-from service.api.models import ErrorBody, FeatureTypeName, JobInfo, MapDeleted, MapSummary
+from service.api.models import (
+    DEFAULT_FEATURES,
+    ErrorBody,
+    FeatureTypeName,
+    JobInfo,
+    MapDeleted,
+    MapSummary,
+)
 from service.engine.localization_service import LocalizationService
 from service.engine.map_admin import check_map_name
 from service.http.auth import require_token
@@ -150,8 +157,9 @@ async def delete_experience(name: str, exp_id: str, response: Response, service:
 async def build_map(name: str, request: Request, response: Response, service: ServiceDep,
                     if_match: IfMatch = None, if_none_match: IfNoneMatch = None,
                     features: Annotated[FeatureTypeName, Query(
-                        description="feature type: clahe-rootsift (default), sift (the "
-                        "papers') or xfeat (learned, holds at night)")] = "clahe-rootsift",
+                        description="feature type: clahe-rootsift+xfeat (default: both, "
+                        "fused), clahe-rootsift, sift (the papers') or xfeat (learned, holds "
+                        "at night)")] = DEFAULT_FEATURES,
                     ) -> JobInfo:
     """Build a map from a zip/tar(.gz) of a round (poses.csv + images) in the background;
     follow GET /jobs/{id}. The map appears (or is replaced) when the build is done."""

@@ -58,7 +58,13 @@ from service.vision.features import (
 )
 from service.vision.fusion import Fusion, fusion_levels
 from service.vision.map_geometry import FramePairs, MapGeometry
-from service.vision.matcher import PreparedSet, match_batch_u8, match_batch_u8_pairs, prepare
+from service.vision.matcher import (
+    Pairs,
+    PreparedSet,
+    match_batch_u8,
+    match_batch_u8_pairs,
+    prepare,
+)
 from service.vision.metric_pose import Camera, match_pairs
 from service.vision.place_index import PlaceIndex, build_place_index
 from service.vision.vocabulary import DEFAULT_PROBES, InvertedFileMatcher
@@ -193,6 +199,9 @@ class RouteMap:
     # how a frame's RootSIFT codes are compared with the map's (MATCHERS): "exact" every
     # pair, "words" the pairs that share a visual word (service/vision/vocabulary.py)
     matcher: str = "exact"
+    # the words matcher: the best ``exact_top`` images of each comparison (by their words
+    # score) are compared again with the exact matcher (0: none)
+    exact_top: int = 0
 
     def __post_init__(self) -> None:
         check_matcher(self.matcher)
@@ -405,11 +414,13 @@ class RouteMap:
         return InvertedFileMatcher(self.codes_of, self.codes, self.n_images, k, probes,
                                    features_per_image=float(np.median(counts)))
 
-    def with_words(self, k: int | None = None, probes: int = DEFAULT_PROBES) -> RouteMap:
+    def with_words(self, k: int | None = None, probes: int = DEFAULT_PROBES,
+                   exact_top: int = 0) -> RouteMap:
         """This map (the same arrays) with the ``words`` matcher and its own vocabulary of
-        ``k`` words (None: the map's own choice) probed ``probes`` at a time (the lab's
-        knobs; ``matcher="words"`` gives the defaults)."""
-        m = replace(self, matcher="words")
+        ``k`` words (None: the map's own choice) probed ``probes`` at a time, the best
+        ``exact_top`` images of each comparison matched again exactly (the lab's knobs;
+        ``matcher="words"`` gives the defaults)."""
+        m = replace(self, matcher="words", exact_top=exact_top)
         m._words = self._train_words(k, probes)
         return m
 
@@ -462,15 +473,41 @@ class RouteMap:
         if self.uses_words:
             r, kept_pairs = self.inverted_file.match_pairs(
                 frame_codes, ids, self.delta, None if keep is None else keep.delta)
+            scores = r.scores
+            if self.exact_top > 0 and len(ids):
+                scores, kept_pairs = self._exact_again(frame_codes, ids, scores, kept_pairs,
+                                                       keep)
             if keep is not None and kept_pairs is not None:
                 keep.keep(ids, kept_pairs)
-            return r.scores
+            return scores
         sets = [self.prepared(i) for i in ids]
         if keep is None:
             return match_batch_u8(frame_codes, sets, self.delta).scores
         r, pairs = match_batch_u8_pairs(frame_codes, sets, self.delta, keep.delta)
         keep.keep(ids, pairs)
         return r.scores
+
+    def _exact_again(self, frame_codes: np.ndarray, ids: list[int], scores: np.ndarray,
+                     kept_pairs: list[Pairs] | None, keep: FramePairs | None
+                     ) -> tuple[np.ndarray, list[Pairs] | None]:
+        """The words matcher's scores (and kept pairs) with the ``exact_top`` best images
+        compared again by the exact matcher."""
+        top = np.argsort(-scores, kind="stable")[: self.exact_top]
+        top = top[scores[top] > 0]
+        if not len(top):
+            return scores, kept_pairs
+        sets = [self.prepared(ids[j]) for j in top]
+        scores = scores.copy()
+        if keep is None:
+            scores[top] = match_batch_u8(frame_codes, sets, self.delta).scores
+            return scores, kept_pairs
+        r, pairs = match_batch_u8_pairs(frame_codes, sets, self.delta, keep.delta)
+        scores[top] = r.scores
+        if kept_pairs is not None:
+            kept_pairs = list(kept_pairs)
+            for j, pr in zip(top, pairs, strict=True):
+                kept_pairs[int(j)] = pr
+        return scores, kept_pairs
 
     def pairs(self, codes: np.ndarray, image_id: int, delta: float
               ) -> tuple[np.ndarray, np.ndarray]:
@@ -482,7 +519,7 @@ class RouteMap:
         if isinstance(p, XFeatParams):
             return mnn_pairs(unit_descriptors(codes), self.features_of(image_id), p.min_cos,
                              p.max_ratio)
-        if self.uses_words:
+        if self.uses_words and not self.exact_top:  # else the best images' pairs: exact
             return self.inverted_file.pairs(codes, image_id, delta)
         return match_pairs(codes, self.prepared(image_id), delta)
 

@@ -24,6 +24,7 @@ from typing import Any
 import zenoh
 
 from service.api.errors import BadRequest, ServiceError
+from service.api.models import DEFAULT_FEATURES
 from service.engine.localization_service import LocalizationService
 from service.engine.map_admin import payload_to_file
 from service.zenoh.replies import answer, error_body, internal_error, parse_json_object
@@ -84,7 +85,7 @@ def declare_map_queryables(session: zenoh.Session, prefix: str, service: Localiz
             admin.check_preconditions(name, match_, none_match)
             path = payload_to_file(admin, data, "archive", s.max_archive_bytes)
             job = admin.submit_build(name, path, match_, none_match,
-                                     opts.get("features") or "clahe-rootsift")
+                                     opts.get("features") or DEFAULT_FEATURES)
             return job.model_dump(mode="json")
         raise BadRequest(f"unknown action '{action}'; use get, put, delete or build")
 
