@@ -16,17 +16,18 @@ from service.api.models import (
     Odometry,
 )
 from service.api.params import DPSOParams
-from service.estimators.base import StepResult
+from service.estimators.base import Status, StepResult
 from service.estimators.fitness import ComparisonCache, LocateFn
 from service.estimators.odometry import OdomStep, body_step
 from service.estimators.registry import make_estimator
-from service.maps.experiences import LayerChoice, experience_layers
+from service.maps.experiences import LayerChoice, base_layers, experience_layers
 from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
 from service.vision.map_geometry import FramePairs, GeometryParams
 from service.vision.place_index import PlaceSeeder
 
 _UNKNOWN_VAR = 1e6
+_FOUND = (Status.TRACKING.value, Status.RECOVERING.value)  # an estimate the gap rule may use
 
 
 class Localizer:
@@ -44,7 +45,11 @@ class Localizer:
                                         np.random.default_rng(seed))
         p = self.estimator.params  # the papers' estimators keep their random placements
         k = p.place_candidates if isinstance(p, DPSOParams) and p.variant == "swarmloc" else 0
-        self.seeder = (PlaceSeeder(route_map.place_index, route_map.positions, k)
+        # a map with experiences proposes its own images: a learned image of today's light
+        # looks more like any frame of that light than the map's images at the true place
+        own = (np.flatnonzero(np.isin(route_map.layers, base_layers(route_map)))
+               if experience_layers(route_map) else None)
+        self.seeder = (PlaceSeeder(route_map.place_index, route_map.positions, k, among=own)
                        if route_map.place_index is not None and k > 0 else None)
         self.seq = 0
         self.last: Estimate | None = None
@@ -109,9 +114,10 @@ class Localizer:
             comparisons = res.comparisons
         else:  # one layer per particle, then the layer probes (service/maps/experiences.py)
             similarity = ComparisonCache(lambda ids: self.map.similarity(features, ids, kept))
-            res = self.estimator.step(similarity, t, self.locator(features, kept), motion,
+            res = self.estimator.step(self.choice.scaled(self.map, similarity), t,
+                                      self.locator(features, kept), motion,
                                       nearest=self.choice.nearest(self.map, self._at()))
-            if not res.lost:
+            if res.status is Status.TRACKING:  # the probes score the layers at the true place
                 self.choice.probe(self.map, similarity, res.position)
             comparisons = similarity.comparisons
         self.seq += 1
@@ -119,9 +125,11 @@ class Localizer:
         return self.last
 
     def _at(self) -> np.ndarray | None:
-        """The previous estimate's position (None: none yet, or it was lost)."""
+        """The previous estimate's position once the session has found its place (None: none
+        yet, still initializing, or lost: the swarm searches)."""
         last = self.last
-        return None if last is None or last.lost else np.array([last.x, last.y])
+        return None if last is None or last.status not in _FOUND \
+            else np.array([last.x, last.y])
 
     def locator(self, features: Features, kept: FramePairs | None = None) -> LocateFn | None:
         """The frame located at a map image by two-view geometry (service/vision/map_geometry.py),

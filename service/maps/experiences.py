@@ -293,17 +293,18 @@ class LayerChoice:
         """For the fitness: each particle's base images (one column per base layer), replaced
         by the active experience's image where it has one within ``GAP_SPACINGS``.
 
-        ``at`` (the previous estimate, None when unknown): where the active experience has no
-        image within ``GAP_SPACINGS`` of it, the frame is in a gap of that experience and every
-        particle uses the base images. Otherwise the particles at the true place (base images,
+        ``at`` (the previous estimate while the session tracks; None while the swarm searches:
+        no estimate yet, or it was not ``tracking``): where the active experience has no image
+        within ``GAP_SPACINGS`` of it, or while the swarm searches, every particle uses the
+        base images (the gap rule). Otherwise the particles at the true place (base images,
         another light) would compete with particles at the experience's images elsewhere
-        (today's light, higher similarity to any frame), and the swarm would leave the gap for
-        the part of the route the experience covers."""
+        (today's light, higher similarity to any frame), and the swarm would leave the gap, or
+        a global search would settle, on the part of the route the experience covers."""
         base = base_layers(m)
         layer = experience_layers(m).get(self.active)
         gap = GAP_SPACINGS * base_spacing(m)
-        if layer is not None and at is not None and \
-                float(m.nearest_in_layer(np.asarray(at, float)[None, :], layer)[1][0]) > gap:
+        if layer is not None and (at is None or float(
+                m.nearest_in_layer(np.asarray(at, float)[None, :], layer)[1][0]) > gap):
             layer = None
 
         def nearest(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -317,6 +318,25 @@ class LayerChoice:
             return (np.where(near, e_ids[:, None], ids), np.where(near, e_dist[:, None], dist))
 
         return nearest
+
+    def scaled(self, m: RouteMap, similarity: SimilarityFn) -> SimilarityFn:
+        """``similarity`` with each experience image's m put on the base layer's scale: times
+        the base layer's running score over the experience's (both from ``probe``, at the
+        estimate), where the experience scores higher. Particles compared with different
+        layers then compete fairly: a learned image of today's light that matches the frame
+        about as well as any of its images matches any frame of that light (a wrong place)
+        no longer beats the base images at the true place. Unchanged where nothing is
+        scored yet."""
+        factors = np.ones(m.n_layers)
+        base = self.scores.get(BASE)
+        for key, k in experience_layers(m).items():
+            score = self.scores.get(key)
+            if base is not None and score is not None and score > base:
+                factors[k] = base / score
+        if np.all(factors == 1.0):
+            return similarity
+        layers = _layers(m)
+        return lambda ids: similarity(ids) * factors[layers[ids]]
 
     def probe(self, m: RouteMap, similarity: SimilarityFn, position: np.ndarray) -> None:
         """Compare the frame at ``position`` with the active layer and one other (in turn);

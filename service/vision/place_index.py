@@ -61,17 +61,23 @@ class PlaceIndex:
         p = (v - self.mean) @ self.projection
         return p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-12)
 
-    def query(self, codes: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """(image ids, scores) of the ``k`` map images most like the frame, best first."""
-        k = min(k, self.n_images)
+    def query(self, codes: np.ndarray, k: int, among: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """(image ids, scores) of the ``k`` map images most like the frame, best first;
+        ``among``: only these image ids (None: all)."""
+        k = min(k, self.n_images if among is None else len(among))
         if k <= 0 or len(codes) == 0:
             return np.zeros(0, np.int64), np.zeros(0)
         q = self.describe(codes).astype(np.float32)
-        scores = np.concatenate([np.asarray(self.descriptors[i: i + _CHUNK]) @ q
-                                 for i in range(0, self.n_images, _CHUNK)])
+        if among is None:
+            scores = np.concatenate([np.asarray(self.descriptors[i: i + _CHUNK]) @ q
+                                     for i in range(0, self.n_images, _CHUNK)])
+        else:
+            scores = np.asarray(self.descriptors)[among] @ q
         top = np.argpartition(-scores, k - 1)[:k]
         top = top[np.argsort(-scores[top], kind="stable")]
-        return top.astype(np.int64), scores[top].astype(float)
+        ids = top if among is None else np.asarray(among)[top]
+        return ids.astype(np.int64), scores[top].astype(float)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The arrays a map file stores (service/maps/route_map.py)."""
@@ -187,12 +193,15 @@ class PlaceSeeder:
     ``disagree_checks`` checks in a row that disagree, this frame's candidates are given to
     the estimator anyway: its scouts are drawn there, and a place that matches better takes
     over. ``last_query_s`` is the time of this frame's index query (0 when none ran) and
-    ``queries`` counts them, for the benchmarks' honest accounting.
+    ``queries`` counts them, for the benchmarks' honest accounting. ``among``: the image ids
+    it may propose (None: all; a map with experiences: its own images, service/engine/localizer.py).
     """
 
     def __init__(self, index: PlaceIndex, positions: np.ndarray, k: int, check_every: int = 3,
-                 check_top: int = 3, far_m: float = 10.0, disagree_checks: int = 2) -> None:
+                 check_top: int = 3, far_m: float = 10.0, disagree_checks: int = 2,
+                 among: np.ndarray | None = None) -> None:
         self.index = index
+        self.among = among
         self.positions = np.asarray(positions, float)
         self.k = k
         self.check_every = check_every
@@ -205,7 +214,7 @@ class PlaceSeeder:
 
     def _query(self, codes: np.ndarray) -> np.ndarray:
         t0 = time.perf_counter()
-        ids, _ = self.index.query(codes, self.k)
+        ids, _ = self.index.query(codes, self.k, self.among)
         self.last_query_s = time.perf_counter() - t0
         self.queries += 1
         self.last_ids = ids
