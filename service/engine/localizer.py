@@ -20,7 +20,7 @@ from service.estimators.base import Status, StepResult
 from service.estimators.fitness import ComparisonCache, LocateFn
 from service.estimators.odometry import OdomStep, body_step
 from service.estimators.registry import make_estimator
-from service.maps.experiences import LayerChoice, base_layers, experience_layers
+from service.maps.experiences import LayerChoice, base_images, experience_layers
 from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
 from service.vision.map_geometry import FramePairs, GeometryParams
@@ -47,8 +47,7 @@ class Localizer:
         k = p.place_candidates if isinstance(p, DPSOParams) and p.variant == "swarmloc" else 0
         # a map with experiences proposes its own images: a learned image of today's light
         # looks more like any frame of that light than the map's images at the true place
-        own = (np.flatnonzero(np.isin(route_map.layers, base_layers(route_map)))
-               if experience_layers(route_map) else None)
+        own = base_images(route_map) if experience_layers(route_map) else None
         self.seeder = (PlaceSeeder(route_map.place_index, route_map.positions, k, among=own)
                        if route_map.place_index is not None and k > 0 else None)
         self.seq = 0

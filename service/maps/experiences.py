@@ -70,10 +70,14 @@ def base_layers(m: RouteMap) -> list[int]:
     return [k for k in range(m.n_layers) if k not in learned]
 
 
+def base_images(m: RouteMap) -> np.ndarray:
+    """Ids of the map's own images (its traversals, not its experiences)."""
+    return np.flatnonzero(np.isin(_layers(m), base_layers(m)))
+
+
 def base_spacing(m: RouteMap) -> float:
     """Median spacing of the map's own images (the experiences' are not counted)."""
-    base = np.flatnonzero(np.isin(_layers(m), base_layers(m)))
-    pos = m.positions[base]
+    pos = m.positions[base_images(m)]
     if len(pos) < 2:
         return 1.0
     return float(np.median(np.linalg.norm(np.diff(pos, axis=0), axis=1)))
