@@ -25,6 +25,7 @@ from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
 from service.maps.experiences import (
     BASE,
+    LayerChoice,
     NewImage,
     add_experience,
     compatible,
@@ -490,3 +491,69 @@ def test_in_a_gap_of_the_experience_every_particle_uses_the_base_images(
     # where the experience covers the estimate, its images are used again
     ids, _ = nearest_fns[55](everywhere)
     assert np.any(layers[ids] == exp_layer)
+
+
+def test_a_searching_swarm_uses_the_maps_own_images(
+        map_copy: RouteMap, cloudy_images: list[NewImage],
+        cloudy_features: list[Features]) -> None:
+    """Issue #34 (maps of two feature types at dusk, seeds 0 and 37: 1.55 -> 8.51 m and
+    1.12 -> 4.01 m): a session that starts where a partial experience has no images. The place
+    index proposed the learned images (today's light looks more like any frame of that light
+    than the map's own images at the true place), probes at the searching swarm's estimate
+    moved the session to the experience, and the search settled at its images, 45 m off, for
+    40 frames. While the swarm searches (no estimate yet, initializing or lost) the map is its
+    own images: the place index proposes them, the particles are compared with them, and the
+    layers are probed only at an estimate that tracks."""
+    assert map_copy.path is not None
+    learned, _ = add_experience(map_copy, map_copy.path, "cloudy", cloudy_images[30:],
+                                condition="cloudy", robot=None, now=1.0, budget_bytes=1 << 30)
+    exp_layer = experience_layers(learned)["cloudy"]
+    layers = learned.layers
+    assert layers is not None
+    loc = Localizer(learned, seed=1)
+    assert loc.seeder is not None
+    step = loc.estimator.step
+    nearest_fns: list = []
+
+    def captured(*args, **kw):
+        nearest_fns.append(kw.get("nearest"))
+        return step(*args, **kw)
+
+    loc.estimator.step = captured  # type: ignore[method-assign]
+    proposed = 0
+    for i, f in enumerate(cloudy_features[:30]):  # frames 0-29: a gap of the experience
+        before = loc.last
+        loc.step(f, t=float(i))
+        proposed += len(loc.seeder.last_ids)
+        assert not np.any(layers[loc.seeder.last_ids] == exp_layer), i
+        if before is None or before.status not in ("tracking", "recovering"):
+            ids, _ = nearest_fns[i](learned.positions)
+            assert not np.any(layers[ids] == exp_layer), i
+    assert proposed > 0  # the seeder was asked
+
+
+def test_particles_compared_with_different_layers_compete_on_one_scale(
+        map_copy: RouteMap, cloudy_images: list[NewImage]) -> None:
+    """Issue #34 (the end of a dusk experience, seed 0): a learned image of today's light
+    matches a frame of that light at a wrong place better than the map's own image at the true
+    place, so particles near the learned images won where the experience ends. An experience
+    image's similarity is put on the base layer's scale: times the base layer's running score
+    over the experience's (both probed at the estimate); an experience that matches worse than
+    the base is left as it is, and so is a session with nothing scored."""
+    assert map_copy.path is not None
+    learned, _ = add_experience(map_copy, map_copy.path, "cloudy", cloudy_images[30:],
+                                condition="cloudy", robot=None, now=1.0, budget_bytes=1 << 30)
+    layers = learned.layers
+    assert layers is not None
+    exp_ids = np.flatnonzero(layers == experience_layers(learned)["cloudy"])[:5]
+    base_ids = np.flatnonzero(layers == 0)[:5]
+    ids = np.concatenate([exp_ids, base_ids])
+
+    def raw(i: np.ndarray) -> np.ndarray:
+        return np.full(np.shape(i), 0.2)
+
+    choice = LayerChoice(scores={BASE: 0.05, "cloudy": 0.5}, active="cloudy")
+    assert np.allclose(choice.scaled(learned, raw)(ids), [0.02] * 5 + [0.2] * 5)
+    choice.scores["cloudy"] = 0.04  # matches worse than the map's own images: unchanged
+    assert np.allclose(choice.scaled(learned, raw)(ids), 0.2)
+    assert np.allclose(LayerChoice().scaled(learned, raw)(ids), 0.2)
