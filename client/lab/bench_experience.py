@@ -94,18 +94,30 @@ def replay(m: RouteMap, rnd: Round, feats: list[Features], *, seed: int = 0,
                   float(np.mean(on[WARMUP:])) if len(on) > WARMUP else 0.0)
 
 
+def learned_images(m: RouteMap) -> np.ndarray:
+    """Ids of the map's experience images."""
+    return np.flatnonzero(np.isin(np.asarray(m.layers), list(experience_layers(m).values())))
+
+
+def covered(m: RouteMap, truth: np.ndarray) -> np.ndarray:
+    """Per true position: whether a learned image lies within ``GAP_SPACINGS`` map spacings
+    (all False for a map without experiences)."""
+    ids = learned_images(m)
+    if not len(ids):
+        return np.zeros(len(truth), bool)
+    d = np.min(np.linalg.norm(truth[:, None, :] - m.positions[ids][None, :, :], axis=2), axis=1)
+    return d <= GAP_SPACINGS * base_spacing(m)
+
+
 def learned_fit(m: RouteMap, first: Round, second: Round, frames: int) -> tuple[float, float]:
     """(coverage, placed): the share of round 2's first ``frames`` frames whose true place lies
     within ``GAP_SPACINGS`` map spacings of a learned image, and the mean distance of the
     learned images from the true place of the round-1 frames they came from (named
     ``EXPERIENCE/SEQ``, SEQ counted from 1)."""
-    layers = set(experience_layers(m).values())
-    ids = np.flatnonzero(np.isin(np.asarray(m.layers), list(layers)))
+    ids = learned_images(m)
     if not len(ids):
         return 0.0, float("nan")
-    truth = second.reference_xy[:frames]
-    d = np.min(np.linalg.norm(truth[:, None, :] - m.positions[ids][None, :, :], axis=2), axis=1)
-    coverage = float(np.mean(d <= GAP_SPACINGS * base_spacing(m)))
+    coverage = float(np.mean(covered(m, second.reference_xy[:frames])))
     seqs = np.array([int(m.image_names[int(i)].rsplit("/", 1)[1]) - 1 for i in ids])
     placed = float(np.mean(np.linalg.norm(m.positions[ids] - first.reference_xy[seqs], axis=1)))
     return coverage, placed

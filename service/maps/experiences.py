@@ -17,7 +17,10 @@ compared with the *active* layer's image at their place (the base images where t
 experience has none). After each frame the active layer, and every second frame one other in
 turn, are compared at the estimate (``probe``: at most two comparisons, mostly one already
 made), so a session moves to the layer of today's light without multiplying comparisons by
-the number of layers.
+the number of layers. An experience rarely covers the whole route: in its gaps, and while the
+swarm searches, the particles use the base images (``nearest``), and where particles compared
+with different layers meet, an experience's similarities are put on the base layer's scale
+(``scaled``).
 """
 
 from __future__ import annotations
