@@ -440,9 +440,11 @@ def test_a_located_camera_steers_the_swarm(
     geo, table = _geometry(camera_map), sunny2_table
     out = {}
     for steer in (0.0, 1.0):
-        # lost_frames: frames that say nothing would otherwise end the tracking after three
-        est = Localizer(camera_map, "dpso", {"metric_steer_m": steer, "lost_frames": 100},
-                        seed=2).estimator
+        # lost_frames: frames that say nothing would otherwise end the tracking after three;
+        # metric_disagree_m: the swarm held ahead and the located camera disagree (reported
+        # recovering; the test after this one), here only the steering is measured
+        est = Localizer(camera_map, "dpso", {"metric_steer_m": steer, "lost_frames": 100,
+                                             "metric_disagree_m": 0}, seed=2).estimator
         n = est.params.n_particles
         for k in range(30, 65):
             def locate(i: int, k: int = k) -> object:
@@ -534,3 +536,35 @@ def test_the_camera_yaw_follows_a_frame_turned_against_the_route(
             turned_by.append(float(np.degrees(np.angle(np.exp(1j * (got[turn] - got[0.0]))))))
     assert np.allclose(turned_by, [-8.0, 8.0] * 3, atol=1.5), turned_by
     assert np.median(absolute) < 4.0 and max(absolute) < 8.0, absolute
+
+
+def test_a_frame_located_far_from_the_images_estimate_is_reported_recovering(
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features],
+        sunny2_table: SimilarityTable) -> None:
+    """Tracked on the true frames; at frame 60 the geometry places the camera 12 m ahead of
+    where it locates it (a look-alike's offset), while the images say the robot is at its
+    true place. With metric_disagree_m 8 m that frame is reported recovering with an
+    accuracy_m of at least the 12 m the answers disagree by; with 0 it is tracking. The
+    rule reports only: every frame's position and every other frame's status are the
+    same either way."""
+    geo, table = _geometry(camera_map), sunny2_table
+    out = {}
+    for disagree in (0.0, 8.0):
+        est = Localizer(camera_map, "dpso", {"metric_disagree_m": disagree}, seed=2).estimator
+        results = []
+        for k in range(30, 66):
+            def locate(i: int, k: int = k) -> object:
+                off = geo.locate(sunny2_features[k], i, GeometryParams())
+                return replace(off, ahead_m=off.ahead_m + 12.0) if off is not None and \
+                    k == 60 else off
+            results.append(est.step(partial(table.scores, k), float(k),
+                                    locate))  # type: ignore[arg-type]
+        out[disagree] = results
+    off, on = out[0.0], out[8.0]
+    far = 60 - 30
+    assert off[far].located and off[far].status.value == "tracking"
+    assert on[far].status.value == "recovering" and on[far].accuracy_m >= 11.0
+    assert off[far].accuracy_m < 5.0
+    assert [r.status for k, r in enumerate(on) if k != far] == \
+        [r.status for k, r in enumerate(off) if k != far]
+    assert all(np.array_equal(a.position, b.position) for a, b in zip(on, off, strict=True))

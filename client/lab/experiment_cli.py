@@ -103,6 +103,27 @@ def metrics(runs: list[Run], warmup: int) -> dict[str, Any]:
     return summarize([run_metrics(r, warmup) for r in runs])
 
 
+def param_value(raw: str) -> Any:
+    """A parameter value given on the command line: an int, a float, else the string."""
+    for cast in (int, float):
+        try:
+            return cast(raw)
+        except ValueError:
+            pass
+    return raw
+
+
+def parse_params(pairs: list[str] | None) -> dict[str, Any]:
+    """``NAME=VALUE`` pairs as a parameter dict (``param_value``)."""
+    out = {}
+    for pair in pairs or []:
+        name, sep, raw = pair.partition("=")
+        if not sep or not name:
+            raise typer.BadParameter(f"{pair!r}: give a parameter as NAME=VALUE")
+        out[name] = param_value(raw)
+    return out
+
+
 def _starts(n: int, count: int) -> list[int]:
     return [k * n // count for k in range(count)]
 
@@ -158,6 +179,9 @@ def experiment(
     exact_top: Annotated[int, typer.Option(
         help="with --matcher words: the best N images of each comparison matched again "
              "exactly")] = 0,
+    param: Annotated[list[str] | None, typer.Option(
+        help="NAME=VALUE: an estimator parameter for every chosen method, beside its own "
+             "(repeatable), e.g. --param metric_disagree_m=0")] = None,
 ) -> None:
     """Every estimator's error (mean, median, within 5 m), comparisons, share of frames in
     recovery, accuracy_m calibration (tracked frames within it), honesty (frames with error
@@ -168,6 +192,7 @@ def experiment(
     from service.vision.features import FEATURE_TYPES
 
     chosen = [x for x in methods.split(",") if x]
+    extra = parse_params(param)
     unknown = [x for x in chosen if x not in METHODS]
     if unknown:
         raise typer.BadParameter(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
@@ -194,6 +219,8 @@ def experiment(
         rows = {}
         for name in chosen:
             method = METHODS[name]
+            if extra:
+                method = Method(method.estimator, {**method.params, **extra}, method.papers_map)
             m, table = maps[method.papers_map], tables[method.papers_map]
             r = metrics(_runs(m, table, rnd, method, start_list, seed), warmup)
             rows[name] = r

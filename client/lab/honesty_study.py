@@ -83,15 +83,6 @@ def excursions(wrong: np.ndarray) -> list[tuple[int, int]]:
     return out
 
 
-def _value(raw: str) -> Any:
-    for cast in (int, float):
-        try:
-            return cast(raw)
-        except ValueError:
-            pass
-    return raw
-
-
 def _table(dataset: Path, m: Any, rnd: Any, features: str, query: str) -> Any:
     """``cached_table``, with the query round's features kept in /tmp between runs of this
     script (extraction dominates its time)."""
@@ -157,9 +148,9 @@ def main(
              "widened to the distance (positions untouched)")] = 8.0,
 ) -> None:
     from client.dataset import read_round
-    from client.lab.experiment_cli import map_for
+    from client.lab.experiment_cli import map_for, parse_params
 
-    params_v = {k: _value(v) for k, v in (x.split("=", 1) for x in (param or []))}
+    params_v = parse_params(param)
     m = map_for(dataset, map_round, False, features)
     rnd = read_round(dataset / query)
     table = _table(dataset, m, rnd, features, query)  # read; never saved here
@@ -168,8 +159,7 @@ def main(
     fusion = m.meta.get("fusion")
     typer.echo(f"{dataset} {map_round} vs {query}, {features}, fusion "
                f"{fusion.get('rule') if isinstance(fusion, dict) else '-'}")
-    variants = [params_v] + [{**params_v, k: _value(v)} for k, v in
-                             (x.split("=", 1) for x in (against or []))]
+    variants = [params_v] + [{**params_v, **parse_params([x])} for x in against or []]
     for n, pv in enumerate(variants):
         rows = _study(m, table, rnd, pv, starts, warmup, seed, context)
         typer.echo(what_if(rows, warmup, disagree_m))

@@ -345,6 +345,12 @@ class DPSOParams(CommonParams):
     metric_search_m: float = Field(
         8.0, gt=0, le=1e3, description="radius around the estimate of the further images "
         "tried (m); 8 m, our choice: twice estimate_image_radius_m")
+    metric_disagree_m: float = Field(
+        8.0, ge=0, le=1e3, description="a tracked frame located farther than this from the "
+        "images' estimate carries two answers that disagree: it is reported 'recovering', "
+        "its accuracy_m at least that distance, while the swarm follows the located camera "
+        "as usual (m; 0: off); 8 m, metric_search_m: at dusk such frames are single "
+        "look-alikes 10-15 m off, in daylight almost never seen (docs/research/lighting.md)")
     metric_map_sigma_m: float = Field(
         0.28, ge=0, le=1e3, description="standard deviation of the map's recorded positions "
         "per axis, the floor of a located frame's radius (m; "

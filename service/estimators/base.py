@@ -35,7 +35,9 @@ def _check_finite(what: str, *values: float) -> None:
 class Status(StrEnum):
     INITIALIZING = "initializing"
     TRACKING = "tracking"
-    RECOVERING = "recovering"  # DPSO's recovery phase (boosted diversity)
+    # DPSO's recovery phase (boosted diversity), or a tracked frame whose two answers
+    # disagree (the located camera far from the images' estimate, metric_disagree_m)
+    RECOVERING = "recovering"
     LOST = "lost"  # bad matches for lost_frames in a row, no recovery mechanism (PF)
 
 
@@ -70,6 +72,12 @@ class StepResult:
     def accuracy_m(self) -> float:
         """Radius of the 68 % horizontal confidence disc (ARCore Geospatial convention)."""
         return float(_R68 * math.sqrt(max(np.linalg.eigvalsh(self.covariance).max(), 0.0)))
+
+
+def sigma_for_accuracy(accuracy_m: float) -> float:
+    """The standard deviation per axis whose 68 % disc (``StepResult.accuracy_m``) has this
+    radius."""
+    return accuracy_m / _R68
 
 
 def weighted_covariance(x: np.ndarray, w: np.ndarray, floor_m: float) -> np.ndarray:

@@ -52,7 +52,10 @@ changes, each measured in docs/research/lighting.md:
   (off by default) also lets frames that cannot be located within ``metric_gate_m`` for
   that many tracked frames in a row count as not good for the lost detection;
   ``verify_switch_frames`` (off by default) then moves the estimate to another sub-swarm
-  where the frame is located. A located frame's heading is the camera's yaw (the map
+  where the frame is located. A tracked frame located more than ``metric_disagree_m`` from
+  the images' estimate carries two answers that disagree: it is reported ``recovering``
+  with an ``accuracy_m`` of at least that distance (report only: the swarm follows the
+  located camera as on any located frame). A located frame's heading is the camera's yaw (the map
   image camera's heading plus the frame's yaw relative to it, ``heading_source`` "camera",
   its std from service/vision/map_geometry.py); a frame not located keeps the odometry's
   heading or the direction of motion.
@@ -70,7 +73,13 @@ import numpy as np
 
 from service.api.params import DPSOParams
 from service.estimators.along_track import AlongTrackSmoother, path_tangent
-from service.estimators.base import Hypothesis, Status, StepResult, weighted_covariance
+from service.estimators.base import (
+    Hypothesis,
+    Status,
+    StepResult,
+    sigma_for_accuracy,
+    weighted_covariance,
+)
 from service.estimators.fitness import FrameFitness, MapIndex
 from service.estimators.located_noise import LocatedNoise
 from service.estimators.lost_detection import DistinctnessMonitor
@@ -203,6 +212,11 @@ class MultiSwarmDPSO(DPSO):
                 if self.odometry is not None:  # and the heading fit's pairs may belong to
                     self.odometry.forget()  # the place the robot is not at
         located = camera[0] if camera is not None else None
+        # a tracked frame located far from the images' estimate carries two answers that
+        # disagree: reported recovering, its radius at least the distance (report only)
+        disagree = float(np.linalg.norm(located - pos)) if located is not None else 0.0
+        if not (status is Status.TRACKING and 0 < p.metric_disagree_m < disagree):
+            disagree = 0.0
 
         # attractors: the seeds where the robot will be at the next frame (the tracked step
         # ahead), so the swarm does not trail the robot where matches are weak
@@ -232,7 +246,7 @@ class MultiSwarmDPSO(DPSO):
             self.noise.add(self.frame_count, pos)
             sigma = self.noise.sigma(p.metric_map_sigma_m, p.metric_jitter_gain,
                                      p.metric_jitter_prior_m)
-            cov = np.eye(2) * sigma ** 2
+            cov = np.eye(2) * max(sigma, sigma_for_accuracy(disagree)) ** 2
         geometry = self._geometry_runs(fitness)
         # the images confirm the place: a located frame, or a strong one without geometry
         confirmed = located is not None if geometry else self.weak_frames == 0
@@ -248,9 +262,10 @@ class MultiSwarmDPSO(DPSO):
         heading, source, h_sigma = self.odom_heading(odom, heading)
         if cam is not None and cam.heading is not None:  # the camera's yaw
             heading, source, h_sigma = cam.heading, "camera", cam.heading_sigma
-        return StepResult(reported, cov, heading, speed, status,
-                          lost or self.recovering, ev.best_m, fitness.comparisons, spread,
-                          hypotheses, source, h_sigma, located is not None)
+        return StepResult(reported, cov, heading, speed,
+                          Status.RECOVERING if disagree else status, lost or self.recovering,
+                          ev.best_m, fitness.comparisons, spread, hypotheses, source, h_sigma,
+                          located is not None)
 
     def odometry_prediction(self, odom: OdomStep) -> np.ndarray:
         """Move every particle by the odometry step in the map frame, with its noise
