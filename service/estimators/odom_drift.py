@@ -36,9 +36,6 @@ class DriftRate:
     walk_var = math.radians(0.2) ** 2
     # the rate's random walk (rad^2/m^2 per metre): a drift that changes slowly
     rate_walk_var = math.radians(0.002) ** 2
-    # a located yaw's variance is its std squared times this: neighbouring frames located at
-    # the same map image share that image's heading error (their errors are not independent)
-    look_inflation = 4.0
     gate_sigmas = 3.0  # innovations beyond this many stds are left out ...
     gate_frames = 5  # ... unless this many in a row are: then the offset restarts there
     limit = math.radians(1.0)  # the corrected drift is clipped to this (rad/m)
@@ -68,7 +65,7 @@ class DriftRate:
     def look(self, offset: float, sigma: float) -> None:
         """A located yaw: ``offset`` = the camera's map yaw minus the raw dead-reckoned yaw
         (rad), with the camera yaw's std ``sigma`` (rad)."""
-        r = sigma * sigma * self.look_inflation
+        r = sigma * sigma
         if self.x is not None:
             innov = wrap_angle(offset - float(self.x[0]))
             s = float(self.p[0, 0]) + r
