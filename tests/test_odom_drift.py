@@ -82,3 +82,6 @@ def test_a_heading_stored_before_the_drift_estimate_still_works() -> None:
     back.advance(OdomStep(1.0, 0.0, 0.1, 0.0, 0.0))
     back.look(0.5, LOOK_SIGMA, True)
     assert back.drift is not None and back.raw_yaw == pytest.approx(0.1)
+    again = loads(dumps({"h": back}))["h"]  # and the drift estimate is stored with it
+    assert again.drift is not None and np.array_equal(again.drift.x, back.drift.x)
+    assert again.drift.rate == back.drift.rate and again.drift.gated == back.drift.gated

@@ -66,24 +66,28 @@ class DriftRate:
         """A located yaw: ``offset`` = the camera's map yaw minus the raw dead-reckoned yaw
         (rad), with the camera yaw's std ``sigma`` (rad)."""
         r = sigma * sigma
-        if self.x is not None:
-            innov = wrap_angle(offset - float(self.x[0]))
-            s = float(self.p[0, 0]) + r
-            if innov * innov > self.gate_sigmas ** 2 * s:
-                self.gated += 1
-                if self.gated < self.gate_frames:
-                    return
-                self.x = None  # the offset jumped (a turn the wheels did not see)
-        self.gated = 0
-        if self.x is None:  # the offset starts here; the rate is the one kept
-            self.x = np.array([offset, -self.rate])
-            self.p = np.diag([r, self.rate_var])
+        if self.x is None:
+            self._start(offset, r)
             return
+        innov = wrap_angle(offset - float(self.x[0]))
+        s = float(self.p[0, 0]) + r
+        if innov * innov > self.gate_sigmas ** 2 * s:
+            self.gated += 1
+            if self.gated >= self.gate_frames:  # the offset jumped (unseen by the wheels)
+                self._start(offset, r)
+            return
+        self.gated = 0
         k = self.p[:, 0] / s  # the Kalman gain of a measurement of the offset alone
-        self.x = self.x + k * innov
-        self.x[0] = wrap_angle(float(self.x[0]))
+        x = self.x + k * innov
+        self.x = np.array([wrap_angle(float(x[0])), float(x[1])])
         self.p = self.p - np.outer(k, self.p[0])
         self.rate, self.rate_var = -float(self.x[1]), float(self.p[1, 1])
+
+    def _start(self, offset: float, r: float) -> None:
+        """The offset starts at ``offset`` (variance ``r``); the rate is the one kept."""
+        self.x = np.array([offset, -self.rate])
+        self.p = np.diag([r, self.rate_var])
+        self.gated = 0
 
     def restart(self) -> None:
         """A jump the wheels did not see: the offset is unknown again, the rate is kept."""
