@@ -288,6 +288,11 @@ class DPSOParams(CommonParams):
     odom_look: bool = Field(
         True, description="with wheel odometry, a located frame's camera yaw also corrects "
         "the odometry's map heading (service/estimators/odometry.py)")
+    odom_drift: bool = Field(
+        True, description="with wheel odometry and odom_look, the located frames' camera "
+        "yaw also estimates the odometry's heading drift per metre travelled, and each "
+        "odometry step's turn is corrected by it before it moves the swarm "
+        "(service/estimators/odom_drift.py)")
     odom_alpha: float = Field(
         0.3, ge=0, le=1, description="with wheel odometry, the share of the image "
         "estimate's correction (along and across the path) the reported position takes "

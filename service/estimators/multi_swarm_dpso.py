@@ -258,7 +258,7 @@ class MultiSwarmDPSO(DPSO):
         cam = camera[1] if camera is not None else None
         if cam is not None and cam.heading is not None and cam.heading_sigma is not None \
                 and odom is not None and self.odometry is not None and self.params.odom_look:
-            self.odometry.look(cam.heading, cam.heading_sigma)
+            self.odometry.look(cam.heading, cam.heading_sigma, self.params.odom_drift)
         heading, source, h_sigma = self.odom_heading(odom, heading)
         if cam is not None and cam.heading is not None:  # the camera's yaw
             heading, source, h_sigma = cam.heading, "camera", cam.heading_sigma

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.api.geo import wrap_angle
+from service.estimators.odom_drift import DriftRate
 
 # the direction of motion as a heading: its std (rad) when no odometry fit is there yet
 MOTION_HEADING_SIGMA = math.radians(20.0)
@@ -72,6 +73,11 @@ class OdomHeading:
     # (service/engine/state_codec.py) restores without them
     seen: float | None = None
     seen_var = 0.0
+    # the odometry's heading drift from the located yaws (service/estimators/odom_drift.py;
+    # None until the first, or with odom_drift off) and the raw dead-reckoned yaw it is
+    # measured against (rad); class-level for a state stored before them
+    drift: DriftRate | None = None
+    raw_yaw = 0.0
 
     def __init__(self) -> None:
         self.reset()
@@ -87,14 +93,22 @@ class OdomHeading:
         # its variance grows with the odometry's drift between them); None: none seen
         self.seen: float | None = None
         self.seen_var = 0.0
+        self.drift = None
+        self.raw_yaw = 0.0
 
     def advance(self, step: OdomStep) -> None:
-        """Integrate one step into the dead-reckoned pose."""
+        """Integrate one step into the dead-reckoned pose, its turn corrected by the
+        estimated drift where there is one."""
         x, y, yaw = self.pose
         c, s = math.cos(yaw), math.sin(yaw)
+        turn = step.turn
+        if self.drift is not None:
+            turn -= self.drift.drift * step.distance
+            self.drift.advance(step.distance)
+        self.raw_yaw = wrap_angle(self.raw_yaw + step.turn)
         self.pose = np.array([x + c * step.forward - s * step.left,
                               y + s * step.forward + c * step.left,
-                              wrap_angle(yaw + step.turn)])
+                              wrap_angle(yaw + turn)])
         self.travelled += step.distance
         if self.seen is not None:
             self.seen_var += step.var_yaw * step.distance
@@ -119,9 +133,14 @@ class OdomHeading:
             return wrap_angle(float(self.pose[2]) + offset), sigma
         return motion_heading, MOTION_HEADING_SIGMA
 
-    def look(self, heading: float, sigma: float) -> None:
+    def look(self, heading: float, sigma: float, drift: bool = False) -> None:
         """The located camera's yaw ``heading`` (std ``sigma``) at the current pose: a direct
-        measurement of the offset between the dead-reckoned yaw and the map's."""
+        measurement of the offset between the dead-reckoned yaw and the map's; with
+        ``drift``, also of the odometry's heading drift (``DriftRate``)."""
+        if drift:
+            if self.drift is None:
+                self.drift = DriftRate()
+            self.drift.look(wrap_angle(heading - self.raw_yaw), sigma)
         z = wrap_angle(heading - float(self.pose[2]))
         if self.seen is None:
             self.seen, self.seen_var = z, sigma * sigma
@@ -163,6 +182,8 @@ class OdomHeading:
         motion stands in until a new fit."""
         self.forget()
         self.offset, self.offset_sigma = None, math.pi
+        if self.drift is not None:  # the wheels did not see the jump: their drift holds
+            self.drift.restart()
 
     def _fit(self) -> None:
         p = self.pairs
