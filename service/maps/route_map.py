@@ -297,6 +297,18 @@ class RouteMap:
             return None
         return MapGeometry(self, cam, self.feature_params.width, self.feature_params.height)
 
+    @cached_property
+    def second_geometry(self) -> MapGeometry | None:
+        """On a map of two feature types with the camera: two-view geometry on its second set
+        (XFeat), which matches where RootSIFT finds little (dusk); None otherwise. The
+        localizer does not use it; a learning session's located gate does
+        (service/engine/learning.py)."""
+        cam = self.camera
+        if cam is None or self.second is None:
+            return None
+        return MapGeometry(SecondImages(self), cam, self.feature_params.width,
+                           self.feature_params.height)
+
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(min, max) corners of the map positions."""
@@ -540,6 +552,36 @@ class RouteMap:
             **{k: v for k, v in self.meta.items() if k not in ("arrays", "checksum")},
             "place_index": self.place_index.meta() if self.place_index is not None else None,
         }
+
+
+class SecondImages:
+    """A map of two feature types seen through its second set (XFeat): what MapGeometry
+    needs of a map (positions, layers, codes, keypoints, matched pairs by mutual nearest
+    neighbours)."""
+
+    def __init__(self, m: RouteMap) -> None:
+        if m.second is None or not isinstance(m.feature_params, DualParams):
+            raise ValueError(f"map '{m.name}' has one feature type")
+        self.map, self.set, self.params = m, m.second, m.feature_params.xfeat
+        self.positions, self.layers = m.positions, m.layers
+
+    def codes_of(self, image_id: int) -> np.ndarray:
+        self.map._check_second(image_id)
+        return self.set.codes[self.set.rows(image_id)]
+
+    def keypoints_of(self, image_id: int) -> np.ndarray:
+        self.map._check_second(image_id)
+        return self.set.keypoints[self.set.rows(image_id)]
+
+    def pairs(self, codes: np.ndarray, image_id: int, delta: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Mutual nearest neighbours of ``codes`` with the image's second set (any delta)."""
+        return mnn_pairs(unit_descriptors(codes), self.map.second_features_of(image_id),
+                         self.params.min_cos, self.params.max_ratio)
+
+    def image_pairs(self, image_id: int, other: int, delta: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        return self.pairs(self.codes_of(image_id), other, delta)
 
 
 def position_problem(positions: np.ndarray) -> str | None:
