@@ -24,6 +24,7 @@ from service.maps.experiences import LayerChoice, base_images, experience_layers
 from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
 from service.vision.map_geometry import FramePairs, GeometryParams
+from service.vision.metric_pose import Offset
 from service.vision.place_index import PlaceSeeder
 
 _UNKNOWN_VAR = 1e6
@@ -138,7 +139,14 @@ class Localizer:
         if geometry is None:
             return None
         params = GeometryParams()
-        return lambda image_id: geometry.locate(features, image_id, params, kept)
+        second, frame2 = self.map.second_geometry, features.second
+        if second is None or frame2 is None:
+            return lambda image_id: geometry.locate(features, image_id, params, kept)
+
+        def locate(image_id: int) -> Offset | None:  # RootSIFT's, else XFeat's geometry
+            off = geometry.locate(features, image_id, params, kept)
+            return off if off is not None else second.locate(frame2, image_id, params)
+        return locate
 
     def seed_places(self, codes: np.ndarray) -> None:
         """Candidate places of this frame for a searching estimator (service/vision/place_index.py);
