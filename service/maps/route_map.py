@@ -301,7 +301,8 @@ class RouteMap:
     def second_geometry(self) -> MapGeometry | None:
         """On a map of two feature types with the camera: two-view geometry on its second set
         (XFeat), which matches where RootSIFT finds little (dusk); None otherwise. The
-        localizer does not use it; a learning session's located gate does
+        localizer locates a frame with it where RootSIFT's geometry does not
+        (service/engine/localizer.py), and so does a learning session's located gate
         (service/engine/learning.py)."""
         cam = self.camera
         if cam is None or self.second is None:
