@@ -152,19 +152,23 @@ def test_a_dark_frame_is_located_by_xfeats_geometry_where_rootsifts_fails(
     """Frames darkened to a tenth (dusk-like): RootSIFT's two-view geometry locates few of
     them against the map image nearest the truth; the localizer's, which tries XFeat's
     matches where RootSIFT's fail, locates them, each at the distance from that image the
-    truth lies (within 1.5 m)."""
+    truth lies (within 1.5 m). With ``metric_second`` off it locates what RootSIFT's does."""
     geo, p = dual_map.geometry, GeometryParams()
     assert geo is not None
     loc = Localizer(dual_map, "dpso", {}, seed=0)
+    off_loc = Localizer(dual_map, "dpso", {"metric_second": False}, seed=0)
     rng = np.random.default_rng(0)
     frames = range(20, len(sunny2) - 20, 5)
-    by_rootsift = by_both = 0
+    by_rootsift = by_both = by_without = 0
     for i in frames:
         img = sunny2.load_image(i).astype(float) * 0.1 + rng.normal(0, 1.5, (240, 320))
         f = extract(np.clip(img, 0, 255).astype(np.uint8), dual_map.feature_params)
         truth = np.asarray(sunny2.xy[i])
         near = int(np.argmin(np.linalg.norm(dual_map.positions - truth, axis=1)))
         by_rootsift += geo.locate(f, near, p) is not None
+        without = off_loc.locator(f)
+        assert without is not None
+        by_without += without(near) is not None
         locate = loc.locator(f)
         assert locate is not None
         off = locate(near)
@@ -172,7 +176,7 @@ def test_a_dark_frame_is_located_by_xfeats_geometry_where_rootsifts_fails(
             by_both += 1
             reach = float(np.hypot(off.right_m, off.ahead_m))
             assert abs(reach - np.linalg.norm(truth - dual_map.positions[near])) <= 1.5
-    assert by_rootsift <= len(frames) // 3
+    assert by_rootsift <= len(frames) // 3 and by_without == by_rootsift
     assert by_both >= len(frames) - 2
 
 

@@ -457,6 +457,19 @@ def test_replay_learn_through_the_local_transport(camera_maps: Path, tmp_path: P
     assert e["condition"] == "cloudy" and e["robot"] == "replay" and e["images"] > 0
 
 
+def _captured_nearest(loc: Localizer) -> list:
+    """The ``nearest`` function the localizer gives its estimator, one per frame from now."""
+    step = loc.estimator.step
+    nearest_fns: list = []
+
+    def captured(*args, **kw):
+        nearest_fns.append(kw.get("nearest"))
+        return step(*args, **kw)
+
+    loc.estimator.step = captured  # type: ignore[method-assign]
+    return nearest_fns
+
+
 def test_in_a_gap_of_the_experience_every_particle_uses_the_base_images(
         map_copy: RouteMap, cloudy_images: list[NewImage],
         cloudy_features: list[Features], cloudy1: Round) -> None:
@@ -470,14 +483,7 @@ def test_in_a_gap_of_the_experience_every_particle_uses_the_base_images(
                                 condition="cloudy", robot=None, now=1.0, budget_bytes=1 << 30)
     exp_layer = experience_layers(learned)["cloudy"]
     loc = Localizer(learned, seed=1)
-    step = loc.estimator.step
-    nearest_fns: list = []
-
-    def captured(*args, **kw):
-        nearest_fns.append(kw.get("nearest"))
-        return step(*args, **kw)
-
-    loc.estimator.step = captured  # type: ignore[method-assign]
+    nearest_fns = _captured_nearest(loc)
     est = [loc.step(f, t=float(i)) for i, f in enumerate(cloudy_features)]
     assert loc.choice.scores and est[14].experience == "cloudy"  # it learned today's light
     everywhere = learned.positions  # particles at every image of the map
@@ -512,14 +518,7 @@ def test_a_searching_swarm_uses_the_maps_own_images(
     assert layers is not None
     loc = Localizer(learned, seed=1)
     assert loc.seeder is not None
-    step = loc.estimator.step
-    nearest_fns: list = []
-
-    def captured(*args, **kw):
-        nearest_fns.append(kw.get("nearest"))
-        return step(*args, **kw)
-
-    loc.estimator.step = captured  # type: ignore[method-assign]
+    nearest_fns = _captured_nearest(loc)
     proposed = 0
     for i, f in enumerate(cloudy_features[:30]):  # frames 0-29: a gap of the experience
         before = loc.last

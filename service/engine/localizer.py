@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any, cast
 
 import numpy as np
@@ -139,13 +140,22 @@ class Localizer:
         if geometry is None:
             return None
         params = GeometryParams()
-        second, frame2 = self.map.second_geometry, features.second
-        if second is None or frame2 is None:
+        second, frame2, p = self.map.second_geometry, features.second, self.estimator.params
+        if second is None or frame2 is None or not isinstance(p, DPSOParams) \
+                or not p.metric_second:
             return lambda image_id: geometry.locate(features, image_id, params, kept)
+        near = p.metric_gate_m
 
-        def locate(image_id: int) -> Offset | None:  # RootSIFT's, else XFeat's geometry
+        def locate(image_id: int) -> Offset | None:
+            # RootSIFT's geometry; where it cannot locate the frame, XFeat's, taken only near
+            # its image (metric_gate_m): it confirms and refines a place, it does not move
+            # the estimate to another
             off = geometry.locate(features, image_id, params, kept)
-            return off if off is not None else second.locate(frame2, image_id, params)
+            if off is not None:
+                return off
+            off = second.locate(frame2, image_id, params)
+            return off if off is not None and math.hypot(off.right_m, off.ahead_m) <= near \
+                else None
         return locate
 
     def seed_places(self, codes: np.ndarray) -> None:
