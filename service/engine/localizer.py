@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any, cast
 
 import numpy as np
@@ -144,18 +143,10 @@ class Localizer:
         if second is None or frame2 is None or not isinstance(p, DPSOParams) \
                 or not p.metric_second:
             return lambda image_id: geometry.locate(features, image_id, params, kept)
-        near = p.metric_gate_m
 
-        def locate(image_id: int) -> Offset | None:
-            # RootSIFT's geometry; where it cannot locate the frame, XFeat's, taken only near
-            # its image (metric_gate_m): it confirms and refines a place, it does not move
-            # the estimate to another
+        def locate(image_id: int) -> Offset | None:  # RootSIFT's, else XFeat's geometry
             off = geometry.locate(features, image_id, params, kept)
-            if off is not None:
-                return off
-            off = second.locate(frame2, image_id, params)
-            return off if off is not None and math.hypot(off.right_m, off.ahead_m) <= near \
-                else None
+            return off if off is not None else second.locate(frame2, image_id, params)
         return locate
 
     def seed_places(self, codes: np.ndarray) -> None:
