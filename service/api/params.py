@@ -332,7 +332,7 @@ class DPSOParams(CommonParams):
     metric_second: bool = Field(
         True, description="on a map of two feature types, a frame RootSIFT's two-view "
         "geometry cannot locate is located with XFeat's matches: at dusk RootSIFT finds few "
-        "matches (docs/research/lighting.md; dusk error -7 to -26 % on six worlds)")
+        "matches (docs/research/lighting.md: dusk error 0 to -26 % on six worlds)")
     metric_gate_m: float = Field(
         3.0, gt=0, le=1e3, description="a frame located within this distance of the held "
         "place's map image confirms the place for the verify rules (m); 3 m separates the "
