@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from client.cli import app
 from client.dataset import Round
 from client.lab.world import World
-from service.api.models import PosePrior, SessionConfig
+from service.api.models import SessionConfig
 from service.api.params import DPSOParams
 from service.api.round_format import camera_from_hfov
 from service.engine.experience_writer import Batch
@@ -40,6 +40,7 @@ from service.vision.features import DualParams, SiftParams, extract, named_param
 from service.vision.fusion import Fusion
 from service.vision.map_geometry import GeometryParams
 from service.vision.xfeat import XFeatParams
+from tests.test_experiences import feed_a_wrong_place
 
 DUAL = "clahe-rootsift+xfeat"
 
@@ -393,15 +394,7 @@ def test_a_confidently_wrong_session_on_a_dual_map_learns_nothing(
     svc = LocalizationService(Settings(maps_dir=tmp_path, zenoh_enabled=False,
                                        session_store="memory", learn_commit_images=5))
     try:
-        svc.put_session("liar", SessionConfig(map="dual", learn=True, condition="cloudy"))
-        xy, n = sunny1.xy, len(sunny1.xy)
-        for i in range(30):
-            there = xy[(i + n // 2) % n]
-            svc.process_frame("liar", cloudy1.image_path(i).read_bytes(), t=float(i),
-                              prior=PosePrior(x=float(there[0]), y=float(there[1]),
-                                              radius=1.0))
-        stats = svc.learner.stats("liar")
-        svc.delete_session("liar")
+        stats = feed_a_wrong_place(svc, "dual", sunny1, cloudy1, 30)
         assert svc.writer.wait(120)
         assert stats["seen"] == 30 and stats.get("taught", 0) == 0, stats
         assert svc.map_summary("dual").experiences == []

@@ -230,21 +230,30 @@ def _truth(rnd: Round, names: list[str], mask: np.ndarray) -> np.ndarray:
     return rnd.reference_xy[seq]  # frame i was sent with t = i, its estimate has seq i + 1
 
 
+def feed_a_wrong_place(service: LocalizationService, map_name: str, sunny1: Round,
+                       cloudy1: Round, frames: int) -> dict[str, int]:
+    """A learning session fed ``frames`` cloudy frames, each with a forced prior half the
+    route away from its place (confidently wrong by construction); its learner's gate counts,
+    after the session is deleted."""
+    service.put_session("liar", SessionConfig(map=map_name, learn=True, condition="cloudy"))
+    xy, n = sunny1.xy, len(sunny1.xy)
+    for i in range(frames):
+        there = xy[(i + n // 2) % n]
+        service.process_frame("liar", cloudy1.image_path(i).read_bytes(), t=float(i),
+                              prior=PosePrior(x=float(there[0]), y=float(there[1]),
+                                              radius=1.0))
+    stats: dict[str, int] = service.learner.stats("liar")
+    service.delete_session("liar")
+    return stats
+
+
 def test_a_session_confidently_wrong_by_construction_learns_nothing(
         camera_maps: Path, tmp_path: Path, sunny1: Round, cloudy1: Round) -> None:
     """Frames of one place with a forced prior half the route away: the estimator is held at
     the prior, and the gates (tracking, path, weak appearance, the geometry) refuse all."""
     service = _service(camera_maps, tmp_path)
     old = service.get_map("route").meta["checksum"]
-    service.put_session("liar", SessionConfig(map="route", learn=True, condition="cloudy"))
-    xy, n = sunny1.xy, len(sunny1.xy)
-    for i in range(LEARN_FRAMES):
-        there = xy[(i + n // 2) % n]
-        service.process_frame("liar", cloudy1.image_path(i).read_bytes(), t=float(i),
-                              prior=PosePrior(x=float(there[0]), y=float(there[1]),
-                                              radius=1.0))
-    stats = service.learner.stats("liar")
-    service.delete_session("liar")
+    stats = feed_a_wrong_place(service, "route", sunny1, cloudy1, LEARN_FRAMES)
     assert stats["seen"] == LEARN_FRAMES and stats.get("taught", 0) == 0, stats
     assert sum(v for k, v in stats.items() if k not in ("seen", "taught", "waiting")) == \
         LEARN_FRAMES  # every frame stopped at a gate
