@@ -142,6 +142,16 @@ def test_atomic_write_replaces_whole_file(small_map, tmp_path: Path) -> None:
     assert list_maps(tmp_path) == [path]
 
 
+def test_saving_a_map_elsewhere_leaves_its_path_alone(small_map, tmp_path: Path) -> None:
+    """``save_map`` writes a copy: the map still names the file it was loaded from, so
+    changing the copy (here: junk appended) never reaches those who read ``map.path``."""
+    before = small_map.path
+    copy = save_map(small_map, tmp_path / "copy")
+    copy.write_bytes(copy.read_bytes() + b"junk")
+    assert small_map.path == before and before is not None and before != copy
+    assert load_map(before).n_images == small_map.n_images
+
+
 def test_map_from_geographic_round(tmp_path: Path, sunny1) -> None:
     from client.dataset import read_round
     from service.api.geo import LocalFrame

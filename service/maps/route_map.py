@@ -816,7 +816,8 @@ def _sha256(arr: np.ndarray) -> str:
 
 
 def save_map(m: RouteMap, path: str | Path) -> Path:
-    """Write the map atomically: a crash leaves the old file or none, never half of one."""
+    """Write the map atomically: a crash leaves the old file or none, never half of one.
+    Returns the file written; load it (``load_map``) for a map backed by that file."""
     n = m.n_images
     counts = np.diff(m.offsets)
 
@@ -841,8 +842,7 @@ def save_map(m: RouteMap, path: str | Path) -> Path:
     assert m.layers is not None
     out = write_map(path, m.name, m.meta, m.positions, m.image_names, m.layers, counts,
                     chunks(), m.place_index, second)
-    m.path = out
-    return out
+    return out  # ``m`` is untouched: its ``path`` still names the file it was loaded from
 
 
 def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
