@@ -46,8 +46,8 @@ class _ExactGeometry:
         self._map = words_map
         self.geometry = exact_map.geometry
 
-    def similarity(self, frame: Features | np.ndarray, image_ids: Any, keep: Any = None
-                   ) -> np.ndarray:
+    def similarity(self, frame: Features | np.ndarray, image_ids: Any, keep: Any = None,
+                   keep_second: Any = None) -> np.ndarray:
         return self._map.similarity(frame, image_ids)
 
     def __getattr__(self, name: str) -> Any:

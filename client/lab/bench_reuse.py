@@ -44,7 +44,8 @@ class _MatchAgain:
         self._map = route_map
 
     def similarity(self, frame: Features | np.ndarray, image_ids: Any,
-                   keep: FramePairs | None = None) -> np.ndarray:
+                   keep: FramePairs | None = None,
+                   keep_second: FramePairs | None = None) -> np.ndarray:
         return self._map.similarity(frame, image_ids)
 
     def __getattr__(self, name: str) -> Any:

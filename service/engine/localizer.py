@@ -106,16 +106,21 @@ class Localizer:
         codes = features.codes
         self.seed_places(codes)
         learned = bool(experience_layers(self.map))
-        # the similarity keeps the frame's matches for the geometry (no second matching)
+        # the similarity keeps the frame's matches for the geometry (no second matching),
+        # XFeat's too where its geometry may be tried (``locator``)
         kept = FramePairs(GeometryParams().delta) if self.map.geometry is not None else None
+        kept2 = FramePairs(GeometryParams().delta) if self._second_geometry(features) \
+            else None
+        locate = self.locator(features, kept, kept2)
         if not learned:
-            res = self.estimator.step(lambda ids: self.map.similarity(features, ids, kept), t,
-                                      self.locator(features, kept), motion)
+            res = self.estimator.step(
+                lambda ids: self.map.similarity(features, ids, kept, kept2), t, locate, motion)
             comparisons = res.comparisons
         else:  # one layer per particle, then the layer probes (service/maps/experiences.py)
-            similarity = ComparisonCache(lambda ids: self.map.similarity(features, ids, kept))
-            res = self.estimator.step(self.choice.scaled(self.map, similarity), t,
-                                      self.locator(features, kept), motion,
+            similarity = ComparisonCache(
+                lambda ids: self.map.similarity(features, ids, kept, kept2))
+            res = self.estimator.step(self.choice.scaled(self.map, similarity), t, locate,
+                                      motion,
                                       nearest=self.choice.nearest(self.map, self._at()))
             if res.status is Status.TRACKING:  # the probes score the layers at the true place
                 self.choice.probe(self.map, similarity, res.position)
@@ -131,22 +136,29 @@ class Localizer:
         return None if last is None or last.status not in _FOUND \
             else np.array([last.x, last.y])
 
-    def locator(self, features: Features, kept: FramePairs | None = None) -> LocateFn | None:
+    def _second_geometry(self, features: Features) -> bool:
+        """Whether a frame RootSIFT's geometry cannot locate is tried with XFeat's: a map
+        and a frame of two feature types with the camera, DPSO with ``metric_second``."""
+        p = self.estimator.params
+        return self.map.second_geometry is not None and features.second is not None \
+            and isinstance(p, DPSOParams) and p.metric_second
+
+    def locator(self, features: Features, kept: FramePairs | None = None,
+                kept2: FramePairs | None = None) -> LocateFn | None:
         """The frame located at a map image by two-view geometry (service/vision/map_geometry.py),
-        None for a map without the camera's intrinsics; ``kept``: the frame's matches its
-        similarity kept."""
+        None for a map without the camera's intrinsics; ``kept``, ``kept2``: the frame's
+        RootSIFT and XFeat matches its similarity kept."""
         geometry = self.map.geometry
         if geometry is None:
             return None
         params = GeometryParams()
-        second, frame2, p = self.map.second_geometry, features.second, self.estimator.params
-        if second is None or frame2 is None or not isinstance(p, DPSOParams) \
-                or not p.metric_second:
+        second, frame2 = self.map.second_geometry, features.second
+        if not self._second_geometry(features) or second is None or frame2 is None:
             return lambda image_id: geometry.locate(features, image_id, params, kept)
 
         def locate(image_id: int) -> Offset | None:  # RootSIFT's, else XFeat's geometry
             off = geometry.locate(features, image_id, params, kept)
-            return off if off is not None else second.locate(frame2, image_id, params)
+            return off if off is not None else second.locate(frame2, image_id, params, kept2)
         return locate
 
     def seed_places(self, codes: np.ndarray) -> None:

@@ -426,25 +426,28 @@ class RouteMap:
         return m
 
     def similarity(self, frame: Features | np.ndarray, image_ids: Iterable[int],
-                   keep: FramePairs | None = None) -> np.ndarray:
+                   keep: FramePairs | None = None,
+                   keep_second: FramePairs | None = None) -> np.ndarray:
         """m(frame, map image) for each id on the frame's ``Features`` (or, on a map of one
         feature type, its descriptor codes ``Features.codes``): the exact uint8 matcher
         (service/vision/matcher.py) for RootSIFT, mutual nearest neighbours for XFeat
         (service/vision/xfeat.py), both fused (service/vision/fusion.py) on a map of two.
         ``keep`` (RootSIFT): the same pass also keeps the frame's matches at ``keep.delta``
         with each image, for the two-view geometry (XFeat: its matches, whatever the delta;
-        a map of two: RootSIFT's)."""
+        a map of two: RootSIFT's, and XFeat's in ``keep_second``)."""
         ids = [int(i) for i in image_ids]
         if self.second is None:
             codes = frame.codes if isinstance(frame, Features) else frame
             return self._first_similarity(codes, ids, keep)
         assert self.fusion is not None
-        return self.fusion.fuse(*self.type_similarities(frame, ids, keep))
+        return self.fusion.fuse(*self.type_similarities(frame, ids, keep, keep_second))
 
     def type_similarities(self, frame: Features | np.ndarray, image_ids: Iterable[int],
-                          keep: FramePairs | None = None) -> tuple[np.ndarray, np.ndarray]:
+                          keep: FramePairs | None = None,
+                          keep_second: FramePairs | None = None
+                          ) -> tuple[np.ndarray, np.ndarray]:
         """On a map of two feature types: each type's m(frame, map image) for each id,
-        RootSIFT's (which ``keep`` keeps the matches of) and XFeat's."""
+        RootSIFT's (which ``keep`` keeps the matches of) and XFeat's (``keep_second``)."""
         p = self.feature_params
         second = frame.second if isinstance(frame, Features) else None
         if not isinstance(p, DualParams) or second is None:
@@ -455,9 +458,11 @@ class RouteMap:
         assert isinstance(frame, Features)
         ids = [int(i) for i in image_ids]
         first = self._first_similarity(frame.codes, ids, keep)
-        other = mnn_scores(second.descriptors,  # the frame's, normalised once per frame
-                           [self.second_features_of(i) for i in ids], p.xfeat.min_cos,
-                           p.xfeat.max_ratio)
+        other, pairs = mnn_batch(second.descriptors,  # the frame's, normalised once
+                                 [self.second_features_of(i) for i in ids], p.xfeat.min_cos,
+                                 p.xfeat.max_ratio)
+        if keep_second is not None:  # XFeat's geometry takes them as they are (any delta)
+            keep_second.keep(ids, pairs)
         return first, other
 
     def _first_similarity(self, frame_codes: np.ndarray, ids: list[int],
