@@ -91,7 +91,7 @@ def warm_kernels(settings: Settings, service: LocalizationService) -> str:
     import numpy as np
 
     from service.vision.features import extract
-    from service.vision.matcher import cache_kernels_in, default_cache_dir, warm_up
+    from service.vision.matcher import cache_kernels_in, default_cache_dir, fastest_gemm, warm_up
 
     wanted = settings.numba_cache_dir or default_cache_dir()
     used = cache_kernels_in(wanted)
@@ -99,8 +99,9 @@ def warm_kernels(settings: Settings, service: LocalizationService) -> str:
     rng = np.random.default_rng(0)
     for p in dict.fromkeys(m.feature_params for m in service.maps.values()):
         extract(rng.integers(0, 256, (p.height, p.width), dtype=np.uint8), p)  # XFeat: ONNX
+    gemm = fastest_gemm()  # measured now, not on the first frame
     warm_up()
-    took = f"ready in {time.perf_counter() - t0:.1f} s"
+    took = f"ready in {time.perf_counter() - t0:.1f} s, exact GEMM {gemm.describe()}"
     if used is None:
         return (f"{took}, compiled at each start: {wanted} is not writable "
                 "(SWARMLOC_NUMBA_CACHE_DIR)")

@@ -20,7 +20,7 @@ from service.vision.matcher import (
     warm_up,
 )
 
-BACKENDS = ("auto", "blas")
+BACKENDS = ("auto", "numkong", "blas")  # auto: the faster of the two here (fastest_gemm)
 
 
 @pytest.fixture(scope="module")

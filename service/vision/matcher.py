@@ -23,9 +23,11 @@ integers and float64, so the result equals the reference's.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import tempfile
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -163,7 +165,59 @@ def _use_numkong(backend: str) -> bool:
         raise ValueError(f"unknown matcher backend {backend!r}: use auto, numkong or blas")
     if backend == "numkong" and _nk is None:
         raise ValueError("matcher backend 'numkong' needs the numkong package")
-    return backend != "blas" and _nk is not None
+    return backend == "numkong" or (backend == "auto" and fastest_gemm().backend == "numkong")
+
+
+@dataclass(frozen=True)
+class GemmChoice:
+    """Which exact GEMM ``backend="auto"`` uses on this CPU, and the timings that chose it."""
+
+    backend: str  # "numkong" or "blas"
+    numkong_ms: float  # three 256-row tiles, best of 7 each; nan without NumKong
+    blas_ms: float
+
+    def describe(self) -> str:
+        if math.isnan(self.numkong_ms):
+            return "float32 BLAS (NumKong not installed)"
+        name = "NumKong" if self.backend == "numkong" else "float32 BLAS"
+        return (f"{name} (three tiles: NumKong {self.numkong_ms:.2f} ms, BLAS "
+                f"{self.blas_ms:.2f} ms on this CPU)")
+
+
+@functools.lru_cache(maxsize=1)
+def fastest_gemm() -> GemmChoice:
+    """Time NumKong's packed uint8 GEMM against float32 BLAS once per process, on a tile of
+    the matcher's shape, and take the faster: both give the same exact dot products, so the
+    choice changes speed only. NumKong wins by 3-7x where the CPU has AMX or AVX-512 VNNI;
+    on AVX2 alone BLAS was 1.45x faster (docs/research/performance.md)."""
+    from threadpoolctl import threadpool_limits
+
+    rng = np.random.default_rng(0)
+    # the full byte range, as quantised RootSIFT has, and map images' uneven sizes: NumKong's
+    # packed kernels slow down for some widths (535 columns took 1.8x the time of 512)
+    a = rng.integers(0, 256, (_TILE, 128), dtype=np.uint8)
+    sets = [rng.integers(0, 256, (n, 128), dtype=np.uint8) for n in (487, 535, 600)]
+    blas = np.zeros(len(sets))
+    kong = np.zeros(len(sets))
+    with threadpool_limits(1):  # as frames run: one BLAS thread each
+        a32 = a.astype(np.float32)
+        for k, b in enumerate(sets):
+            b32, out32 = b.astype(np.float32).T, np.empty((_TILE, len(b)), np.float32)
+            packed = _nk.dots_pack(b, dtype="uint8") if _nk is not None else None
+            out_nk = _nk.empty((_TILE, len(b)), dtype="uint32") if _nk is not None else None
+            t_blas, t_kong = [], []
+            for _ in range(7):  # interleaved, best of each: robust to a busy neighbour
+                t0 = time.perf_counter()
+                np.matmul(a32, b32, out=out32)
+                t_blas.append(time.perf_counter() - t0)
+                if packed is not None:
+                    t0 = time.perf_counter()
+                    _nk.dots_packed(a, packed, out=out_nk)
+                    t_kong.append(time.perf_counter() - t0)
+            blas[k] = min(t_blas)
+            kong[k] = min(t_kong) if t_kong else math.nan
+    blas_ms, kong_ms = 1e3 * float(blas.sum()), 1e3 * float(kong.sum())
+    return GemmChoice("numkong" if kong_ms < blas_ms else "blas", kong_ms, blas_ms)
 
 
 # ---- numba kernels ------------------------------------------------------------------------
@@ -471,8 +525,9 @@ def match_batch_u8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet],
     """Exact symmetric ratio-test matches of uint8 descriptors ``a`` (nA, D) against each set.
 
     ``sets`` holds uint8 arrays (nB, D) or, better, ``PreparedSet``s from ``prepare`` (a map
-    prepares each image once). ``backend``: ``auto`` (NumKong if installed), ``numkong`` or
-    ``blas`` (float32 GEMM). Equal to ``match_batch_u8_reference`` on every input.
+    prepares each image once). ``backend``: ``auto`` (the faster on this CPU:
+    ``fastest_gemm``), ``numkong`` or ``blas`` (float32 GEMM). Equal to
+    ``match_batch_u8_reference`` on every input.
     """
     return _match(a, sets, delta, backend, None)[0]
 
