@@ -223,8 +223,9 @@ def _study(m: Any, table: Any, rnd: Any, params_v: dict[str, Any], starts: int, 
             img_pos, cam = placed[i]
             jump = float("nan") if cam is None else float(np.linalg.norm(cam - img_pos))
             img_err = float(np.linalg.norm(img_pos - r.true_xy[i]))
+            cam_err = float("nan") if cam is None else float(np.linalg.norm(cam - r.true_xy[i]))
             rows.append({"run": k, "i": i, "frame": int(r.frames[i]), "err": float(err[i]),
-                         "jump": jump, "img_err": img_err,
+                         "jump": jump, "img_err": img_err, "cam_err": cam_err,
                          "status": r.status[i], "acc": float(r.accuracy_m[i]),
                          "best_m": ev.best_m, "bg": ev.background, "distinct": ev.distinct,
                          "good": ev.good,
