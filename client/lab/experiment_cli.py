@@ -104,7 +104,10 @@ def metrics(runs: list[Run], warmup: int) -> dict[str, Any]:
 
 
 def param_value(raw: str) -> Any:
-    """A parameter value given on the command line: an int, a float, else the string."""
+    """A parameter value given on the command line: true or false (any case), an int, a
+    float, else the string."""
+    if raw.lower() in ("true", "false"):
+        return raw.lower() == "true"
     for cast in (int, float):
         try:
             return cast(raw)
