@@ -76,6 +76,11 @@ class Settings(BaseSettings):
         "'exact' every pair (the papers' similarity), 'words' only the pairs that share a "
         "visual word of the map (an inverted file trained from the map's own features at "
         "load, seeded: less work per comparison, nearly the same matches; RootSIFT maps)")
+    image_cache_mb: int = Field(
+        512, ge=0, le=2**20, description="per map: memory for its images' descriptors as the "
+        "matchers take them (made on first use, the least recently used dropped beyond this "
+        "and made again when needed). 512 MiB holds every image of a ~1,000-image map of "
+        "both feature types; unbounded, a large map's share grew with the area visited")
     opencv_threads: int = Field(1, ge=0, description="OpenCV's own threads per call (0: its "
                                 "default, all CPUs); frames already run in parallel threads")
     # ---- hardening: cost ceilings, input bounds, shutdown (README "Hardening")

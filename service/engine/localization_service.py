@@ -138,9 +138,15 @@ class LocalizationService:
                 self.metrics.map_loads.labels("startup", "failed").inc()
                 log.error("map file %s skipped: %s", path, msg)
                 continue
+            self.adopt(m)
             self.maps[m.name] = m
             self.metrics.map_loads.labels("startup", "ok").inc()
         self.metrics.maps.set(len(self.maps))
+
+    def adopt(self, m: RouteMap) -> None:
+        """Apply the service's settings to a map it is about to serve (every map loaded at
+        start-up, uploaded, built or reloaded passes here)."""
+        m.image_cache.limit_bytes = self.settings.image_cache_mb * 2**20
 
     def check_pose(self, route_map: RouteMap, x: float, y: float, what: str) -> None:
         """A pose must lie within the map's extent plus ``pose_margin_m``."""

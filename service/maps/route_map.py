@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 
 from service.api.geo import LocalFrame
 from service.api.models import COORD_LIMIT_M, MATCHERS
+from service.maps.image_cache import ImageCache
 from service.vision.features import (
     DEFAULT_DELTA,
     DUAL,
@@ -212,10 +213,9 @@ class RouteMap:
         self._layer_ids = [np.flatnonzero(self.layers == k) for k in range(self.n_layers)]
         self._layer_trees = ([self._tree] if self.n_layers == 1 else
                              [cKDTree(self.positions[ids]) for ids in self._layer_ids])
-        self._sets: list[np.ndarray | None] = [None] * n
-        self._prepared: list[PreparedSet | None] = [None] * n
+        # each image's descriptors as the matchers take them, within a byte budget
+        self.image_cache = ImageCache()
         self._checked = np.zeros(n if self.lazy_digests is not None else 0, bool)
-        self._sets2: list[np.ndarray | None] = [None] * (n if self.second is not None else 0)
         self._checked2 = np.zeros(n if self.second is not None and
                                   self.second.lazy_digests is not None else 0, bool)
         self._words_lock = threading.Lock()
@@ -324,13 +324,11 @@ class RouteMap:
 
     def features_of(self, image_id: int) -> np.ndarray:
         """Unit descriptors of one map image (from its codes; kept after the first use)."""
-        cached = self._sets[image_id]
-        if cached is None:
+        def make() -> np.ndarray:
             self._check_image(image_id)
-            cached = unit_descriptors(self.codes[self.offsets[image_id]:
-                                                 self.offsets[image_id + 1]])
-            self._sets[image_id] = cached
-        return cached
+            return unit_descriptors(self.codes[self.offsets[image_id]:
+                                               self.offsets[image_id + 1]])
+        return self.image_cache.get(("unit", int(image_id)), make)
 
     def second_features_of(self, image_id: int) -> np.ndarray:
         """Unit descriptors of one map image's second feature set (XFeat; kept after the first
@@ -338,12 +336,10 @@ class RouteMap:
         s = self.second
         if s is None:
             raise ValueError(f"map '{self.name}' has one feature type")
-        cached = self._sets2[image_id]
-        if cached is None:
+        def make() -> np.ndarray:
             self._check_second(image_id)
-            cached = unit_descriptors(s.codes[s.rows(image_id)])
-            self._sets2[image_id] = cached
-        return cached
+            return unit_descriptors(s.codes[s.rows(image_id)])
+        return self.image_cache.get(("unit2", int(image_id)), make)
 
     def image_features(self, image_id: int) -> Features:
         """One map image as a frame's ``Features`` (both sets on a map of two types)."""
@@ -386,13 +382,11 @@ class RouteMap:
     def prepared(self, image_id: int) -> PreparedSet:
         """One map image's codes prepared for the exact uint8 matcher (kept after first use;
         the codes stay memory-mapped)."""
-        cached = self._prepared[image_id]
-        if cached is None:
+        def make() -> PreparedSet:
             self._check_image(image_id)
-            cached = prepare(np.asarray(
+            return prepare(np.asarray(
                 self.codes[self.offsets[image_id]: self.offsets[image_id + 1]]))
-            self._prepared[image_id] = cached
-        return cached
+        return self.image_cache.get(("prepared", int(image_id)), make)
 
     @property
     def uses_words(self) -> bool:
