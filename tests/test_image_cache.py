@@ -29,12 +29,12 @@ def test_the_least_recently_used_values_go_first_within_the_budget() -> None:
         cache.get(k, value(k))
     cache.get(1, value(1))  # used again: 2 is now the oldest
     cache.get(4, value(4))  # 4 x 800 > 3000: one goes
-    assert cache.bytes <= 3000 and len(cache) == 3
+    assert cache.bytes <= 3000 and cache.keys() == [3, 1, 4]
     assert made == [1, 2, 3, 4]
     assert cache.get(2, value(2))[0] == 2 and made[-1] == 2  # 2 was dropped, made again
     assert cache.get(1, value(1))[0] == 1 and made[-1] == 2  # 1 was kept
     big = cache.get("big", lambda: np.zeros(1000))  # 8,000 bytes: returned, not kept
-    assert len(big) == 1000 and "big" not in cache._items and cache.bytes <= 3000
+    assert len(big) == 1000 and "big" not in cache.keys() and cache.bytes <= 3000
     with pytest.raises(ValueError, match=">= 0"):
         ImageCache(-1)
 

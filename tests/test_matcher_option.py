@@ -59,7 +59,8 @@ def test_an_existing_map_loads_with_words_and_the_step_uses_them(camera_map: Rou
     assert compiled_signatures() == compiled  # warm_up covers the words path too
     indexed = [i for i in range(m.n_images) if ivf._indexes[i] is not None]
     assert len(indexed) >= 10  # the step compared frames through the inverted file ...
-    assert all(p is None for p in m._prepared)  # ... and never through the exact GEMM
+    # ... and never through the exact GEMM (no image prepared for it)
+    assert not any(k[0] == "prepared" for k in m.image_cache.keys())
     # the geometry's kept pairs are the inverted file's, from the same pass
     f = sunny2_features[5]
     ids = indexed[:6]

@@ -46,6 +46,11 @@ class ImageCache:
     def __len__(self) -> int:
         return len(self._items)
 
+    def keys(self) -> list[Hashable]:
+        """The keys kept, least recently used first."""
+        with self._lock:
+            return list(self._items)
+
     def get(self, key: Hashable, make: Callable[[], T]) -> T:
         """The value kept for ``key``, else ``make()`` (outside the lock: two threads may
         make the same value once each, and both get equal values)."""
