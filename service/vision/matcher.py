@@ -12,9 +12,10 @@ precisely for integer descriptors, so that the fast path and the reference agree
   each other's nearest neighbour and both pass; m = count / min(|A|, |B|); a set with fewer
   than two features matches nothing.
 
-Fast path: the integer dot products come from an exact uint8 GEMM (NumKong's packed kernels:
-AMX / VNNI where the CPU has them; float32 BLAS as a fallback, exact because every dot is an
-integer below 2^24). A fused numba kernel keeps the two best float32 keys per row
+Fast path: the integer dot products come from an exact GEMM, NumKong's packed uint8 kernels
+(AMX / VNNI where the CPU has them) or float32 BLAS (exact because every dot is an integer
+below 2^24), whichever this CPU runs faster (``fastest_gemm``, timed once). A fused numba
+kernel keeps the two best float32 keys per row
 (``d * 1/|b|``) and per column (``d * 1/|a|``) without materialising anything else. The float32
 keys are within 2.5e-7 (relative) of the exact ratio; wherever the two best keys are closer than
 ``_TOL`` or the decision could flip within that error, the row or column is rescanned exactly in
