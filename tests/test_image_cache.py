@@ -1,5 +1,5 @@
 """A map's per-image working data stays within its byte budget, and what the matchers get
-from it does not depend on the budget (service/maps/image_cache.py)."""
+from it does not depend on the budget (service/vision/image_cache.py)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from service.engine.localization_service import LocalizationService
-from service.maps.image_cache import ImageCache
 from service.maps.route_map import RouteMap, load_map
 from service.settings import Settings
+from service.vision.image_cache import ImageCache
 
 
 def test_the_least_recently_used_values_go_first_within_the_budget() -> None:
@@ -39,16 +39,17 @@ def test_the_least_recently_used_values_go_first_within_the_budget() -> None:
         ImageCache(-1)
 
 
-def test_a_map_compares_the_same_within_a_small_budget(small_map: RouteMap,
-                                                       sunny2_features) -> None:
+@pytest.mark.parametrize("matcher", ["exact", "words"])
+def test_a_map_compares_the_same_within_a_small_budget(small_map: RouteMap, sunny2_features,
+                                                       matcher: str) -> None:
     """Every image compared with budgets that keep all of them, a few of them, none: the same
-    similarities, the budget never exceeded."""
+    similarities, the budget never exceeded (the words matcher's word indexes share it)."""
     assert small_map.path is not None
     frames = sunny2_features[::10]
     ids = list(range(small_map.n_images))
     results = []
     for budget in (2**30, 200_000, 0):
-        m = load_map(small_map.path, verify="lazy")
+        m = load_map(small_map.path, verify="lazy", matcher=matcher)
         m.image_cache.limit_bytes = budget
         peak = 0
         out = []
@@ -60,8 +61,8 @@ def test_a_map_compares_the_same_within_a_small_budget(small_map: RouteMap,
         results.append(np.concatenate(out))
         if budget == 0:
             assert len(m.image_cache) == 0 and m.image_cache.made >= len(frames) * len(ids)
-        if budget == 2**30:
-            assert m.image_cache.made == len(ids)  # each image prepared once
+        if budget == 2**30:  # each image prepared once (words: its words and its index)
+            assert m.image_cache.made == len(ids) * (1 if matcher == "exact" else 2)
     assert np.array_equal(results[0], results[1]) and np.array_equal(results[0], results[2])
 
 

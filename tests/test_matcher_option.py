@@ -57,7 +57,7 @@ def test_an_existing_map_loads_with_words_and_the_step_uses_them(camera_map: Rou
     for i, f in enumerate(sunny2_features[:4]):
         loc.step(f, float(i))
     assert compiled_signatures() == compiled  # warm_up covers the words path too
-    indexed = [i for i in range(m.n_images) if ivf._indexes[i] is not None]
+    indexed = ivf.indexed()
     assert len(indexed) >= 10  # the step compared frames through the inverted file ...
     # ... and never through the exact GEMM (no image prepared for it)
     assert not any(k[0] == "prepared" for k in m.image_cache.keys())

@@ -46,7 +46,6 @@ from scipy.spatial import cKDTree
 
 from service.api.geo import LocalFrame
 from service.api.models import COORD_LIMIT_M, MATCHERS
-from service.maps.image_cache import ImageCache
 from service.vision.features import (
     DEFAULT_DELTA,
     DUAL,
@@ -58,6 +57,7 @@ from service.vision.features import (
     unit_descriptors,
 )
 from service.vision.fusion import Fusion, fusion_levels
+from service.vision.image_cache import ImageCache
 from service.vision.map_geometry import FramePairs, MapGeometry
 from service.vision.matcher import (
     Pairs,
@@ -407,7 +407,8 @@ class RouteMap:
     def _train_words(self, k: int | None, probes: int) -> InvertedFileMatcher:
         counts = np.diff(self.offsets)
         return InvertedFileMatcher(self.codes_of, self.codes, self.n_images, k, probes,
-                                   features_per_image=float(np.median(counts)))
+                                   features_per_image=float(np.median(counts)),
+                                   cache=self.image_cache)
 
     def with_words(self, k: int | None = None, probes: int = DEFAULT_PROBES,
                    exact_top: int = 0) -> RouteMap:

@@ -32,6 +32,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 
 from service.vision.features import DEFAULT_DELTA, BatchMatch, unit_descriptors
+from service.vision.image_cache import ImageCache
 from service.vision.matcher import (
     Pairs,
     PreparedSet,
@@ -143,7 +144,8 @@ class InvertedFileMatcher:
 
     def __init__(self, codes_of: Callable[[int], np.ndarray], all_codes: np.ndarray,
                  n_images: int, k: int | None = None, probes: int = DEFAULT_PROBES,
-                 seed: int = 0, features_per_image: float | None = None) -> None:
+                 seed: int = 0, features_per_image: float | None = None,
+                 cache: ImageCache | None = None) -> None:
         if k is None:
             per_image = features_per_image if features_per_image is not None else \
                 len(all_codes) / max(n_images, 1)
@@ -154,29 +156,29 @@ class InvertedFileMatcher:
         self.vocabulary = Vocabulary.train(all_codes, k, seed)
         self.probes = probes
         self._codes_of = codes_of
-        self._indexes: list[WordIndex | None] = [None] * n_images
-        self._image_words: list[FrameWords | None] = [None] * n_images
+        # each image's words and word-sorted features, within the map's byte budget
+        self.cache = cache if cache is not None else ImageCache()
         self._frame: FrameWords | None = None
         self._lock = threading.Lock()
 
     def index(self, image_id: int) -> WordIndex:
         """Map image ``image_id`` sorted by word (kept after first use)."""
-        found = self._indexes[image_id]
-        if found is None:
+        def make() -> WordIndex:
             words = self._words_of(image_id)
-            found = index_image(words.codes, self.vocabulary,
-                                words.words[:, 0] if len(words.codes) else None)
-            self._indexes[image_id] = found
-        return found
+            return index_image(words.codes, self.vocabulary,
+                               words.words[:, 0] if len(words.codes) else None)
+        return self.cache.get(("word-index", int(image_id)), make)
+
+    def indexed(self) -> list[int]:
+        """The images whose word index is kept now."""
+        return sorted(int(k[1]) for k in self.cache.keys()
+                      if isinstance(k, tuple) and k[0] == "word-index")
 
     def _words_of(self, image_id: int) -> FrameWords:
         """Map image ``image_id``'s words as a frame's (kept after first use: its index and
         the structures' matches use them)."""
-        fw = self._image_words[image_id]
-        if fw is None:
-            fw = self.frame_words(np.asarray(self._codes_of(image_id)), keep=False)
-            self._image_words[image_id] = fw
-        return fw
+        return self.cache.get(("words", int(image_id)), lambda: self.frame_words(
+            np.asarray(self._codes_of(image_id)), keep=False))
 
     def frame_words(self, codes: np.ndarray, keep: bool = True) -> FrameWords:
         """The frame's words, computed once for the frame (the last frame's are kept;
