@@ -181,10 +181,12 @@ def _serialise_ms(transport: str, est: Any, repeats: int = 3) -> float:
 
 def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int = 10,
                 seed: int = 0, transports: tuple[str, ...] = ("http", "zenoh"),
-                workers: int = 0, matcher: Matcher = "exact") -> FrameBench:
+                workers: int = 0, matcher: Matcher = "exact",
+                warm_geometry: bool = True) -> FrameBench:
     """Per-frame stage times in process and over each transport, in one run (see the module
     docstring). ``maps_dir`` must hold one map (or a map named ``demo``); ``matcher``: the
-    service's ``SWARMLOC_MATCHER``."""
+    service's ``SWARMLOC_MATCHER``; ``warm_geometry``: its ``SWARMLOC_WARM_GEOMETRY``, the
+    frames sent once the structures are built."""
     import cv2
 
     from client.dataset import read_round
@@ -202,10 +204,11 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
                         zenoh_enabled="zenoh" in transports, zenoh_listen=[endpoint],
                         zenoh_multicast_scouting=False, workers=workers,
                         session_store="memory",  # the transports' cost, not the store's
-                        matcher=matcher)
+                        matcher=matcher, warm_geometry=warm_geometry)
     limit_native_threads(settings)  # as ``swarmloc serve`` does
     warm_up()
     service = LocalizationService(settings)
+    service.warmer.wait(3600)  # a service some seconds after its start
     route_map = service.maps[service.default_map]
     names = ("in-process", *transports)
     paths = {n: PathTimes(n) for n in names}

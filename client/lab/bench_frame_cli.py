@@ -28,6 +28,10 @@ def register(bench_app: typer.Typer) -> None:
         matcher: Annotated[str, typer.Option(help="the service's matcher(s), comma-separated "
                                                   "(exact, words): one run each, in turn")]
         = "exact",
+        warm_geometry: Annotated[bool, typer.Option(
+            help="the service builds its maps' geometry structures before the frames (as it "
+                 "does after start-up, SWARMLOC_WARM_GEOMETRY); off: frames build them")]
+        = True,
     ) -> None:
         """Per-frame cost breakdown (decode, extraction, localizer step, serialisation,
         transport) in process and through each transport, with the issue's ratios."""
@@ -43,7 +47,8 @@ def register(bench_app: typer.Typer) -> None:
         if bad or not matchers:
             raise typer.BadParameter(f"unknown matcher(s) {bad}: use {', '.join(MATCHERS)}")
         runs = [bench_frame(maps_dir, round_dir, frames, warmup, seed, transports,
-                            matcher=cast("Matcher", m)) for m in matchers]
+                            matcher=cast("Matcher", m), warm_geometry=warm_geometry)
+                for m in matchers]
         for b in runs:
             report(b)
         for b in runs:

@@ -39,6 +39,7 @@ from service.api.models import (
 from service.api.params import ParamError
 from service.engine.events import EventHub
 from service.engine.experience_writer import Batch, ExperienceWriter, RedisHandover
+from service.engine.geometry_warmer import GeometryWarmer
 from service.engine.learning import LEARN_IDLE_S, Learner, LearnGates, path_gate
 from service.engine.localizer import Localizer
 from service.engine.map_admin import MapAdmin
@@ -75,6 +76,8 @@ class LocalizationService:
         self.draining = False  # shutting down: new frames get 503
         self._in_flight = 0
         self._idle = threading.Condition(threading.Lock())
+        # the maps' geometry structures, built ahead of the robots (settings.warm_geometry)
+        self.warmer = GeometryWarmer()
         self.admin = MapAdmin(self)  # upload / replace / delete / build without a restart
         if maps is None:
             self.load_maps(settings.maps_dir)
@@ -106,6 +109,7 @@ class LocalizationService:
         ``shutdown_deadline_s``; what does not make it is logged), the in-process store
         writes its snapshot (if configured), the SQLite store checkpoints and releases its
         file."""
+        self.warmer.close()
         self.learner.flush_all()
         self.writer.close(self.settings.shutdown_deadline_s)
         self.store.close()
@@ -147,6 +151,8 @@ class LocalizationService:
         """Apply the service's settings to a map it is about to serve (every map loaded at
         start-up, uploaded, built or reloaded passes here)."""
         m.image_cache.limit_bytes = self.settings.image_cache_mb * 2**20
+        if self.settings.warm_geometry:
+            self.warmer.submit(m)
 
     def check_pose(self, route_map: RouteMap, x: float, y: float, what: str) -> None:
         """A pose must lie within the map's extent plus ``pose_margin_m``."""

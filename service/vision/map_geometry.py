@@ -192,6 +192,11 @@ class MapGeometry:
                 self._cache.popitem(last=False)
         return st
 
+    def cached(self) -> list[int]:
+        """The images whose structure (or its absence) is kept now, at any parameters."""
+        with self._lock:
+            return sorted({i for i, _ in self._cache})
+
     def warm(self, image_ids: Iterable[int] | None = None, p: GeometryParams | None = None
              ) -> int:
         """Compute and keep the structures of ``image_ids`` (default: every image, up to the

@@ -1,0 +1,95 @@
+"""The two-view geometry's structures of a map, built in the background after it is loaded.
+
+A map image's structure (its features' 3-D points from the image and a neighbour,
+service/vision/map_geometry.py) depends on the map alone and is built the first time a frame
+is located there: at dusk, where XFeat's geometry takes over, that cost 19 ms of essential
+matrix RANSAC per image, about 35 ms per frame on a first pass over a route
+(docs/research/performance.md). This worker builds them ahead of the robots, one image at a
+time at a bounded share of a core (``duty``), for every map whose images all fit the
+geometry's cache; frames find them ready. Nothing changes but when they are built: a frame
+that arrives first builds the same structure itself.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+
+from service.maps.route_map import RouteMap
+from service.vision.map_geometry import GeometryParams, MapGeometry
+
+log = logging.getLogger("swarmloc")
+
+
+class GeometryWarmer:
+    """One daemon thread: ``submit(map)`` queues a map, ``close()`` stops at the next image."""
+
+    def __init__(self, duty: float = 0.5) -> None:
+        if not 0.0 < duty <= 1.0:
+            raise ValueError(f"duty must be in (0, 1], got {duty}")
+        self.duty = duty
+        self.visited = 0  # structures this worker built or found built
+        self._queue: queue.Queue[RouteMap | None] = queue.Queue()
+        self._stop = threading.Event()
+        self._idle = threading.Event()
+        self._idle.set()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+
+    def submit(self, m: RouteMap) -> None:
+        """Queue ``m``'s structures (both feature types'), if it has the camera and its images
+        fit the geometry's cache (a larger map keeps the structures its robots need)."""
+        geometries = [g for g in (m.geometry, m.second_geometry) if g is not None]
+        if not geometries or m.n_images > min(g.max_cached for g in geometries):
+            return
+        with self._lock:
+            if self._stop.is_set():
+                return
+            self._idle.clear()
+            self._queue.put(m)
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="geometry-warmer",
+                                                daemon=True)
+                self._thread.start()
+
+    def wait(self, timeout: float) -> bool:
+        """Whether every queued map was warmed within ``timeout`` seconds."""
+        return self._idle.wait(timeout)
+
+    def close(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        self._queue.put(None)
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        p = GeometryParams()
+        while not self._stop.is_set():
+            try:
+                m = self._queue.get(timeout=0.5)
+            except queue.Empty:
+                self._idle.set()
+                continue
+            if m is None:
+                break
+            try:
+                for g in (m.geometry, m.second_geometry):
+                    if g is not None and not self._warm(g, m.n_images, p):
+                        return
+            except Exception:  # a structure that cannot be built is built (or not) on use
+                log.exception("map %s: geometry not warmed", m.name)
+            if self._queue.empty():
+                self._idle.set()
+
+    def _warm(self, g: MapGeometry, n: int, p: GeometryParams) -> bool:
+        for i in range(n):
+            if self._stop.is_set():
+                return False
+            t0 = time.perf_counter()
+            g.structure(i, p)
+            self.visited += 1
+            if self.duty < 1.0:  # leave the rest of the core to the frames
+                time.sleep((time.perf_counter() - t0) * (1.0 - self.duty) / self.duty)
+        return True

@@ -1,0 +1,54 @@
+"""A loaded map's geometry structures are built in the background, the same as a frame would
+build them, and the worker stops with the service (service/engine/geometry_warmer.py)."""
+
+from __future__ import annotations
+
+import shutil
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from service.engine.localization_service import LocalizationService
+from service.maps.route_map import RouteMap, load_map
+from service.settings import Settings
+from service.vision.map_geometry import GeometryParams
+
+
+def _service(tmp_path: Path, camera_map: RouteMap, warm: bool) -> LocalizationService:
+    assert camera_map.path is not None
+    shutil.copy(camera_map.path, tmp_path / "cam.swmap")
+    return LocalizationService(Settings(maps_dir=tmp_path, session_store="memory",
+                                        warm_geometry=warm))
+
+
+def test_a_loaded_map_has_every_structure_built_ahead_of_the_robots(
+        tmp_path: Path, camera_map: RouteMap) -> None:
+    service = _service(tmp_path, camera_map, warm=True)
+    try:
+        assert service.warmer.wait(120)
+        g = service.maps["cam"].geometry
+        assert g is not None and g.cached() == list(range(camera_map.n_images))
+        fresh = load_map(camera_map.path).geometry  # built here, on this thread, on demand
+        assert fresh is not None
+        p = GeometryParams()
+        for i in range(0, camera_map.n_images, 9):
+            a, b = g.structure(i, p), fresh.structure(i, p)
+            assert (a is None) == (b is None)
+            if a is not None and b is not None:
+                assert np.array_equal(a.points, b.points)
+                assert np.array_equal(a.feature_ids, b.feature_ids)
+    finally:
+        service.close()
+    assert not any(t.name == "geometry-warmer" and t.is_alive() for t in threading.enumerate())
+
+
+def test_without_warming_structures_wait_for_a_frame(tmp_path: Path,
+                                                     camera_map: RouteMap) -> None:
+    service = _service(tmp_path, camera_map, warm=False)
+    try:
+        assert service.warmer.wait(0.1)  # nothing queued
+        g = service.maps["cam"].geometry
+        assert g is not None and g.cached() == []
+    finally:
+        service.close()
