@@ -4,7 +4,6 @@ build them, and the worker stops with the service (service/engine/geometry_warme
 from __future__ import annotations
 
 import shutil
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -38,17 +37,26 @@ def test_a_loaded_map_has_every_structure_built_ahead_of_the_robots(
             if a is not None and b is not None:
                 assert np.array_equal(a.points, b.points)
                 assert np.array_equal(a.feature_ids, b.feature_ids)
+        assert not service.warmer.running  # done: the thread ended with the queue
     finally:
         service.close()
-    assert not any(t.name == "geometry-warmer" and t.is_alive() for t in threading.enumerate())
 
 
 def test_without_warming_structures_wait_for_a_frame(tmp_path: Path,
                                                      camera_map: RouteMap) -> None:
     service = _service(tmp_path, camera_map, warm=False)
     try:
-        assert service.warmer.wait(0.1)  # nothing queued
+        assert service.warmer.wait(0.1) and not service.warmer.running  # nothing queued
         g = service.maps["cam"].geometry
         assert g is not None and g.cached() == []
     finally:
         service.close()
+
+
+def test_closing_the_service_stops_the_warming(tmp_path: Path, camera_map: RouteMap) -> None:
+    service = _service(tmp_path, camera_map, warm=True)
+    assert service.warmer.running  # started by the map's load
+    service.close()  # at the next image, well within the join's 5 s
+    assert not service.warmer.running
+    g = service.maps["cam"].geometry
+    assert g is not None and len(g.cached()) < camera_map.n_images  # stopped part way

@@ -13,7 +13,6 @@ that arrives first builds the same structure itself.
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
 
@@ -24,19 +23,27 @@ log = logging.getLogger("swarmloc")
 
 
 class GeometryWarmer:
-    """One daemon thread: ``submit(map)`` queues a map, ``close()`` stops at the next image."""
+    """``submit(map)`` queues a map; a daemon thread warms the queued maps and ends when the
+    queue is empty (the next ``submit`` starts another); ``close()`` stops at the next image."""
 
     def __init__(self, duty: float = 0.5) -> None:
         if not 0.0 < duty <= 1.0:
             raise ValueError(f"duty must be in (0, 1], got {duty}")
         self.duty = duty
         self.visited = 0  # structures this worker built or found built
-        self._queue: queue.Queue[RouteMap | None] = queue.Queue()
+        self._queue: list[RouteMap] = []
         self._stop = threading.Event()
         self._idle = threading.Event()
         self._idle.set()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
+
+    @property
+    def running(self) -> bool:
+        """Whether a warming thread is alive now."""
+        with self._lock:
+            t = self._thread
+        return t is not None and t.is_alive()
 
     def submit(self, m: RouteMap) -> None:
         """Queue ``m``'s structures (both feature types'), if it has the camera and its images
@@ -48,7 +55,7 @@ class GeometryWarmer:
             if self._stop.is_set():
                 return
             self._idle.clear()
-            self._queue.put(m)
+            self._queue.append(m)
             if self._thread is None:
                 self._thread = threading.Thread(target=self._run, name="geometry-warmer",
                                                 daemon=True)
@@ -60,36 +67,36 @@ class GeometryWarmer:
 
     def close(self, timeout: float = 5.0) -> None:
         self._stop.set()
-        self._queue.put(None)
-        if self._thread is not None:
-            self._thread.join(timeout)
+        with self._lock:
+            t = self._thread
+        if t is not None:
+            t.join(timeout)
+
+    def _next(self) -> RouteMap | None:
+        """The next queued map; None (and this thread's end) when there is none or on close."""
+        with self._lock:
+            if self._queue and not self._stop.is_set():
+                return self._queue.pop(0)
+            self._thread = None
+            self._idle.set()
+            return None
 
     def _run(self) -> None:
         p = GeometryParams()
-        while not self._stop.is_set():
-            try:
-                m = self._queue.get(timeout=0.5)
-            except queue.Empty:
-                self._idle.set()
-                continue
-            if m is None:
-                break
+        while (m := self._next()) is not None:
             try:
                 for g in (m.geometry, m.second_geometry):
-                    if g is not None and not self._warm(g, m.n_images, p):
-                        return
+                    if g is not None:
+                        self._warm(g, m.n_images, p)
             except Exception:  # a structure that cannot be built is built (or not) on use
                 log.exception("map %s: geometry not warmed", m.name)
-            if self._queue.empty():
-                self._idle.set()
 
-    def _warm(self, g: MapGeometry, n: int, p: GeometryParams) -> bool:
+    def _warm(self, g: MapGeometry, n: int, p: GeometryParams) -> None:
         for i in range(n):
             if self._stop.is_set():
-                return False
+                return
             t0 = time.perf_counter()
             g.structure(i, p)
             self.visited += 1
             if self.duty < 1.0:  # leave the rest of the core to the frames
                 time.sleep((time.perf_counter() - t0) * (1.0 - self.duty) / self.duty)
-        return True
