@@ -60,3 +60,21 @@ def test_closing_the_service_stops_the_warming(tmp_path: Path, camera_map: Route
     assert not service.warmer.running
     g = service.maps["cam"].geometry
     assert g is not None and len(g.cached()) < camera_map.n_images  # stopped part way
+
+
+def test_a_map_no_longer_served_is_left_unwarmed(camera_map: RouteMap) -> None:
+    """A version replaced before its turn (a learned experience, an upload) is skipped."""
+    from service.engine.geometry_warmer import GeometryWarmer
+
+    assert camera_map.path is not None
+    served, replaced = load_map(camera_map.path), load_map(camera_map.path)
+    warmer = GeometryWarmer(duty=1.0, current=lambda m: m is served)
+    try:
+        warmer.submit(replaced)
+        warmer.submit(served)
+        assert warmer.wait(120)
+        assert replaced.geometry is not None and replaced.geometry.cached() == []
+        assert served.geometry is not None
+        assert served.geometry.cached() == list(range(served.n_images))
+    finally:
+        warmer.close()

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 from service.maps.route_map import RouteMap
 from service.vision.map_geometry import GeometryParams, MapGeometry
@@ -26,10 +27,14 @@ class GeometryWarmer:
     """``submit(map)`` queues a map; a daemon thread warms the queued maps and ends when the
     queue is empty (the next ``submit`` starts another); ``close()`` stops at the next image."""
 
-    def __init__(self, duty: float = 0.5) -> None:
+    def __init__(self, duty: float = 0.5,
+                 current: Callable[[RouteMap], bool] = lambda m: True) -> None:
+        """``current(map)``: whether the map is still the version served (a replaced one,
+        e.g. by a learned experience, is left unfinished)."""
         if not 0.0 < duty <= 1.0:
             raise ValueError(f"duty must be in (0, 1], got {duty}")
         self.duty = duty
+        self.current = current
         self.visited = 0  # structures this worker built or found built
         self._queue: list[RouteMap] = []
         self._stop = threading.Event()
@@ -87,13 +92,13 @@ class GeometryWarmer:
             try:
                 for g in (m.geometry, m.second_geometry):
                     if g is not None:
-                        self._warm(g, m.n_images, p)
+                        self._warm(m, g, p)
             except Exception:  # a structure that cannot be built is built (or not) on use
                 log.exception("map %s: geometry not warmed", m.name)
 
-    def _warm(self, g: MapGeometry, n: int, p: GeometryParams) -> None:
-        for i in range(n):
-            if self._stop.is_set():
+    def _warm(self, m: RouteMap, g: MapGeometry, p: GeometryParams) -> None:
+        for i in range(m.n_images):
+            if self._stop.is_set() or not self.current(m):
                 return
             t0 = time.perf_counter()
             g.structure(i, p)

@@ -77,7 +77,7 @@ class LocalizationService:
         self._in_flight = 0
         self._idle = threading.Condition(threading.Lock())
         # the maps' geometry structures, built ahead of the robots (settings.warm_geometry)
-        self.warmer = GeometryWarmer()
+        self.warmer = GeometryWarmer(current=lambda m: self.maps.get(m.name) is m)
         self.admin = MapAdmin(self)  # upload / replace / delete / build without a restart
         if maps is None:
             self.load_maps(settings.maps_dir)
@@ -142,14 +142,14 @@ class LocalizationService:
                 self.metrics.map_loads.labels("startup", "failed").inc()
                 log.error("map file %s skipped: %s", path, msg)
                 continue
-            self.adopt(m)
             self.maps[m.name] = m
+            self.adopt(m)
             self.metrics.map_loads.labels("startup", "ok").inc()
         self.metrics.maps.set(len(self.maps))
 
     def adopt(self, m: RouteMap) -> None:
-        """Apply the service's settings to a map it is about to serve (every map loaded at
-        start-up, uploaded, built or reloaded passes here)."""
+        """Apply the service's settings to a map it has just started to serve (every map
+        loaded at start-up, uploaded, built, reloaded or given an experience passes here)."""
         m.image_cache.limit_bytes = self.settings.image_cache_mb * 2**20
         if self.settings.warm_geometry:
             self.warmer.submit(m)

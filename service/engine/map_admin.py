@@ -260,9 +260,9 @@ class MapAdmin:
         return path
 
     def _register(self, m: RouteMap, source: str) -> bool:
-        self.service.adopt(m)
         created = m.name not in self.service.maps
         self.service.maps[m.name] = m
+        self.service.adopt(m)
         self.service.load_errors.pop(m.path.name if m.path else "", None)
         self.service.metrics.map_loads.labels(source, "ok").inc()
         self.service.metrics.maps.set(len(self.service.maps))
