@@ -17,6 +17,7 @@ import threading
 import time
 from collections.abc import Callable
 
+from service.engine.duty import rest
 from service.maps.route_map import RouteMap
 from service.vision.map_geometry import GeometryParams, MapGeometry
 
@@ -35,7 +36,6 @@ class GeometryWarmer:
             raise ValueError(f"duty must be in (0, 1], got {duty}")
         self.duty = duty
         self.current = current
-        self.visited = 0  # structures this worker built or found built
         self._queue: list[RouteMap] = []
         self._stop = threading.Event()
         self._idle = threading.Event()
@@ -102,6 +102,4 @@ class GeometryWarmer:
                 return
             t0 = time.perf_counter()
             g.structure(i, p)
-            self.visited += 1
-            if self.duty < 1.0:  # leave the rest of the core to the frames
-                time.sleep((time.perf_counter() - t0) * (1.0 - self.duty) / self.duty)
+            rest(t0, self.duty)  # leave the rest of the core to the frames

@@ -152,9 +152,10 @@ class Localizer:
         if geometry is None:
             return None
         params = GeometryParams()
-        second, frame2 = self.map.second_geometry, features.second
-        if not self._second_geometry(features) or second is None or frame2 is None:
+        if not self._second_geometry(features):
             return lambda image_id: geometry.locate(features, image_id, params, kept)
+        second, frame2 = self.map.second_geometry, features.second
+        assert second is not None and frame2 is not None  # _second_geometry
 
         def locate(image_id: int) -> Offset | None:  # RootSIFT's, else XFeat's geometry
             off = geometry.locate(features, image_id, params, kept)

@@ -53,6 +53,7 @@ from service.api.models import (
     MapDeleted,
     MapSummary,
 )
+from service.engine.duty import rest
 from service.maps.experiences import (
     NewImage,
     add_experience,
@@ -451,8 +452,7 @@ class MapAdmin:
             t0 = time.perf_counter()
             yield job.round.load_image(i)  # resumes once build_map extracted its features
             job.done = i + 1
-            if duty < 1.0:
-                time.sleep((time.perf_counter() - t0) * (1.0 - duty) / duty)
+            rest(t0, duty)
 
     def _build(self, job: Job) -> None:
         metrics = self.service.metrics

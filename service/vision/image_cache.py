@@ -4,8 +4,9 @@ Comparing a frame with a map image needs that image's descriptors in a prepared 
 float vectors for XFeat (256 B per feature, 4x the stored int8 codes), the uint8 codes with
 their norms and packed GEMM operand for RootSIFT. They are made on first use and kept, so a
 map image costs its preparation once. Kept without a bound they grow with the area the fleet
-has visited: on a map of both feature types about 365 kB per image beyond the mapped file
-(433 images: +227 MB of RSS), so a 40,000-image map would end at some 15 GB. This cache keeps
+has visited: on a map of both feature types about 350 kB per image beyond the mapped file
+(433 images: +227 MB of RSS, 75 MB of it the file), so a 40,000-image map would end at some
+14 GB. This cache keeps
 the most recently used images within ``limit_bytes`` and makes an evicted image again when it
 is next needed (a fraction of a millisecond; the result is the same, so estimates are too).
 """
