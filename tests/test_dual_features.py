@@ -74,11 +74,11 @@ def _rewrite_header(path: Path, header: dict, length: int) -> None:
     path.write_bytes(bytes(raw))
 
 
-def test_a_dual_map_round_trips_both_sets_as_format_5(dual_map: RouteMap,
+def test_a_dual_map_round_trips_both_sets(dual_map: RouteMap,
                                                       small_map: RouteMap) -> None:
     p = dual_map.feature_params
     assert isinstance(p, DualParams) and p == named_params(DUAL)
-    assert dual_map.meta["format_version"] == 5 and small_map.meta["format_version"] == 3
+    assert dual_map.meta["format_version"] == 6 and small_map.meta["format_version"] == 6
     assert dual_map.codes.dtype == np.uint8 and dual_map.codes.shape[1] == 128
     s = dual_map.second
     assert s is not None and s.codes.dtype == np.int8 and s.codes.shape[1] == 64
@@ -105,6 +105,26 @@ def test_a_dual_map_round_trips_both_sets_as_format_5(dual_map: RouteMap,
         first + second * fusion.first_typical / fusion.second_typical) / 2)
     with pytest.raises(ValueError, match=r"two feature types.*Features"):
         dual_map.similarity(img.codes, ids)  # codes alone cannot be fused
+
+
+def test_a_dual_map_of_format_5_still_loads(dual_map: RouteMap, tmp_path: Path) -> None:
+    """Maps written before format 6 (float32 keypoints and place index) load, fully or
+    lazily verified, and give the same features, scores and located cameras."""
+    from tests.legacy_maps import write_legacy
+
+    old_path = write_legacy(dual_map, tmp_path / "old5.swmap", 5)
+    img = dual_map.image_features(11)
+    ids = range(dual_map.n_images)
+    for verify in (True, "lazy"):
+        old = load_map(old_path, verify=verify)
+        assert old.meta["format_version"] == 5 and old.second is not None
+        again = old.image_features(11)
+        assert again.second is not None and img.second is not None
+        assert np.array_equal(again.keypoints, img.keypoints)
+        assert np.array_equal(again.second.keypoints, img.second.keypoints)
+        np.testing.assert_array_equal(old.similarity(img, ids), dual_map.similarity(img, ids))
+    assert load_map(save_map(old, tmp_path / "new")).meta["checksum"] == \
+        dual_map.meta["checksum"]
 
 
 def test_a_frame_is_extracted_once_with_both_types(sunny2: Round) -> None:
@@ -236,10 +256,10 @@ def test_an_older_service_is_told_to_rebuild(dual_map: RouteMap, tmp_path: Path)
     path = tmp_path / "future.swmap"
     path.write_bytes(dual_map.path.read_bytes())
     header, length, _ = _header(path)
-    header["format_version"] = 6
+    header["format_version"] = 7
     _rewrite_header(path, header, length)
-    with pytest.raises(MapError, match=r"future\.swmap: map format version 6 is not supported "
-                                       r"\(this swarmloc reads versions 2, 3, 4, 5\); rebuild"):
+    with pytest.raises(MapError, match=r"future\.swmap: map format version 7 is not supported "
+                                       r"\(this swarmloc reads versions 2, 3, 4, 5, 6\); rebuild"):
         load_map(path)
 
 

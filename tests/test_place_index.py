@@ -104,7 +104,7 @@ def _write_v2(m, path: Path) -> Path:
     arrays = {"positions": np.ascontiguousarray(m.positions, "<f8"),
               "offsets": np.ascontiguousarray(m.offsets, "<i8"),
               "codes": np.ascontiguousarray(m.codes, np.uint8),
-              "keypoints": np.ascontiguousarray(m.keypoints, "<f4"),
+              "keypoints": np.ascontiguousarray(m.keypoints[0: len(m.codes)], "<f4"),
               "image_names": np.frombuffer(json.dumps(m.image_names).encode(), np.uint8),
               "layers": np.ascontiguousarray(m.layers, "<i8")}
     layout, off = {}, 0
@@ -134,7 +134,7 @@ def test_version_2_map_loads_without_index(small_map, sunny2, tmp_path: Path) ->
     assert e.comparisons > 0
     # saving it again writes the current version (index absent until the map is rebuilt)
     again = load_map(save_map(old, tmp_path / "new"))
-    assert again.meta["format_version"] == 3 and again.place_index is None
+    assert again.meta["format_version"] == 6 and again.place_index is None
     assert again.meta["checksum"] != old.meta["checksum"]
 
 

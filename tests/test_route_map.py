@@ -36,7 +36,8 @@ def test_map_roundtrip_is_memory_mapped(small_map, sunny1) -> None:
     np.testing.assert_allclose(small_map.positions, sunny1.xy)
     assert small_map.image_names == list(sunny1.images)
     meta = small_map.meta
-    assert meta["format_version"] == 3 and meta["delta"] == 0.6
+    assert meta["format_version"] == 6 and meta["delta"] == 0.6
+    assert meta["keypoint_scale"] == 32  # 1/32 px: the finest fixed point up to 1/32 px
     assert meta["image_size"] == [320, 240] and meta["feature"]["type"] == "sift"
     assert meta["feature"]["clahe"] and meta["feature"]["root"]  # the default features
     assert not meta["pruning"]["enabled"]
@@ -121,12 +122,19 @@ def test_corrupted_maps_are_refused(small_map, tmp_path: Path) -> None:
     with pytest.raises(MapError, match="truncated"):
         load_map(trunc)
     # wrong version, with a consistent header otherwise (same length: only the digit changes)
-    needle = b'"format_version": 3'
+    needle = b'"format_version": 6'
     assert raw.count(needle) == 1
     wrong = tmp_path / "wrong.swmap"
     wrong.write_bytes(bytes(raw).replace(needle, b'"format_version": 9'))
     with pytest.raises(MapError, match="format version 9 is not supported"):
         load_map(wrong)
+    # a keypoint scale that is no power of two (the keypoints would decode wrongly)
+    needle = b'"keypoint_scale": 32'
+    assert raw.count(needle) == 1
+    odd = tmp_path / "odd.swmap"
+    odd.write_bytes(bytes(raw).replace(needle, b'"keypoint_scale": 31'))
+    with pytest.raises(MapError, match="fixed-point scale 31 is not a power of two"):
+        load_map(odd)
     # not a map at all
     junk = tmp_path / "junk.swmap"
     junk.write_bytes(b"hello world")
@@ -186,3 +194,80 @@ def test_map_of_featureless_images_roundtrips(tmp_path: Path) -> None:
     assert loaded.n_images == 3 and loaded.offsets[-1] == 0
     assert loaded.similarity(np.ones((5, 128), np.uint8), [0, 1]).tolist() \
         == [0.0, 0.0]
+
+
+def test_the_file_stores_keypoints_in_fixed_point_and_the_place_index_compactly(
+        small_map, sunny1, sunny2, tmp_path: Path) -> None:
+    """Format 6: uint16 keypoints at 1/32 px, an int8 place projection with a scale per column,
+    float16 place descriptors. A built map holds the stored values already, so it matches,
+    locates and recognises places exactly as its saved copy, and saving again is lossless."""
+    from service.maps.route_map import _read_header, build_map
+
+    assert small_map.path is not None
+    layout = _read_header(small_map.path)[0]["arrays"]
+    assert layout["keypoints"]["dtype"] == "<u2" and layout["place_projection"]["dtype"] == "|i1"
+    assert layout["place_descriptors"]["dtype"] == "<f2"
+    assert layout["place_projection_scale"]["shape"] == layout["place_projection"]["shape"][1:]
+    per_feature = sum(layout[k]["nbytes"] for k in ("codes", "keypoints")) / len(small_map.codes)
+    assert per_feature == 132  # 128-byte RootSIFT code + 2 x uint16
+    info = small_map.summary()
+    assert info["file_bytes"] == small_map.path.stat().st_size
+    assert info["bytes_per_feature"] == round(info["file_bytes"] / len(small_map.codes), 1)
+
+    idx = list(range(0, 30))
+    mem = build_map("m", [sunny1.load_image(i) for i in idx], sunny1.xy[idx],
+                    [sunny1.images[i] for i in idx])
+    kps = mem.keypoints[0: len(mem.codes)]
+    assert np.array_equal(kps * 32, np.rint(kps * 32))  # on the 1/32 px grid
+    raw = extract(sunny1.load_image(3))  # the extractor's own keypoints, off the grid
+    assert np.abs(mem.keypoints_of(3) - raw.keypoints).max() <= 1 / 64 + 1e-6
+    assert not np.array_equal(mem.keypoints_of(3), raw.keypoints)
+    saved = load_map(save_map(mem, tmp_path / "m"))
+    assert np.array_equal(saved.keypoints[0: len(saved.codes)], kps)
+    assert mem.place_index is not None and saved.place_index is not None
+    np.testing.assert_array_equal(saved.place_index.projection, mem.place_index.projection)
+    np.testing.assert_array_equal(saved.place_index.descriptors, mem.place_index.descriptors)
+    f = extract(sunny2.load_image(7))
+    assert [a.tolist() for a in saved.place_index.query(f.codes, 5)] == \
+        [a.tolist() for a in mem.place_index.query(f.codes, 5)]
+    ids = np.arange(30)
+    np.testing.assert_array_equal(saved.similarity(f.codes, ids), mem.similarity(f.codes, ids))
+    again = load_map(save_map(saved, tmp_path / "again"), verify="lazy")
+    assert again.meta["checksum"] == saved.meta["checksum"]  # byte for byte the same arrays
+    assert np.array_equal(again.keypoints_of(29), saved.keypoints_of(29))
+
+
+def test_a_map_of_format_3_still_loads_and_is_written_again_as_6(small_map, sunny2,
+                                                                  tmp_path: Path) -> None:
+    from tests.legacy_maps import write_legacy
+
+    old_path = write_legacy(small_map, tmp_path / "old.swmap", 3)
+    assert old_path.stat().st_size > small_map.path.stat().st_size  # type: ignore[union-attr]
+    for verify in (True, "lazy"):
+        old = load_map(old_path, verify=verify)
+        assert old.meta["format_version"] == 3 and old.keypoints.dtype == np.float32
+        assert np.array_equal(old.keypoints_of(4), small_map.keypoints_of(4))
+        f = extract(sunny2.load_image(9))
+        ids = np.arange(small_map.n_images)
+        np.testing.assert_array_equal(old.similarity(f.codes, ids),
+                                      small_map.similarity(f.codes, ids))
+        assert old.place_index is not None and small_map.place_index is not None
+        assert [a.tolist() for a in old.place_index.query(f.codes, 5)] == \
+            [a.tolist() for a in small_map.place_index.query(f.codes, 5)]
+    new = load_map(save_map(old, tmp_path / "new"))
+    assert new.meta["format_version"] == 6
+    assert new.meta["checksum"] == small_map.meta["checksum"]  # the same file as the original
+    # a damaged keypoint of the old format is still caught (its per-image digest)
+    raw = bytearray(old_path.read_bytes())
+    from service.maps.route_map import _read_header
+
+    header, start = _read_header(old_path)
+    raw[start + header["arrays"]["keypoints"]["offset"] + 8 * 40 + 1] ^= 0x10
+    bad = tmp_path / "bad.swmap"
+    bad.write_bytes(bytes(raw))
+    with pytest.raises(MapError, match=r"checksum mismatch \(array 'keypoints'\)"):
+        load_map(bad)
+    lazy = load_map(bad, verify="lazy")
+    with pytest.raises(MapError, match="does not match its digest"):
+        for i in range(lazy.n_images):
+            lazy.features_of(i)

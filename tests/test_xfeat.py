@@ -85,8 +85,8 @@ def test_a_missing_or_damaged_model_is_refused_with_its_path(tmp_path: Path, dam
         XFeatModel(path)
 
 
-def test_the_map_stores_int8_codes_as_format_4(xfeat_map: RouteMap) -> None:
-    assert xfeat_map.meta["format_version"] == 4
+def test_the_map_stores_int8_codes(xfeat_map: RouteMap) -> None:
+    assert xfeat_map.meta["format_version"] == 6
     assert xfeat_map.codes.dtype == np.int8 and xfeat_map.codes.shape[1] == 64
     assert xfeat_map.feature_params == XFeatParams()
     assert xfeat_map.place_index is not None  # VLAD over the XFeat descriptors

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.maps.compact import KEYPOINT_DTYPE, Keypoints
 from service.maps.route_map import Chunk, MapError, RouteMap, load_map, write_map
 from service.vision.place_index import PlaceIndex
 
@@ -91,20 +92,25 @@ def image_bytes(m: RouteMap, ids: np.ndarray) -> int:
     digest, place descriptor and name)."""
     ids = np.asarray(ids, np.int64)
     feats = int(np.sum(m.offsets[ids + 1] - m.offsets[ids]))
-    per_feature = m.codes.shape[1] * m.codes.dtype.itemsize + 8
-    place = m.place_index.dims * 4 if m.place_index is not None else 0
+    per_feature = _per_feature(m.codes)
+    place = _place_bytes(m)
     names = sum(len(m.image_names[int(i)].encode()) + 4 for i in ids)
     second = 0
     if m.second is not None:  # its codes, keypoints, offset and digest
         feats2 = int(np.sum(m.second.offsets[ids + 1] - m.second.offsets[ids]))
-        second = feats2 * _per_feature2(m) + len(ids) * (8 + 16)
+        second = feats2 * _per_feature(m.second.codes) + len(ids) * (8 + 16)
     return feats * per_feature + len(ids) * (16 + 8 + 8 + 16 + place) + names + second
 
 
-def _per_feature2(m: RouteMap) -> int:
-    """Bytes per feature of the map's second set (codes and float32 keypoints)."""
-    assert m.second is not None
-    return m.second.codes.shape[1] * m.second.codes.dtype.itemsize + 8
+def _per_feature(codes: np.ndarray) -> int:
+    """Bytes per feature of a feature set as the map file stores it (format 6: its code and
+    a uint16 fixed-point keypoint)."""
+    return codes.shape[1] * codes.dtype.itemsize + 2 * KEYPOINT_DTYPE.itemsize
+
+
+def _place_bytes(m: RouteMap) -> int:
+    """Bytes of one image's place descriptor in the map file (float16)."""
+    return m.place_index.dims * 2 if m.place_index is not None else 0
 
 
 @dataclass(frozen=True)
@@ -156,7 +162,7 @@ def _rewrite(m: RouteMap, path: Path, keep: np.ndarray, new: Sequence[NewImage],
     return load_map(out, verify=True, matcher=m.matcher)  # a new version, the same matcher
 
 
-def _chunks(codes: np.ndarray, keypoints: np.ndarray, offsets: np.ndarray, kept: np.ndarray,
+def _chunks(codes: np.ndarray, keypoints: Keypoints, offsets: np.ndarray, kept: np.ndarray,
             new: Sequence[tuple[np.ndarray, np.ndarray]]) -> Iterator[Chunk]:
     """One feature set's chunks for ``write_map``: the kept images' rows (whole images, 512 at
     a time, bounded memory), then the new images' (codes, keypoints)."""
@@ -250,12 +256,11 @@ def add_experience(m: RouteMap, path: Path, exp_id: str, images: Sequence[NewIma
 
 
 def _new_bytes(m: RouteMap, f: NewImage) -> int:
-    place = m.place_index.dims * 4 if m.place_index is not None else 0
     second = 0
     if m.second is not None and f.codes2 is not None:
-        second = len(f.codes2) * _per_feature2(m) + 8 + 16
-    return (len(f.codes) * (m.codes.shape[1] * m.codes.dtype.itemsize + 8)
-            + 16 + 8 + 8 + 16 + place + len(f.name.encode()) + 4 + second)
+        second = len(f.codes2) * _per_feature(m.second.codes) + 8 + 16
+    return (len(f.codes) * _per_feature(m.codes)
+            + 16 + 8 + 8 + 16 + _place_bytes(m) + len(f.name.encode()) + 4 + second)
 
 
 def remove_experience(m: RouteMap, path: Path, exp_id: str, usage: Usage | None = None

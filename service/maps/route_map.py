@@ -21,6 +21,9 @@ first used: a flipped bit anywhere is still caught before it is used, and a 40,0
 opens without reading its gigabytes. Arrays are 64-byte aligned and opened with
 ``numpy.memmap``: a map opens without copying its descriptors into memory.
 
+Format version 6 (every map written now) stores the keypoints and the place index compactly
+(service/maps/compact.py); versions 3-5 still load.
+
 Version 2 maps (no index, one checksum over everything) still load, fully verified; their
 place index is absent, so global initialisation falls back to random map images (rebuild the
 map with 'swarmloc map build' to get the index).
@@ -46,6 +49,17 @@ from scipy.spatial import cKDTree
 
 from service.api.geo import LocalFrame
 from service.api.models import COORD_LIMIT_M, MATCHERS
+from service.maps.compact import (
+    KEYPOINT_DTYPE,
+    FixedPointKeypoints,
+    KeypointRangeError,
+    Keypoints,
+    decode_keypoints,
+    encode_keypoints,
+    keypoint_scale,
+    quantize_keypoints,
+    valid_keypoint_scale,
+)
 from service.vision.features import (
     DEFAULT_DELTA,
     DUAL,
@@ -104,21 +118,40 @@ _DIGEST = 8  # bytes of each BLAKE2b image digest (codes, then keypoints)
 # version 5: version 3 (RootSIFT) with a second feature set per image, XFeat: its own offsets,
 # int8 codes, keypoints and per-image digests (the ``_SECOND`` arrays, the codes and
 # keypoints checked lazily like the first), and the fusion's levels in the metadata
-# (``fusion``, service/vision/fusion.py). Single-type maps are still written as version 3
-# (RootSIFT) or 4 (XFeat), which older services read.
-FORMAT_VERSION = 5
-READABLE_VERSIONS = (2, 3, 4, 5)
+# (``fusion``, service/vision/fusion.py). Single-type maps were written as version 3
+# (RootSIFT) or 4 (XFeat) then.
+# version 6: any of the three feature types (``feature.type`` in the metadata, as in 4 and 5)
+# stored compactly (service/maps/compact.py): keypoints as uint16 fixed point at
+# ``keypoint_scale`` (header), the place projection as int8 with a float32 scale per column
+# (``place_projection_scale``), the place descriptors as float16. The image digests are those
+# of the decoded float32 keypoints, as before. Every map is written as version 6; versions
+# 2-5 still load.
+FORMAT_VERSION = 6
+READABLE_VERSIONS = (2, 3, 4, 5, 6)
 _CODE_DTYPES = {"sift": np.dtype(np.uint8), "xfeat": np.dtype(np.int8), DUAL: np.dtype(np.uint8)}
 _CODE_DIMS = {"sift": 128, "xfeat": XFEAT_DIMS, DUAL: 128}
-_VERSIONS = {"sift": 3, "xfeat": 4, DUAL: 5}
 _SECOND: dict[str, np.dtype] = {
     "offsets2": np.dtype("<i8"), "codes2": np.dtype(np.int8), "keypoints2": np.dtype("<f4"),
     "image_digests2": np.dtype(np.uint8)}
+_COMPACT: dict[str, np.dtype] = {  # version 6's dtypes where they differ from version 3-5's
+    "keypoints": KEYPOINT_DTYPE, "keypoints2": KEYPOINT_DTYPE,
+    "place_projection": np.dtype(np.int8), "place_projection_scale": np.dtype("<f4"),
+    "place_descriptors": np.dtype("<f2")}
+_OPTIONAL_V6 = (*_OPTIONAL[:3], "place_projection_scale", _OPTIONAL[3])
 REBUILD_DUAL = "rebuild it with 'swarmloc map build --features clahe-rootsift+xfeat'"
 
 
-def _version_of(kind: str) -> int:
-    return _VERSIONS[kind]
+def _dtypes_v6(kind: str) -> dict[str, np.dtype]:
+    """Every array of a version 6 map of feature type ``kind``, in file order."""
+    out: dict[str, np.dtype] = {}
+    for key, dtype in _DTYPES_V3.items():
+        if key == "place_descriptors":
+            out["place_projection_scale"] = _COMPACT["place_projection_scale"]
+        out[key] = _COMPACT.get(key, dtype)
+    out["codes"] = _CODE_DTYPES[kind]
+    if kind == DUAL:
+        out.update({k: _COMPACT.get(k, v) for k, v in _SECOND.items()})
+    return out
 
 
 Verify = bool | Literal["lazy"]
@@ -166,7 +199,7 @@ class SecondSet:
     was opened with verify="lazy", the (n, 16) digests of each image's codes and keypoints."""
 
     codes: np.ndarray
-    keypoints: np.ndarray
+    keypoints: Keypoints
     offsets: np.ndarray
     lazy_digests: np.ndarray | None = None
 
@@ -189,7 +222,7 @@ class RouteMap:
     image_names: list[str]
     codes: np.ndarray  # (total, D) uint8 descriptor codes, memory-mapped
     offsets: np.ndarray  # (n + 1,) row offsets of each image's descriptors
-    keypoints: np.ndarray  # (total, 2) float32
+    keypoints: Keypoints  # (total, 2) float32 (format 6: decoded from uint16 fixed point)
     path: Path | None = None
     layers: np.ndarray | None = None  # (n,) traversal index of each image; None: one
     place_index: PlaceIndex | None = None  # global place recognition (None: not built)
@@ -552,7 +585,19 @@ class RouteMap:
             "spacing_m": self.spacing,
             **{k: v for k, v in self.meta.items() if k not in ("arrays", "checksum")},
             "place_index": self.place_index.meta() if self.place_index is not None else None,
+            **self._file_size(),
         }
+
+    def _file_size(self) -> dict[str, float]:
+        """The map file's bytes, and per stored feature of either type (none in memory)."""
+        try:
+            size = self.path.stat().st_size if self.path is not None else None
+        except OSError:
+            size = None
+        if size is None:
+            return {}
+        features = int(self.offsets[-1]) + (len(self.second.codes) if self.second else 0)
+        return {"file_bytes": size, "bytes_per_feature": round(size / max(features, 1), 1)}
 
 
 class SecondImages:
@@ -656,16 +701,18 @@ def build_map(
             before, after = before + st.features_before, after + st.features_after
         stats = PruneStats(before, after)
     kind = DUAL if dual else "xfeat" if isinstance(params, XFeatParams) else "sift"
-    codes, kps, offsets = _stack(kept, _CODE_DTYPES[kind], _CODE_DIMS[kind])
+    scale = keypoint_scale(params.width, params.height)
+    codes, kps, offsets = _stack(kept, _CODE_DTYPES[kind], _CODE_DIMS[kind], scale)
     second = None
     if dual:
         second = SecondSet(*_stack([f.second for f in kept],  # type: ignore[misc]
-                                   _SECOND["codes2"], XFEAT_DIMS))
+                                   _SECOND["codes2"], XFEAT_DIMS, scale))
     meta = {
-        "format_version": _version_of(kind),
+        "format_version": FORMAT_VERSION,
         "feature": params.as_dict(),
         "delta": delta,
         "image_size": [params.width, params.height],
+        "keypoint_scale": scale,
         "origin": {"lat": origin[0], "lon": origin[1]} if origin else None,
         "build_date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "pruning": {
@@ -688,15 +735,20 @@ def build_map(
     return m
 
 
-def _stack(feats: Sequence[Features], dtype: np.dtype, dims: int
+def _stack(feats: Sequence[Features], dtype: np.dtype, dims: int, scale: int
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(codes, keypoints, offsets) of the images' features, one after the other."""
+    """(codes, keypoints, offsets) of the images' features, one after the other; the
+    keypoints as the map file stores them (fixed point at ``scale``)."""
     counts = np.array([len(f) for f in feats], np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     codes = (np.concatenate([f.codes for f in feats]) if offsets[-1]
              else np.zeros((0, dims), dtype)).astype(dtype)
     kps = (np.concatenate([f.keypoints for f in feats]) if offsets[-1]
-           else np.zeros((0, 2), np.float32)).astype(np.float32)
+           else np.zeros((0, 2), np.float32))
+    try:
+        kps = quantize_keypoints(kps, scale)
+    except KeypointRangeError as exc:
+        raise MapError(str(exc)) from None
     return codes, kps, offsets
 
 
@@ -779,6 +831,20 @@ def _image_digest(codes: np.ndarray, keypoints: np.ndarray) -> bytes:
                               digest_size=_DIGEST).digest())
 
 
+def _keypoint_scale_of(meta: dict) -> int:
+    """The fixed-point scale of a map's keypoints: its own, or the one its image size gives
+    (a map of an older format being written again)."""
+    have = meta.get("keypoint_scale")
+    if isinstance(have, int) and valid_keypoint_scale(have):
+        return have
+    try:
+        width, height = (int(v) for v in meta["image_size"])
+    except (KeyError, TypeError, ValueError):
+        raise MapError("the map's metadata lacks its working image size ('image_size')"
+                       ) from None
+    return keypoint_scale(width, height)
+
+
 def _small_arrays(positions: np.ndarray, offsets: np.ndarray, image_names: list[str],
                   layers: np.ndarray, place_index: PlaceIndex | None) -> dict[str, np.ndarray]:
     out = {
@@ -788,7 +854,7 @@ def _small_arrays(positions: np.ndarray, offsets: np.ndarray, image_names: list[
         "layers": np.ascontiguousarray(layers, "<i8"),
     }
     if place_index is not None:
-        out.update({k: np.ascontiguousarray(v, "<f4") for k, v in place_index.arrays().items()})
+        out.update(place_index.arrays())
     return out
 
 
@@ -864,13 +930,14 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     small = _small_arrays(positions, offsets, list(image_names), layers, place_index)
     kind = str(meta.get("feature", {}).get("type", "sift"))
-    if kind not in _VERSIONS:
+    if kind not in _CODE_DTYPES:
         raise MapError(f"unknown feature type '{kind}'")
     if (second is not None) != (kind == DUAL):
         raise MapError(f"a map of feature type '{kind}' "
                        f"{'needs' if kind == DUAL else 'has no'} a second feature set")
     code_dtype, dims = _CODE_DTYPES[kind], _CODE_DIMS[kind]
-    dtypes = {**_DTYPES_V3, "codes": code_dtype}
+    dtypes = _dtypes_v6(kind)
+    scale = _keypoint_scale_of(meta)
     shapes = {**{k: v.shape for k, v in small.items()}, "codes": (total, dims),
               "keypoints": (total, 2), "image_digests": (n, 2 * _DIGEST)}
     counts2 = np.zeros(0, np.int64)
@@ -880,7 +947,6 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
             raise MapError(f"the second feature set counts {len(counts2)} images, expected {n}")
         small["offsets2"] = np.concatenate([[0], np.cumsum(counts2)]).astype("<i8")
         total2 = int(counts2.sum())
-        dtypes.update(_SECOND)
         shapes.update({"offsets2": (n + 1,), "codes2": (total2, XFEAT_DIMS),
                        "keypoints2": (total2, 2), "image_digests2": (n, 2 * _DIGEST)})
     layout: dict[str, dict[str, Any]] = {}
@@ -893,7 +959,8 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
                        "nbytes": int(nbytes), "sha256": "0" * 64}
         offset += nbytes + _pad(nbytes)
     header = {k: v for k, v in meta.items() if k not in ("arrays", "checksum", "name")}
-    header.update({"name": name, "format_version": _version_of(kind), "arrays": layout,
+    header.update({"name": name, "format_version": FORMAT_VERSION, "keypoint_scale": scale,
+                   "arrays": layout,
                    "place_index": place_index.meta() if place_index is not None else None,
                    "checksum": "0" * 64})
     head_len = len(json.dumps(header).encode())
@@ -913,10 +980,10 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
             for key, arr in small.items():
                 put(key, 0, arr)
                 layout[key]["sha256"] = _sha256(arr)
-            _stream_set(put, layout, chunks, counts, code_dtype, dims, "")
+            _stream_set(put, layout, chunks, counts, code_dtype, dims, scale, "")
             if second is not None:
                 _stream_set(put, layout, second[1], counts2, _SECOND["codes2"], XFEAT_DIMS,
-                            "2")
+                            scale, "2")
             header["checksum"] = hashlib.sha256(_canonical(header)).hexdigest()
             head = json.dumps(header).encode()
             assert len(head) == head_len  # digests are fixed-length hex: same header size
@@ -937,24 +1004,29 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
 
 def _stream_set(put: Callable[[str, int, np.ndarray], None], layout: dict[str, dict[str, Any]],
                 chunks: Iterable[Chunk], counts: np.ndarray, code_dtype: np.dtype, dims: int,
-                suffix: str) -> None:
+                scale: int, suffix: str) -> None:
     """Write one feature set's chunks (arrays ``codes``, ``keypoints`` and ``image_digests``
-    with ``suffix``) and record their SHA-256 in ``layout``."""
+    with ``suffix``; the keypoints as uint16 fixed point at ``scale``) and record their
+    SHA-256 in ``layout``. The image digests are of the decoded (float32) keypoints."""
     n = len(counts)
     h_codes, h_kps = hashlib.sha256(), hashlib.sha256()
     digests = np.zeros((n, 2 * _DIGEST), np.uint8)
     img = row = 0
     for codes, kps, cnt in chunks:
         codes = np.ascontiguousarray(codes, code_dtype)
-        kps = np.ascontiguousarray(kps, "<f4")
         cnt = np.asarray(cnt, np.int64)
         if not np.array_equal(cnt, counts[img: img + len(cnt)]) or \
                 len(codes) != int(cnt.sum()) or len(kps) != len(codes):
             raise MapError("map chunks do not add up to the images' feature counts")
+        try:
+            stored = encode_keypoints(kps, scale)
+        except KeypointRangeError as exc:
+            raise MapError(str(exc)) from None
+        kps = decode_keypoints(stored, scale)
         put("codes" + suffix, row * dims * code_dtype.itemsize, codes)
-        put("keypoints" + suffix, row * 8, kps)
+        put("keypoints" + suffix, row * 2 * KEYPOINT_DTYPE.itemsize, stored)
         h_codes.update(_raw(codes))
-        h_kps.update(_raw(kps))
+        h_kps.update(_raw(stored))
         local = np.concatenate([[0], np.cumsum(cnt)])
         for j in range(len(cnt)):
             a, b = int(local[j]), int(local[j + 1])
@@ -1102,20 +1174,30 @@ def load_map(path: str | Path, verify: Verify = True, matcher: str = "exact") ->
             _verify_v2(path, header, arrays)
     else:
         feature = header.get("feature")
-        kind = (feature.get("type", "sift") if isinstance(feature, dict) and version in (4, 5)
-                else "sift")
+        kind = (feature.get("type", "sift")
+                if isinstance(feature, dict) and version in (4, 5, 6) else "sift")
         if kind not in _CODE_DTYPES:
             raise MapError(f"{path}: unknown feature type '{kind}' (this swarmloc knows "
                            f"{', '.join(_CODE_DTYPES)}); rebuild it with 'swarmloc map build'")
-        dtypes = {**_DTYPES_V3, "codes": _CODE_DTYPES[kind]}
-        if version == 5:
+        dual = version == 5 or (version == 6 and kind == DUAL)
+        optional: tuple[str, ...]
+        if version == 6:
+            dtypes, optional = _dtypes_v6(kind), _OPTIONAL_V6
+            if not valid_keypoint_scale(header.get("keypoint_scale")):
+                raise MapError(f"{path}: the keypoints' fixed-point scale "
+                               f"{header.get('keypoint_scale')!r} is not a power of two from 1 "
+                               "to 32 (corrupted file); rebuild the map")
+        else:
+            dtypes, optional = {**_DTYPES_V3, "codes": _CODE_DTYPES[kind]}, _OPTIONAL
+            if dual:
+                dtypes.update(_SECOND)
+        if dual:
             layout = header.get("arrays")
             missing = [k for k in _SECOND if not isinstance(layout, dict) or k not in layout]
             if missing:
                 raise MapError(f"{path}: the map of two feature types lacks its XFeat arrays "
                                f"({', '.join(missing)}); {REBUILD_DUAL}")
-            dtypes.update(_SECOND)
-        arrays = _open_arrays(path, header, data_start, dtypes, _OPTIONAL)
+        arrays = _open_arrays(path, header, data_start, dtypes, optional)
         _check_no_trailing_bytes(path, header, data_start, arrays)
         if verify:
             _verify_v3(path, header, arrays, lazy=verify == "lazy")
@@ -1148,10 +1230,10 @@ def load_map(path: str | Path, verify: Verify = True, matcher: str = "exact") ->
     if codes.ndim != 2 or codes.shape[1] != dims or kps.shape != (len(codes), 2):
         raise MapError(f"{path}: descriptor codes {codes.shape} / keypoints {kps.shape} do "
                        f"not have the shapes (n, {dims}) / (n, 2)")
-    second = _check_second(path, arrays, n) if version == 5 else None
+    second = _check_second(path, arrays, n) if "codes2" in arrays else None
     place_index = None
-    if version in (3, 4, 5):
-        place_index = _check_place_index(path, arrays, n, dims)
+    if version >= 3:
+        place_index = _check_place_index(path, arrays, n, dims, version)
         if arrays["image_digests"].shape != (n, 2 * _DIGEST):
             raise MapError(f"{path}: image digests {arrays['image_digests'].shape} do not "
                            f"have the shape ({n}, {2 * _DIGEST})")
@@ -1170,7 +1252,7 @@ def load_map(path: str | Path, verify: Verify = True, matcher: str = "exact") ->
     for part in (fp.sift, fp.xfeat) if isinstance(fp, DualParams) else (fp,):
         _check_feature_params(path, part, feature,
                               "clahe-rootsift+xfeat" if dual else "xfeat")
-    if version == 5 and not isinstance(header.get("fusion"), dict):
+    if dual and not isinstance(header.get("fusion"), dict):
         raise MapError(f"{path}: the map of two feature types lacks its fusion levels "
                        f"('fusion'); {REBUILD_DUAL}")
     cam = header.get("camera")
@@ -1182,12 +1264,18 @@ def load_map(path: str | Path, verify: Verify = True, matcher: str = "exact") ->
                            "with a valid --hfov, or without one") from None
     meta = {k: v for k, v in header.items() if k not in ("name",)}
     name = str(header.get("name", path.stem))
-    lazy = (np.asarray(arrays["image_digests"]) if version in (3, 4, 5) and verify == "lazy"
+    lazy = (np.asarray(arrays["image_digests"]) if version >= 3 and verify == "lazy"
             else None)
     if second is not None and verify == "lazy":
         second.lazy_digests = np.asarray(arrays["image_digests2"])
+    keypoints: Keypoints = arrays["keypoints"]
+    if version == 6:
+        scale = int(header["keypoint_scale"])
+        keypoints = FixedPointKeypoints(arrays["keypoints"], scale)
+        if second is not None:
+            second.keypoints = FixedPointKeypoints(arrays["keypoints2"], scale)
     m = RouteMap(name, meta, positions, names, arrays["codes"], offsets,
-                 arrays["keypoints"], path, layers, place_index, lazy, second,
+                 keypoints, path, layers, place_index, lazy, second,
                  check_matcher(matcher))
     if m.uses_words:
         m.inverted_file  # noqa: B018 - trained now, so that no frame waits for it
@@ -1200,8 +1288,9 @@ def load_map(path: str | Path, verify: Verify = True, matcher: str = "exact") ->
     return m
 
 
-_PARAMS_OF_VERSION: dict[int, type] = {2: SiftParams, 3: SiftParams, 4: XFeatParams,
-                                       5: DualParams}
+_PARAMS_OF_VERSION: dict[int, type | tuple[type, ...]] = {
+    2: SiftParams, 3: SiftParams, 4: XFeatParams, 5: DualParams,
+    6: (SiftParams, XFeatParams, DualParams)}
 
 
 def _check_feature_params(path: Path, fp: SiftParams | XFeatParams, feature: dict,
@@ -1234,16 +1323,20 @@ def _check_second(path: Path, arrays: dict[str, np.ndarray], n: int) -> SecondSe
     return SecondSet(codes, kps, offsets)
 
 
-def _check_place_index(path: Path, arrays: dict[str, np.ndarray], n: int, dims: int
-                       ) -> PlaceIndex | None:
-    present = [k for k in _OPTIONAL if k in arrays]
+def _check_place_index(path: Path, arrays: dict[str, np.ndarray], n: int, dims: int,
+                       version: int) -> PlaceIndex | None:
+    keys = _OPTIONAL_V6 if version == 6 else _OPTIONAL
+    present = [k for k in keys if k in arrays]
     if not present:
         return None
-    if len(present) != len(_OPTIONAL):
+    if len(present) != len(keys):
         raise MapError(f"{path}: the place index is incomplete (has {present})")
     w, mu, proj, desc = (arrays[k] for k in _OPTIONAL)
+    scale = arrays.get("place_projection_scale")
     if w.ndim != 2 or w.shape[1] != dims or mu.shape != (w.shape[0] * dims,) or \
-            proj.ndim != 2 or proj.shape[0] != len(mu) or desc.shape != (n, proj.shape[1]):
+            proj.ndim != 2 or proj.shape[0] != len(mu) or desc.shape != (n, proj.shape[1]) or \
+            (scale is not None and (scale.shape != (proj.shape[1],) or
+                                    not np.isfinite(scale).all())):
         raise MapError(f"{path}: the place index arrays do not fit together (words "
                        f"{w.shape}, projection {proj.shape}, descriptors {desc.shape})")
     return PlaceIndex.from_arrays(arrays)

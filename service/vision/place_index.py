@@ -43,7 +43,8 @@ class PlaceIndex:
     words: np.ndarray  # (K, 128) float32 unit visual words
     mean: np.ndarray  # (K * 128,) float32 PCA centre
     projection: np.ndarray  # (K * 128, dims) float32 PCA (whitened) basis
-    descriptors: np.ndarray  # (n_images, dims) float32 unit global descriptors (memmap)
+    descriptors: np.ndarray  # (n_images, dims) float16 (or float32) unit global descriptors
+    #                          (memmap)
 
     @property
     def n_images(self) -> int:
@@ -80,16 +81,24 @@ class PlaceIndex:
         return ids.astype(np.int64), scores[top].astype(float)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The arrays a map file stores (service/maps/route_map.py)."""
-        return {"place_words": self.words, "place_mean": self.mean,
-                "place_projection": self.projection, "place_descriptors": self.descriptors}
+        """The arrays a map file stores (service/maps/route_map.py, format 6): the projection
+        as int8 with a scale per column, the descriptors as float16."""
+        codes, scale = encode_projection(self.projection)
+        return {"place_words": np.ascontiguousarray(self.words, "<f4"),
+                "place_mean": np.ascontiguousarray(self.mean, "<f4"),
+                "place_projection": codes, "place_projection_scale": scale,
+                "place_descriptors": np.ascontiguousarray(self.descriptors, "<f2")}
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> PlaceIndex | None:
+        """The index of a map file's arrays (format 6, or the float32 ones of formats 3-5)."""
         if "place_descriptors" not in arrays:
             return None
+        proj = np.asarray(arrays["place_projection"])
+        if "place_projection_scale" in arrays:
+            proj = decode_projection(proj, np.asarray(arrays["place_projection_scale"]))
         return cls(np.asarray(arrays["place_words"]), np.asarray(arrays["place_mean"]),
-                   np.asarray(arrays["place_projection"]), arrays["place_descriptors"])
+                   proj, arrays["place_descriptors"])
 
     def meta(self) -> dict[str, Any]:
         return {"type": "vlad", "words": len(self.words), "dims": self.dims,
@@ -162,14 +171,30 @@ def build_place_index(source: CodesSource, rng: np.random.Generator, words: int 
     axes = (xc.T @ u[:, order]) / np.sqrt(lam)[None, :]
     ev = lam / max(len(train) - 1, 1)
     scale = (ev + 1e-3 * ev[0]) ** (-WHITEN_POWER / 2)
-    proj = (axes * scale[None, :]).astype(np.float32)
+    # rounded as the map file stores it, so that a built map and its saved copy agree
+    proj = decode_projection(*encode_projection(axes * scale[None, :]))
     index = PlaceIndex(voc, mean.astype(np.float32), proj, np.zeros((0, dims), np.float32))
-    out = np.empty((n, dims), np.float32)
+    out = np.empty((n, dims), np.float16)
     for a in range(0, n, 1024):
         ids = range(a, min(n, a + 1024))
         out[a: a + len(ids)] = index._project(
             np.stack([vlad(unit_descriptors(source.codes_of(i)), voc) for i in ids]))
     return PlaceIndex(voc, index.mean, proj, out)
+
+
+def encode_projection(proj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(int8 codes, float32 scale per column) of a projection matrix (rows, dims): a quarter
+    of its float32 size, each column to 1/127 of its largest entry."""
+    proj = np.asarray(proj, np.float32)
+    scale = (np.abs(proj).max(axis=0, initial=0.0) / 127.0).astype(np.float32)
+    scale[scale == 0] = 1.0
+    codes = np.clip(np.rint(proj / scale[None, :]), -127, 127).astype(np.int8)
+    return codes, scale
+
+
+def decode_projection(codes: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """The float32 projection of ``encode_projection``'s codes and scales."""
+    return np.asarray(codes, np.float32) * np.asarray(scale, np.float32)[None, :]
 
 
 class Seedable(Protocol):

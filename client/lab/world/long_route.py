@@ -291,7 +291,7 @@ def assemble_maps(out_dir: str | Path, sizes: list[int]) -> list[Path]:
         cnt_all = np.concatenate(counts)
         index = build_place_index(SpillCodes(spill, n), np.random.default_rng(0))
         total = int(cnt_all.sum())
-        meta = {"format_version": 3, "feature": params.as_dict(), "delta": DEFAULT_DELTA,
+        meta = {"feature": params.as_dict(), "delta": DEFAULT_DELTA,
                 "image_size": [params.width, params.height], "origin": None,
                 "build_date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                 "pruning": {"enabled": False, "features_before": total,
