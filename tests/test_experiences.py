@@ -156,6 +156,45 @@ def test_particles_match_one_layer_and_the_session_moves_to_todays_light(
     assert extra.min() >= 0 and extra.max() <= 2
 
 
+def test_a_frame_compares_no_more_images_on_an_experience_than_on_the_map_alone(
+        map_copy: RouteMap, cloudy_images: list[NewImage],
+        cloudy_features: list[Features]) -> None:
+    """Issue #34's bound on comparisons: with an experience active, each particle's place is
+    its nearest base image, and that image's nearest experience image stands in for it. So a
+    swarm compares at most as many distinct images as on the base images alone (before this,
+    the experience image nearest to each particle: the base images of the particles beyond
+    the experience and the experience's own, 2-31 % more comparisons per frame on the rendered
+    worlds). Checked on swarm-like clouds of particles, and over a replay."""
+    assert map_copy.path is not None
+    learned, _ = add_experience(map_copy, map_copy.path, "cloudy", cloudy_images,
+                                condition="cloudy", robot=None, now=1.0, budget_bytes=1 << 30)
+    layers = learned.layers
+    assert layers is not None
+    exp_layer = experience_layers(learned)["cloudy"]
+    rng = np.random.default_rng(0)
+    used = 0
+    for i in range(5, len(cloudy_images) - 5, 5):
+        at = cloudy_images[i].xy
+        on = LayerChoice(active="cloudy").nearest(learned, at)
+        off = LayerChoice().nearest(learned, at)
+        for spread in (0.5, 2.0, 6.0):
+            cloud = at + rng.normal(0, spread, (80, 2))
+            ids, dist = on(cloud)
+            base_ids, _ = off(cloud)
+            assert len(np.unique(ids)) <= len(np.unique(base_ids)), (i, spread)
+            np.testing.assert_allclose(
+                dist[:, 0], np.linalg.norm(cloud - learned.positions[ids[:, 0]], axis=1))
+            used += int(np.sum(layers[ids[:, 0]] == exp_layer))
+    assert used > 0  # the experience's images are used
+    plain = Localizer(map_copy, seed=1)
+    taught = Localizer(learned, seed=1)
+    frames = cloudy_features[:40]
+    base = [plain.step(f, t=float(i)).comparisons for i, f in enumerate(frames)]
+    after = [taught.step(f, t=float(i)) for i, f in enumerate(frames)]
+    assert after[-1].experience == "cloudy"
+    assert np.mean([e.comparisons for e in after]) <= 1.2 * np.mean(base)
+
+
 @pytest.fixture(scope="module")
 def camera_maps(tmp_path_factory: pytest.TempPathFactory, small_map: RouteMap,
                 small_world: World) -> Path:

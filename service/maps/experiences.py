@@ -325,9 +325,16 @@ class LayerChoice:
             dist = np.column_stack([c[1] for c in cols])
             if layer is None:
                 return ids, dist
-            e_ids, e_dist = m.nearest_in_layer(positions, layer)
-            near = (e_dist <= gap)[:, None]
-            return (np.where(near, e_ids[:, None], ids), np.where(near, e_dist[:, None], dist))
+            # each particle's first base image stands in for its place: the experience image
+            # nearest to that image replaces it (within the gap), so a frame compares no more
+            # distinct images than it would on the base layer alone
+            own, inverse = np.unique(ids[:, 0], return_inverse=True)
+            e_own, e_gap = m.nearest_in_layer(m.positions[own], layer)
+            e_ids, near = e_own[inverse], (e_gap <= gap)[inverse]
+            e_dist = np.linalg.norm(np.asarray(positions, float).reshape(-1, 2)
+                                    - m.positions[e_ids], axis=1)
+            return (np.where(near[:, None], e_ids[:, None], ids),
+                    np.where(near[:, None], e_dist[:, None], dist))
 
         return nearest
 
