@@ -271,3 +271,15 @@ def test_a_map_of_format_3_still_loads_and_is_written_again_as_6(small_map, sunn
     with pytest.raises(MapError, match="does not match its digest"):
         for i in range(lazy.n_images):
             lazy.features_of(i)
+
+
+def test_keypoints_the_fixed_point_cannot_hold_are_refused() -> None:
+    from service.maps.compact import KeypointRangeError, encode_keypoints, keypoint_scale
+
+    assert [keypoint_scale(w, h) for w, h in ((320, 240), (1226, 370), (2048, 64),
+                                               (8191, 8191))] == [32, 32, 16, 8]
+    assert encode_keypoints(np.array([[-0.4, 2047.9]]), 32).tolist() == [[0, 65533]]
+    for bad, why in (([[np.nan, 1.0]], "not finite"), ([[-1.0, 1.0]], "outside"),
+                     ([[1.0, 2048.5]], "outside")):
+        with pytest.raises(KeypointRangeError, match=why):
+            encode_keypoints(np.array(bad), 32)

@@ -4,7 +4,7 @@ A RootSIFT map feature is its 128-byte code; what else is stored per feature sho
 small (issue 29: at most 140 B per map feature). Version 6 stores
 
 - **keypoints as fixed point**: uint16 holding ``round(x * scale)``, ``scale`` a power of two
-  chosen from the working image size (1/32 px at 1226 px, 1/8 px at 8192 px), 4 bytes
+  chosen from the working image size (1/32 px up to 2047 px, 1/4 px at 8192 px), 4 bytes
   instead of float32's 8. Decoding (``stored / scale``) is exact in float32, so a map's
   keypoints survive any number of save/load cycles unchanged;
 - **the place index** compactly: its PCA projection, the map's largest fixed cost (4 MiB for
@@ -42,9 +42,12 @@ class KeypointRangeError(ValueError):
 
 
 def encode_keypoints(kps: np.ndarray, scale: int) -> np.ndarray:
-    """(n, 2) float keypoints as uint16 fixed point; coordinates within half a pixel outside
-    the image are clamped to it, anything further raises KeypointRangeError."""
+    """(n, 2) float keypoints as uint16 fixed point. Coordinates down to half a pixel below
+    zero are clamped to 0; below that, beyond the largest coordinate the scale stores, or
+    not finite: KeypointRangeError."""
     q = np.rint(np.asarray(kps, np.float64) * scale)
+    if q.size and not np.isfinite(q).all():
+        raise KeypointRangeError("keypoints are not finite numbers")
     if q.size and (q.min() < -scale / 2 or q.max() > _LIMIT):
         raise KeypointRangeError(
             f"keypoints span {float(np.min(kps)):.1f}..{float(np.max(kps)):.1f} px, outside "
