@@ -11,7 +11,7 @@ small (issue 29: at most 140 B per map feature). Version 6 stores
   RootSIFT), as int8 with a float32 scale per output dimension, and its descriptors as
   float16 (service/vision/place_index.py ``PlaceIndex.arrays``).
 
-Built maps are rounded to the stored values in memory (``quantize_keypoints``, and the place
+Built maps are rounded to the stored values in memory (route_map's ``_stack``, and the place
 index as it is built), so a map behaves the same before and after it is saved.
 """
 
@@ -58,11 +58,6 @@ def encode_keypoints(kps: np.ndarray, scale: int) -> np.ndarray:
 def decode_keypoints(raw: np.ndarray, scale: int) -> np.ndarray:
     """Float32 keypoints of uint16 fixed point (exact: a power-of-two scale)."""
     return np.asarray(raw, np.float32) * np.float32(1.0 / scale)
-
-
-def quantize_keypoints(kps: np.ndarray, scale: int) -> np.ndarray:
-    """The float32 keypoints a map stores for ``kps``."""
-    return decode_keypoints(encode_keypoints(kps, scale), scale)
 
 
 class FixedPointKeypoints:

@@ -57,7 +57,6 @@ from service.maps.compact import (
     decode_keypoints,
     encode_keypoints,
     keypoint_scale,
-    quantize_keypoints,
     valid_keypoint_scale,
 )
 from service.vision.features import (
@@ -745,11 +744,15 @@ def _stack(feats: Sequence[Features], dtype: np.dtype, dims: int, scale: int
              else np.zeros((0, dims), dtype)).astype(dtype)
     kps = (np.concatenate([f.keypoints for f in feats]) if offsets[-1]
            else np.zeros((0, 2), np.float32))
+    return codes, decode_keypoints(_stored_keypoints(kps, scale), scale), offsets
+
+
+def _stored_keypoints(kps: np.ndarray, scale: int) -> np.ndarray:
+    """The uint16 fixed-point keypoints a map file stores; MapError where they cannot be."""
     try:
-        kps = quantize_keypoints(kps, scale)
+        return encode_keypoints(kps, scale)
     except KeypointRangeError as exc:
         raise MapError(str(exc)) from None
-    return codes, kps, offsets
 
 
 class RoundLike(Protocol):
@@ -1018,10 +1021,7 @@ def _stream_set(put: Callable[[str, int, np.ndarray], None], layout: dict[str, d
         if not np.array_equal(cnt, counts[img: img + len(cnt)]) or \
                 len(codes) != int(cnt.sum()) or len(kps) != len(codes):
             raise MapError("map chunks do not add up to the images' feature counts")
-        try:
-            stored = encode_keypoints(kps, scale)
-        except KeypointRangeError as exc:
-            raise MapError(str(exc)) from None
+        stored = _stored_keypoints(kps, scale)
         kps = decode_keypoints(stored, scale)
         put("codes" + suffix, row * dims * code_dtype.itemsize, codes)
         put("keypoints" + suffix, row * 2 * KEYPOINT_DTYPE.itemsize, stored)
