@@ -92,6 +92,7 @@ def warm_kernels(settings: Settings, service: LocalizationService) -> str:
 
     from service.vision.features import extract
     from service.vision.matcher import cache_kernels_in, default_cache_dir, fastest_gemm, warm_up
+    from service.vision.mnn_matcher import warm_up as warm_up_mnn
 
     wanted = settings.numba_cache_dir or default_cache_dir()
     used = cache_kernels_in(wanted)
@@ -100,7 +101,9 @@ def warm_kernels(settings: Settings, service: LocalizationService) -> str:
     for p in dict.fromkeys(m.feature_params for m in service.maps.values()):
         extract(rng.integers(0, 256, (p.height, p.width), dtype=np.uint8), p)  # XFeat: ONNX
     gemm = fastest_gemm()  # measured now, not on the first frame
+    fastest_gemm("int8")  # XFeat's
     warm_up()
+    warm_up_mnn()
     took = f"ready in {time.perf_counter() - t0:.1f} s, exact GEMM {gemm.describe()}"
     if used is None:
         return (f"{took}, compiled at each start: {wanted} is not writable "

@@ -5,6 +5,7 @@ the name accepted by the CLI and the HTTP API."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import struct
 from dataclasses import replace
@@ -420,3 +421,37 @@ def test_a_confidently_wrong_session_on_a_dual_map_learns_nothing(
         assert svc.map_summary("dual").experiences == []
     finally:
         svc.close()
+
+
+def test_warm_up_covers_a_step_on_a_map_of_both_types(dual_map: RouteMap, cloudy1: Round,
+                                                      tmp_path: Path) -> None:
+    """In a fresh process, the service's warm-ups compile every kernel signature a frame on a
+    map of both types meets (XFeat's int8 dots in the shared scan included): the first frame
+    compiles nothing. Without XFeat's warm-up the step compiles."""
+    import subprocess
+    import sys
+
+    path = save_map(dual_map, tmp_path / "dual")
+    frame = tmp_path / "frame.npy"
+    np.save(frame, cloudy1.load_image(0))
+    script = (
+        "import sys, numpy as np\n"
+        "from service.maps.route_map import load_map\n"
+        "from service.engine.localizer import Localizer\n"
+        "from service.vision.matcher import compiled_signatures, warm_up\n"
+        "from service.vision.mnn_matcher import warm_up as warm_up_mnn\n"
+        "warm_up()\n"
+        "if sys.argv[3] == 'both':\n"
+        "    warm_up_mnn()\n"
+        "before = compiled_signatures()\n"
+        "loc = Localizer(load_map(sys.argv[1]), 'dpso', {}, 0)\n"
+        "loc.step(loc.extract(np.load(sys.argv[2])), 0.0)\n"
+        "print(compiled_signatures() - before)\n")
+    root = Path(__file__).resolve().parent.parent
+    added = {}
+    for which in ("both", "rootsift"):
+        out = subprocess.run([sys.executable, "-c", script, str(path), str(frame), which],
+                             capture_output=True, text=True, cwd=root, check=True,
+                             env={**os.environ, "PYTHONPATH": str(root)})
+        added[which] = int(out.stdout.strip().splitlines()[-1])
+    assert added == {"both": 0, "rootsift": 1}

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from service.maps.route_map import MapError, list_maps, load_map, prune, save_map
-from service.vision.features import Features, extract, match_batch
+from service.vision.features import Features, extract, match_batch, unit_descriptors
 
 
 def test_pruning_keeps_features_seen_in_a_neighbour(sunny1) -> None:
@@ -54,7 +54,7 @@ def test_loaded_map_matches_like_the_map_in_memory(small_map, sunny1, sunny2) ->
     ids = np.arange(12)
     np.testing.assert_array_equal(mem.similarity(f.codes, ids), small_map.similarity(f.codes, ids))
     # the exact uint8 matcher equals the float path on the same descriptors
-    sets = [small_map.features_of(int(i)) for i in ids]
+    sets = [unit_descriptors(small_map.codes_of(int(i))) for i in ids]
     np.testing.assert_array_equal(small_map.similarity(f.codes, ids),
                                   match_batch(f.descriptors, sets).scores)
 

@@ -146,6 +146,7 @@ def test_the_ratio_test_drops_ambiguous_mutual_neighbours() -> None:
     ambiguous = b[1] + b[2]
     a = np.stack([clear, ambiguous])
     a /= np.linalg.norm(a, axis=1, keepdims=True)
+    a, b = (np.rint(x * 127).astype(np.int8) for x in (a, b))  # codes, as maps store them
     plain = mnn_pairs(a, b, 0.5, 1.0)
     assert sorted(plain[0].tolist()) == [0, 1]  # both are mutual neighbours above the gate
     ia, ib = mnn_pairs(a, b, 0.5, 0.95)

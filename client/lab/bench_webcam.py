@@ -81,7 +81,7 @@ def own_matches(params: FeatureParams, a: Features, b: Features
                 ) -> tuple[np.ndarray, np.ndarray]:
     """The feature type's own matches (those its similarity m counts) between two frames."""
     if isinstance(params, XFeatParams):
-        return mnn_pairs(a.descriptors, b.descriptors, params.min_cos, params.max_ratio)
+        return mnn_pairs(a.codes, b.codes, params.min_cos, params.max_ratio)
     return match_pairs(a.codes, b.codes, DEFAULT_DELTA)
 
 

@@ -67,7 +67,6 @@ from service.vision.features import (
     SiftParams,
     feature_params,
     match_batch,
-    unit_descriptors,
 )
 from service.vision.fusion import Fusion, fusion_levels
 from service.vision.image_cache import ImageCache
@@ -80,6 +79,7 @@ from service.vision.matcher import (
     prepare,
 )
 from service.vision.metric_pose import Camera, match_pairs
+from service.vision.mnn_matcher import PreparedCodes, prepare_codes
 from service.vision.place_index import PlaceIndex, build_place_index
 from service.vision.vocabulary import DEFAULT_PROBES, InvertedFileMatcher
 from service.vision.xfeat import DIMS as XFEAT_DIMS
@@ -354,24 +354,24 @@ class RouteMap:
             return 1.0
         return float(np.median(np.linalg.norm(np.diff(self.positions, axis=0), axis=1)))
 
-    def features_of(self, image_id: int) -> np.ndarray:
-        """Unit descriptors of one map image (from its codes; kept after the first use)."""
-        def make() -> np.ndarray:
+    def features_of(self, image_id: int) -> PreparedCodes:
+        """One XFeat map image's codes prepared for the matcher (kept after the first use)."""
+        def make() -> PreparedCodes:
             self._check_image(image_id)
-            return unit_descriptors(self.codes[self.offsets[image_id]:
-                                               self.offsets[image_id + 1]])
-        return self.image_cache.get(("unit", int(image_id)), make)
+            return prepare_codes(np.asarray(self.codes[self.offsets[image_id]:
+                                                       self.offsets[image_id + 1]]))
+        return self.image_cache.get(("codes", int(image_id)), make)
 
-    def second_features_of(self, image_id: int) -> np.ndarray:
-        """Unit descriptors of one map image's second feature set (XFeat; kept after the first
-        use)."""
+    def second_features_of(self, image_id: int) -> PreparedCodes:
+        """One map image's second feature set (XFeat) prepared for the matcher (kept after the
+        first use)."""
         s = self.second
         if s is None:
             raise ValueError(f"map '{self.name}' has one feature type")
-        def make() -> np.ndarray:
+        def make() -> PreparedCodes:
             self._check_second(image_id)
-            return unit_descriptors(s.codes[s.rows(image_id)])
-        return self.image_cache.get(("unit2", int(image_id)), make)
+            return prepare_codes(np.asarray(s.codes[s.rows(image_id)]))
+        return self.image_cache.get(("codes2", int(image_id)), make)
 
     def image_features(self, image_id: int) -> Features:
         """One map image as a frame's ``Features`` (both sets on a map of two types)."""
@@ -485,9 +485,8 @@ class RouteMap:
         assert isinstance(frame, Features)
         ids = [int(i) for i in image_ids]
         first = self._first_similarity(frame.codes, ids, keep)
-        other, pairs = mnn_batch(second.descriptors,  # the frame's, normalised once
-                                 [self.second_features_of(i) for i in ids], p.xfeat.min_cos,
-                                 p.xfeat.max_ratio)
+        other, pairs = mnn_batch(second.codes, [self.second_features_of(i) for i in ids],
+                                 p.xfeat.min_cos, p.xfeat.max_ratio)
         if keep_second is not None:  # XFeat's geometry takes them as they are (any delta)
             keep_second.keep(ids, pairs)
         return first, other
@@ -496,11 +495,10 @@ class RouteMap:
                           keep: FramePairs | None) -> np.ndarray:
         p = self.first_params
         if isinstance(p, XFeatParams):
-            unit = unit_descriptors(frame_codes)
             feats = [self.features_of(i) for i in ids]
             if keep is None:
-                return mnn_scores(unit, feats, p.min_cos, p.max_ratio)
-            scores, kept = mnn_batch(unit, feats, p.min_cos, p.max_ratio)
+                return mnn_scores(frame_codes, feats, p.min_cos, p.max_ratio)
+            scores, kept = mnn_batch(frame_codes, feats, p.min_cos, p.max_ratio)
             keep.keep(ids, kept)  # the geometry's matches are the similarity's (any delta)
             return scores
         if self.uses_words:
@@ -550,8 +548,7 @@ class RouteMap:
         among the pairs sharing a visual word."""
         p = self.first_params
         if isinstance(p, XFeatParams):
-            return mnn_pairs(unit_descriptors(codes), self.features_of(image_id), p.min_cos,
-                             p.max_ratio)
+            return mnn_pairs(codes, self.features_of(image_id), p.min_cos, p.max_ratio)
         if self.uses_words and not self.exact_top:  # else the best images' pairs: exact
             return self.inverted_file.pairs(codes, image_id, delta)
         return match_pairs(codes, self.prepared(image_id), delta)
@@ -621,8 +618,8 @@ class SecondImages:
     def pairs(self, codes: np.ndarray, image_id: int, delta: float
               ) -> tuple[np.ndarray, np.ndarray]:
         """Mutual nearest neighbours of ``codes`` with the image's second set (any delta)."""
-        return mnn_pairs(unit_descriptors(codes), self.map.second_features_of(image_id),
-                         self.params.min_cos, self.params.max_ratio)
+        return mnn_pairs(codes, self.map.second_features_of(image_id), self.params.min_cos,
+                         self.params.max_ratio)
 
     def image_pairs(self, image_id: int, other: int, delta: float
                     ) -> tuple[np.ndarray, np.ndarray]:

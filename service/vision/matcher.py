@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 
@@ -185,27 +185,34 @@ class GemmChoice:
                 f"{self.blas_ms:.2f} ms on this CPU)")
 
 
-@functools.lru_cache(maxsize=1)
-def fastest_gemm() -> GemmChoice:
-    """Time NumKong's packed uint8 GEMM against float32 BLAS once per process, on a tile of
-    the matcher's shape, and take the faster: both give the same exact dot products, so the
-    choice changes speed only. NumKong wins by 3-7x where the CPU has AMX or AVX-512 VNNI;
-    on AVX2 alone BLAS was 1.45x faster (docs/research/performance.md)."""
+@functools.lru_cache(maxsize=2)
+def fastest_gemm(dtype: Literal["uint8", "int8"] = "uint8") -> GemmChoice:
+    """Time NumKong's packed GEMM against float32 BLAS once per process and code type
+    (``uint8``: RootSIFT's 128-byte codes; ``int8``: XFeat's 64, service/vision/mnn_matcher.py),
+    on a tile of the matcher's shape, and take the faster: both give the same exact dot
+    products, so the choice changes speed only. For uint8 NumKong wins by 3-7x where the CPU
+    has AMX or AVX-512 VNNI; on AVX2 alone BLAS was 1.45x faster
+    (docs/research/performance.md)."""
     from threadpoolctl import threadpool_limits
 
+    if dtype not in ("uint8", "int8"):
+        raise ValueError(f"unknown code type {dtype!r}: use uint8 or int8")
     rng = np.random.default_rng(0)
-    # the full byte range, as quantised RootSIFT has, and map images' uneven sizes: NumKong's
-    # packed kernels slow down for some widths (535 columns took 1.8x the time of 512)
-    a = rng.integers(0, 256, (_TILE, 128), dtype=np.uint8)
-    sets = [rng.integers(0, 256, (n, 128), dtype=np.uint8) for n in (487, 535, 600)]
+    dims, low = (128, 0) if dtype == "uint8" else (64, -127)
+    acc: Literal["uint32", "int32"] = "uint32" if dtype == "uint8" else "int32"
+    # the full code range and map images' uneven sizes: NumKong's packed kernels slow down
+    # for some widths (535 columns took 1.8x the time of 512)
+    a = rng.integers(low, 128 if low else 256, (_TILE, dims)).astype(dtype)
+    sets = [rng.integers(low, 128 if low else 256, (n, dims)).astype(dtype)
+            for n in (487, 535, 600)]
     blas = np.zeros(len(sets))
     kong = np.zeros(len(sets))
     with threadpool_limits(1):  # as frames run: one BLAS thread each
         a32 = a.astype(np.float32)
         for k, b in enumerate(sets):
             b32, out32 = b.astype(np.float32).T, np.empty((_TILE, len(b)), np.float32)
-            packed = _nk.dots_pack(b, dtype="uint8") if _nk is not None else None
-            out_nk = _nk.empty((_TILE, len(b)), dtype="uint32") if _nk is not None else None
+            packed = _nk.dots_pack(b, dtype=dtype) if _nk is not None else None
+            out_nk = _nk.empty((_TILE, len(b)), dtype=acc) if _nk is not None else None
             t_blas, t_kong = [], []
             for _ in range(7):  # interleaved, best of each: robust to a busy neighbour
                 t0 = time.perf_counter()
@@ -269,8 +276,8 @@ def _scan_columns(dots, r0, inv_na, cm1, cm2):
 
 def _finish_row(row, inv_nb, nfull, lm1, lm2, lj1):
     """Best key, its column and the second key of a row from its lanes plus the tail."""
-    m1 = np.float32(-1.0)
-    m2 = np.float32(-1.0)
+    m1 = np.float32(-np.inf)  # below any key (int8 codes' keys may be negative)
+    m2 = np.float32(-np.inf)
     j1 = -1
     for j in range(nfull, row.shape[0]):
         k = np.float32(row[j]) * inv_nb[j]
@@ -311,11 +318,11 @@ def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1):
         ra = dots[r]
         rb = dots[min(r + 1, nr - 1)]  # an odd last row is simply done twice
         for q in range(nl):
-            a1[q] = -1.0
-            a2[q] = -1.0
+            a1[q] = -np.inf
+            a2[q] = -np.inf
             aj[q] = -1
-            b1[q] = -1.0
-            b2[q] = -1.0
+            b1[q] = -np.inf
+            b2[q] = -np.inf
             bj[q] = -1
         for jb in range(0, nfull, nl):
             for q in range(nl):

@@ -36,6 +36,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from service.vision.mnn_matcher import PreparedCodes, mnn_batch_i8
+
 MODEL_PATH = Path(__file__).resolve().parent / "models" / "xfeat.onnx"
 MODEL_SHA256 = "e2b108fff66bcc6e56ef55ac4fd98efc1eee5cb15d3811a4e85df793844f7e80"
 CODE_SCALE = 127.0  # unit descriptor components -> int8 codes
@@ -200,46 +202,25 @@ def extract_xfeat(gray: np.ndarray, params: XFeatParams) -> tuple[np.ndarray, np
     return kpts[keep], codes[keep]
 
 
-def mnn_pairs(a: np.ndarray, b: np.ndarray, min_cos: float, max_ratio: float = 1.0
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (ia, ib) of the mutual nearest neighbours of unit descriptors ``a`` and ``b``
-    whose cosine exceeds ``min_cos`` and, when ``max_ratio`` < 1, whose distance is below
+def mnn_pairs(a: np.ndarray, b: np.ndarray | PreparedCodes, min_cos: float,
+              max_ratio: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (ia, ib) of the mutual nearest neighbours of int8 codes ``a`` and ``b`` whose
+    cosine exceeds ``min_cos`` and, when ``max_ratio`` < 1, whose distance is below
     ``max_ratio`` times the distance to a's second nearest neighbour in ``b`` (Lowe's ratio:
-    a match that is not clearly better than the next candidate is chance)."""
-    if len(a) == 0 or len(b) == 0:
-        empty = np.zeros(0, np.int64)
-        return empty, empty
-    sim = a @ b.T
-    best_b = sim.argmax(axis=1)
-    ia = np.arange(len(a))
-    best = sim[ia, best_b]
-    # mutual: a's best b has no better a (a column max, not a strided argmax: 30x cheaper; an
-    # exact float tie of two a for one b would keep both, which unit descriptors never show)
-    ok = (best >= sim.max(axis=0)[best_b]) & (best > min_cos)
-    if max_ratio < 1.0 and sim.shape[1] > 1:
-        sim[ia, best_b] = -2.0  # below any cosine: the row max is now the second nearest
-        second = sim.max(axis=1)
-        # |a - b|^2 = 2 - 2 cos for unit vectors: d1 < r d2  <=>  1 - cos1 < r^2 (1 - cos2)
-        ok &= (1.0 - best) < max_ratio ** 2 * (1.0 - second)
-    return ia[ok], best_b[ok]
+    a match that is not clearly better than the next candidate is chance); the exact rule:
+    service/vision/mnn_matcher.py."""
+    return mnn_batch(a, [b], min_cos, max_ratio)[1][0]
 
 
-def mnn_scores(a: np.ndarray, sets: Sequence[np.ndarray], min_cos: float,
+def mnn_scores(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos: float,
                max_ratio: float = 1.0) -> np.ndarray:
     """m(A, B) for each set B: mutual-nearest-neighbour matches over min(|A|, |B|)."""
     return mnn_batch(a, sets, min_cos, max_ratio)[0]
 
 
-def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray], min_cos: float,
+def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos: float,
               max_ratio: float = 1.0
               ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
     """``mnn_scores`` and each set's matches (``mnn_pairs``), which the two-view geometry
-    takes as they are."""
-    out = np.zeros(len(sets))
-    pairs = []
-    for k, b in enumerate(sets):
-        pairs.append(mnn_pairs(a, b, min_cos, max_ratio))
-        n = min(len(a), len(b))
-        if n:
-            out[k] = len(pairs[-1][0]) / n
-    return out, pairs
+    takes as they are (int8 codes; a map image's prepared once: ``prepare_codes``)."""
+    return mnn_batch_i8(a, sets, min_cos, max_ratio)
