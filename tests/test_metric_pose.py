@@ -522,12 +522,15 @@ def test_the_camera_yaw_follows_a_frame_turned_against_the_route(
     """Frames rendered at sunny2 poses as driven and turned 8 degrees left and right
     (counter-clockwise positive, as the map's headings), each located at the map image
     nearest: the turned frames' headings differ from the straight one's by the turn, to a
-    fraction of a degree (a wrong sign of the yaw would make it 16 degrees), and all lie
-    within a few degrees of the truth."""
+    fraction of a degree (a wrong sign of the yaw would make it 16 degrees), and they lie
+    within a few degrees of the truth: the map image camera's heading, which the located
+    heading adds the yaw to, is estimated from the route and its neighbours' two-view yaws
+    and is 0.2-8 degrees off at these seven poses (median 2.6-4.8 with OpenCV 5.0 and 4.14),
+    where the direction of motion is about 10 degrees off (the test above)."""
     geo = _geometry(camera_map)
     poses = small_world.round_trajectory(1, len(sunny2))[0]
     turned_by, absolute = [], []
-    for k in (30, 60, 90):
+    for k in (15, 30, 45, 60, 75, 90, 105):
         x, y, heading, pitch = (float(v) for v in poses[k])
         i = int(camera_map.nearest(np.array([[x, y]]))[0][0])
         got = {}
@@ -540,8 +543,8 @@ def test_the_camera_yaw_follows_a_frame_turned_against_the_route(
             absolute.append(float(_heading_error_deg(off.heading, truth)))
         for turn in (-8.0, 8.0):
             turned_by.append(float(np.degrees(np.angle(np.exp(1j * (got[turn] - got[0.0]))))))
-    assert np.allclose(turned_by, [-8.0, 8.0] * 3, atol=1.5), turned_by
-    assert np.median(absolute) < 4.0 and max(absolute) < 8.0, absolute
+    assert np.allclose(turned_by, [-8.0, 8.0] * 7, atol=1.5), turned_by
+    assert np.median(absolute) < 6.0 and max(absolute) < 12.0, absolute
 
 
 def test_a_frame_located_far_from_the_images_estimate_is_reported_recovering(

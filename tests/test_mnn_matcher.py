@@ -12,7 +12,7 @@ from service.maps.route_map import RouteMap, build_map_from_rounds
 from service.vision.features import extract, unit_descriptors
 from service.vision.mnn_matcher import (
     inv_norms_i8,
-    mnn_batch_i8,
+    mnn_batch,
     mnn_pairs_reference,
     prepare_codes,
 )
@@ -43,7 +43,7 @@ def test_the_fast_path_equals_the_reference(backend: str) -> None:
     sets = [_codes(rng, n) for n in (1, 2, 31, 33, 256, 700)] + [near[::-1].copy()]
     total = 0
     for min_cos, ratio in ((0.82, 0.93), (0.0, 1.0), (0.3, 0.8)):
-        scores, pairs = mnn_batch_i8(a, [prepare_codes(b, backend) for b in sets], min_cos,
+        scores, pairs = mnn_batch(a, [prepare_codes(b, backend) for b in sets], min_cos,
                                      ratio, backend)
         for k, b in enumerate(sets):
             want = mnn_pairs_reference(a, b, min_cos, ratio)
@@ -62,16 +62,16 @@ def test_negative_keys_and_ties(backend: str) -> None:
     b = np.abs(_codes(rng, 40))
     a = -np.abs(_codes(rng, 5))  # every dot of A with B is negative
     for ratio in (1.0, 0.999):
-        got = mnn_batch_i8(a, [b], -1.0, ratio, backend)[1][0]
+        got = mnn_batch(a, [b], -1.0, ratio, backend)[1][0]
         assert _same(got, mnn_pairs_reference(a, b, -1.0, ratio))
         assert len(got[0]) >= 1
     b = _codes(rng, 3)
     twin = np.stack([b[0], b[0], b[1]])
-    plain = mnn_batch_i8(b[:1], [twin], 0.5, 1.0, backend)[1][0]
+    plain = mnn_batch(b[:1], [twin], 0.5, 1.0, backend)[1][0]
     assert plain[0].tolist() == [0] and plain[1].tolist() == [0]  # the first of the tie
-    assert len(mnn_batch_i8(b[:1], [twin], 0.5, 0.99, backend)[1][0][0]) == 0
+    assert len(mnn_batch(b[:1], [twin], 0.5, 0.99, backend)[1][0][0]) == 0
     both = np.stack([b[0], b[0]])
-    ia, ib = mnn_batch_i8(both, [b], 0.5, 1.0, backend)[1][0]
+    ia, ib = mnn_batch(both, [b], 0.5, 1.0, backend)[1][0]
     assert ia.tolist() == [0, 1] and ib.tolist() == [0, 0]
 
 
@@ -83,9 +83,9 @@ def test_bad_codes_are_refused_with_the_reason() -> None:
     with pytest.raises(ValueError, match="too long"):
         prepare_codes(np.ones((2, 2000), np.int8))
     with pytest.raises(ValueError, match="length differs"):
-        mnn_batch_i8(np.ones((2, 64), np.int8), [np.ones((2, 32), np.int8)], 0.8)
+        mnn_batch(np.ones((2, 64), np.int8), [np.ones((2, 32), np.int8)], 0.8)
     with pytest.raises(ValueError, match="backend"):
-        mnn_batch_i8(np.ones((2, 64), np.int8), [np.ones((2, 64), np.int8)], 0.8, 1.0, "gpu")
+        mnn_batch(np.ones((2, 64), np.int8), [np.ones((2, 64), np.int8)], 0.8, 1.0, "gpu")
 
 
 def _upstream(a: np.ndarray, b: np.ndarray, min_cos: float, ratio: float
@@ -113,7 +113,7 @@ def test_real_xfeat_features_match_as_upstream_does(sunny1: Round, cloudy1: Roun
     compared = matched = 0
     for codes in frames:
         ids = list(range(m.n_images))
-        _, pairs = mnn_batch_i8(codes, [m.features_of(i) for i in ids], params.min_cos,
+        _, pairs = mnn_batch(codes, [m.features_of(i) for i in ids], params.min_cos,
                                 params.max_ratio)
         for i, got in zip(ids, pairs, strict=True):
             b = np.asarray(m.codes[m.offsets[i]:m.offsets[i + 1]])

@@ -21,6 +21,7 @@ from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, lo
 from service.settings import Settings
 from service.vision.features import Features, extract
 from service.vision.map_geometry import FramePairs, GeometryParams
+from service.vision.mnn_matcher import mnn_pairs
 from service.vision.xfeat import (
     MODEL_PATH,
     MODEL_SHA256,
@@ -28,7 +29,6 @@ from service.vision.xfeat import (
     XFeatModel,
     XFeatParams,
     file_sha256,
-    mnn_pairs,
 )
 
 

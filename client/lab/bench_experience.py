@@ -1,8 +1,9 @@
 """Experience maps in the lab: a sunny map learns a cloudy (or dusk) round, then localizes another.
 
 For each rendered world and condition C (``cloudy`` or ``dusk``), in process (the service's
-``Localizer`` and ``Learner``, as ``process_frame`` calls them), one run per round from its
-first image, errors scored after ``WARMUP`` frames:
+``Localizer`` and ``Learner``, as ``process_frame`` calls them), runs from each round's first
+image (the learning session one, the others averaged over ``runs`` DPSO seeds), errors scored
+after ``WARMUP`` frames:
 
 - *unlearned*: the sunny1 map, round C2;
 - *learn*: the sunny1 map, round C1 replayed by a session with ``learn`` (its experience is
@@ -94,6 +95,15 @@ def replay(m: RouteMap, rnd: Round, feats: list[Features], *, seed: int = 0,
                   float(np.mean(on[WARMUP:])) if len(on) > WARMUP else 0.0)
 
 
+def replays(m: RouteMap, rnd: Round, feats: list[Features], n: int) -> Replay:
+    """``n`` runs (DPSO seeds 0..n-1) from the round's first image, averaged: one run's
+    error swings by tens of per cent where the light is hard."""
+    runs = [replay(m, rnd, feats, seed=k) for k in range(n)]
+    return Replay(float(np.mean([r.mean_error_m for r in runs])),
+                  float(np.mean([r.comparisons for r in runs])), runs[0].frames,
+                  float(np.mean([r.on_experience for r in runs])))
+
+
 def learned_images(m: RouteMap) -> np.ndarray:
     """Ids of the map's experience images."""
     return np.flatnonzero(np.isin(np.asarray(m.layers), list(experience_layers(m).values())))
@@ -124,9 +134,11 @@ def learned_fit(m: RouteMap, first: Round, second: Round, frames: int) -> tuple[
 
 
 def run_case(dataset: Path, seed: int, condition: str, work: Path, budget_mb: float,
-             frames: int, features: str = "clahe-rootsift") -> Case:
+             frames: int, features: str = "clahe-rootsift", runs: int = 1) -> Case:
     """One world and condition: the four runs above, ``frames`` images of each round;
-    ``features``: the maps' feature type (``clahe-rootsift+xfeat``: both, fused)."""
+    ``features``: the maps' feature type (``clahe-rootsift+xfeat``: both, fused); ``runs``:
+    the unlearned, learned and same-light replays each averaged over that many DPSO seeds
+    (the learning session is one run, as a robot's)."""
     from client.lab.experiment_cli import map_for
 
     sunny = map_for(dataset, "sunny1", papers=False, features=features)
@@ -142,8 +154,8 @@ def run_case(dataset: Path, seed: int, condition: str, work: Path, budget_mb: fl
     base = service.get_map("sunny1")
     before = (maps_dir / "sunny1.swmap").stat().st_size
     test_feats = _features(second, base, frames)
-    unlearned = replay(base, second, test_feats)
-    same_light = replay(same, second, test_feats)
+    unlearned = replays(base, second, test_feats, runs)
+    same_light = replays(same, second, test_feats, runs)
     t0 = time.perf_counter()
     replay(base, first, _features(first, base, frames), teach=(service, condition))
     stats = service.learner.stats("teacher")
@@ -151,7 +163,7 @@ def run_case(dataset: Path, seed: int, condition: str, work: Path, budget_mb: fl
     service.writer.wait()
     learn_s = time.perf_counter() - t0
     m = service.get_map("sunny1")
-    learned = replay(m, second, test_feats)
+    learned = replays(m, second, test_feats, runs)
     images = sum(int(e["images"]) for e in experience_list(m))
     growth = (maps_dir / "sunny1.swmap").stat().st_size - before
     coverage, placed = learned_fit(m, first, second, frames)

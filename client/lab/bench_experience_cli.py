@@ -30,6 +30,9 @@ def register(bench_app: typer.Typer) -> None:
         = "clahe-rootsift",
         work: Annotated[Path, typer.Option(help="where the learning maps are written")]
         = Path("out/experiences"),
+        runs: Annotated[int, typer.Option(min=1, help="replays (DPSO seeds) averaged per "
+                                                      "unlearned, learned and same-light "
+                                                      "case")] = 3,
     ) -> None:
         """A sunny map learns one round of another light, then localizes a second round of it:
         errors against the unlearned map and a map in that light, comparisons, file growth."""
@@ -48,7 +51,8 @@ def register(bench_app: typer.Typer) -> None:
                     raise typer.BadParameter(f"{world} has no round {cond}2; render it with "
                                              f"swarmloc world render {world} --seed {seed} "
                                              "--rounds sunny1,cloudy1,cloudy2,dusk1,dusk2")
-                cases.append(run_case(world, seed, cond, work, budget_mb, frames, features))
+                cases.append(run_case(world, seed, cond, work, budget_mb, frames, features,
+                                      runs))
                 typer.echo(table(cases[-1:]).splitlines()[-1], err=True)
         typer.echo(table(cases))
         typer.echo(gates_table(cases))

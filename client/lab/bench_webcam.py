@@ -8,9 +8,9 @@ size (aspect kept, about ``area`` pixels) and classified by its mean grey there:
 ``night_max``, day at or above the scene's median (the photos in between are neither). For every
 day-night pair, a feature type's own matches (what its similarity counts: the symmetric ratio
 test for RootSIFT, ``service.vision.metric_pose.match_pairs``; mutual nearest neighbours with
-the cosine gate for XFeat, ``service.vision.xfeat.mnn_pairs``) are correct when their keypoints
-lie within ``tolerance_px`` of each other. The result is the share of pairs with at least 10,
-20 and 50 correct matches.
+the cosine gate for XFeat, ``service.vision.mnn_matcher.mnn_pairs``) are correct when their
+keypoints lie within ``tolerance_px`` of each other. The result is the share of pairs with at
+least 10, 20 and 50 correct matches.
 
 The photos are licensed for research only: this module reads them where they are and prints
 numbers; nothing of them is copied.
@@ -36,7 +36,8 @@ from service.vision.features import (
     to_working_size,
 )
 from service.vision.metric_pose import match_pairs
-from service.vision.xfeat import XFeatParams, mnn_pairs
+from service.vision.mnn_matcher import mnn_pairs
+from service.vision.xfeat import XFeatParams
 
 if TYPE_CHECKING:
     from service.vision.features import FeatureParams

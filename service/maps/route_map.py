@@ -79,7 +79,13 @@ from service.vision.matcher import (
     prepare,
 )
 from service.vision.metric_pose import Camera, match_pairs
-from service.vision.mnn_matcher import PreparedCodes, prepare_codes
+from service.vision.mnn_matcher import (
+    PreparedCodes,
+    mnn_batch,
+    mnn_pairs,
+    mnn_scores,
+    prepare_codes,
+)
 from service.vision.place_index import PlaceIndex, build_place_index
 from service.vision.vocabulary import DEFAULT_PROBES, InvertedFileMatcher
 from service.vision.xfeat import DIMS as XFEAT_DIMS
@@ -87,9 +93,6 @@ from service.vision.xfeat import (
     FeatureModelError,
     XFeatParams,
     check_map_model,
-    mnn_batch,
-    mnn_pairs,
-    mnn_scores,
 )
 
 if TYPE_CHECKING:

@@ -107,7 +107,7 @@ def _decide(rm1: np.ndarray, rj1: np.ndarray, rm2: np.ndarray, col_key: np.ndarr
     return rows, rj1[rows]
 
 
-def mnn_batch_i8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos: float,
+def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos: float,
                  max_ratio: float = 1.0, backend: str = "auto"
                  ) -> tuple[np.ndarray, list[Pairs]]:
     """m(A, B) for each set B (matches over min(|A|, |B|)) and each set's matches (rows of
@@ -155,6 +155,21 @@ def mnn_batch_i8(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_
     return scores, out
 
 
+def mnn_pairs(a: np.ndarray, b: np.ndarray | PreparedCodes, min_cos: float,
+              max_ratio: float = 1.0, backend: str = "auto") -> Pairs:
+    """Indices (ia, ib) of the matches of int8 codes ``a`` and ``b``: mutual nearest
+    neighbours whose cosine exceeds ``min_cos`` and, when ``max_ratio`` < 1, whose distance is
+    below ``max_ratio`` times the distance to a's second nearest neighbour in ``b`` (Lowe's
+    ratio: a match not clearly better than the next candidate is chance)."""
+    return mnn_batch(a, [b], min_cos, max_ratio, backend)[1][0]
+
+
+def mnn_scores(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos: float,
+               max_ratio: float = 1.0) -> np.ndarray:
+    """m(A, B) for each set B: matches over min(|A|, |B|)."""
+    return mnn_batch(a, sets, min_cos, max_ratio)[0]
+
+
 def mnn_pairs_reference(a: np.ndarray, b: np.ndarray, min_cos: float, max_ratio: float = 1.0
                         ) -> Pairs:
     """The rule in this module's docstring in plain NumPy."""
@@ -186,4 +201,4 @@ def warm_up() -> None:
     ro.flags.writeable = False
     for backend in ("auto", "blas"):
         for a in (x, ro):
-            mnn_batch_i8(a, [x[:19], prepare_codes(ro[1:], backend)], 0.8, 0.9, backend)
+            mnn_batch(a, [x[:19], prepare_codes(ro[1:], backend)], 0.8, 0.9, backend)

@@ -15,28 +15,25 @@ local maxima) and the reliability map at 1/8. The host does what upstream's
 (bilinear), top-k, bicubic sampling of the descriptors, L2 normalisation. Descriptors are
 quantised to int8 codes (x127), which is what a map stores.
 
-Similarity m(A, B): mutual nearest neighbours whose cosine exceeds ``min_cos`` (upstream's
-matcher) and that pass Lowe's ratio test at ``max_ratio`` (0.93), divided by min(|A|, |B|), the
-papers' normalisation of m. The ratio test is ours: without it unrelated images share about a
-quarter of their features by chance (KITTI at 320x240: 0.23), so a right place stood out only
-2.3x from the far images (median 2.7x); with it 4.5x at the least (median 6.1x;
-docs/research/lighting.md). A map built before
-the test (format 4 without ``max_ratio``) gets it on load: its descriptors are the same.
+Similarity m(A, B) (service/vision/mnn_matcher.py): mutual nearest neighbours whose cosine
+exceeds ``min_cos`` (upstream's matcher) and that pass Lowe's ratio test at ``max_ratio``
+(0.93), divided by min(|A|, |B|), the papers' normalisation of m. The ratio test is ours:
+without it unrelated images share about a quarter of their features by chance (KITTI at
+320x240: 0.23), so a right place stood out only 2.3x from the far images (median 2.7x); with it
+4.5x at the least (median 6.1x; docs/research/lighting.md). A map built before the test
+(format 4 without ``max_ratio``) gets it on load: its descriptors are the same.
 """
 
 from __future__ import annotations
 
 import functools
 import hashlib
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
-
-from service.vision.mnn_matcher import PreparedCodes, mnn_batch_i8
 
 MODEL_PATH = Path(__file__).resolve().parent / "models" / "xfeat.onnx"
 MODEL_SHA256 = "e2b108fff66bcc6e56ef55ac4fd98efc1eee5cb15d3811a4e85df793844f7e80"
@@ -200,27 +197,3 @@ def extract_xfeat(gray: np.ndarray, params: XFeatParams) -> tuple[np.ndarray, np
     codes = np.clip(np.rint(desc * CODE_SCALE), -127, 127).astype(np.int8)
     keep = codes.any(axis=1)
     return kpts[keep], codes[keep]
-
-
-def mnn_pairs(a: np.ndarray, b: np.ndarray | PreparedCodes, min_cos: float,
-              max_ratio: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (ia, ib) of the mutual nearest neighbours of int8 codes ``a`` and ``b`` whose
-    cosine exceeds ``min_cos`` and, when ``max_ratio`` < 1, whose distance is below
-    ``max_ratio`` times the distance to a's second nearest neighbour in ``b`` (Lowe's ratio:
-    a match that is not clearly better than the next candidate is chance); the exact rule:
-    service/vision/mnn_matcher.py."""
-    return mnn_batch(a, [b], min_cos, max_ratio)[1][0]
-
-
-def mnn_scores(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos: float,
-               max_ratio: float = 1.0) -> np.ndarray:
-    """m(A, B) for each set B: mutual-nearest-neighbour matches over min(|A|, |B|)."""
-    return mnn_batch(a, sets, min_cos, max_ratio)[0]
-
-
-def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos: float,
-              max_ratio: float = 1.0
-              ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-    """``mnn_scores`` and each set's matches (``mnn_pairs``), which the two-view geometry
-    takes as they are (int8 codes; a map image's prepared once: ``prepare_codes``)."""
-    return mnn_batch_i8(a, sets, min_cos, max_ratio)
