@@ -111,14 +111,23 @@ class PreparedSet:
         return len(self.desc)
 
 
-def _check_u8(x: np.ndarray, name: str) -> np.ndarray:
+def check_codes(x: np.ndarray, name: str, dtype: Literal["uint8", "int8"] = "uint8"
+                ) -> np.ndarray:
+    """``x`` as a contiguous 2-D array of ``dtype`` codes short enough for exact float32 dot
+    products (every dot below 2^24: 258 uint8 or 1,040 int8 values), else a ValueError that
+    says which."""
     x = np.asarray(x)
-    if x.dtype != np.uint8 or x.ndim != 2:
-        raise ValueError(f"{name}: expected a 2-D uint8 descriptor array, got {x.dtype} {x.shape}")
-    if x.shape[1] * 255 * 255 >= 2**24:
-        raise ValueError(f"{name}: descriptors of length {x.shape[1]} are too long for exact "
-                         "float32 dot products (at most 258)")
+    if x.dtype != np.dtype(dtype) or x.ndim != 2:
+        raise ValueError(f"{name}: expected a 2-D {dtype} code array, got {x.dtype} {x.shape}")
+    most = (2**24 - 1) // (255 * 255 if dtype == "uint8" else 127 * 127)
+    if x.shape[1] > most:
+        raise ValueError(f"{name}: codes of length {x.shape[1]} are too long for exact "
+                         f"float32 dot products (at most {most})")
     return np.ascontiguousarray(x)
+
+
+def _check_u8(x: np.ndarray, name: str) -> np.ndarray:
+    return check_codes(x, name, "uint8")
 
 
 def norms_u8(x: np.ndarray) -> np.ndarray:
@@ -137,7 +146,7 @@ def prepare(b: np.ndarray, backend: str = "auto") -> PreparedSet:
     norms = norms_u8(b)
     inv = (1.0 / norms).astype(np.float32) if len(b) else np.zeros(0, np.float32)
     packed = None
-    if _use_numkong(backend) and len(b):
+    if use_numkong(backend) and len(b):
         packed = _nk.dots_pack(b, dtype="uint8")
     return PreparedSet(b, norms, inv, packed)
 
@@ -161,12 +170,15 @@ def top_columns(a: np.ndarray, s: PreparedSet, w: int) -> np.ndarray:
     return out
 
 
-def _use_numkong(backend: str) -> bool:
+def use_numkong(backend: str, dtype: Literal["uint8", "int8"] = "uint8") -> bool:
+    """Whether ``backend`` (auto, numkong or blas) runs NumKong's packed GEMM on codes of
+    ``dtype`` (auto: whichever of the two this CPU runs faster, ``fastest_gemm``)."""
     if backend not in ("auto", "numkong", "blas"):
         raise ValueError(f"unknown matcher backend {backend!r}: use auto, numkong or blas")
     if backend == "numkong" and _nk is None:
         raise ValueError("matcher backend 'numkong' needs the numkong package")
-    return backend == "numkong" or (backend == "auto" and fastest_gemm().backend == "numkong")
+    return backend == "numkong" or (backend == "auto" and _nk is not None
+                                    and fastest_gemm(dtype).backend == "numkong")
 
 
 @dataclass(frozen=True)
@@ -552,6 +564,41 @@ def match_batch_u8_pairs(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet]
     return r, pairs
 
 
+def scan_set(a: np.ndarray, a_f32: np.ndarray | None, inv_na: np.ndarray, codes: np.ndarray,
+             packed: Any, inv_nb: np.ndarray, dtype: Literal["uint8", "int8"],
+             rows: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], floor: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """A's rows against one prepared set, 256 rows at a time: the exact GEMM (NumKong's packed
+    ``dtype`` kernels where ``a_f32`` is None, else float32 BLAS on ``a_f32``) and the fused
+    scan, which fills ``rows`` (each row's best key, its column, its second key and its best
+    dot); returns each column's two best keys (starting from ``floor``)."""
+    rm1, rj1, rm2, rd1 = rows
+    nb, na_rows = len(codes), len(a)
+    cm1 = np.full(nb, floor, np.float32)
+    cm2 = np.full(nb, floor, np.float32)
+    tile = min(_TILE, na_rows)
+    acc: Literal["uint32", "int32"] = "uint32" if dtype == "uint8" else "int32"
+    if a_f32 is None:
+        packed = packed if packed is not None else _nk.dots_pack(codes, dtype=dtype)
+        out = _nk.empty((tile, nb), dtype=acc)
+        buf = np.asarray(out)
+    else:
+        b_t = codes.astype(np.float32).T
+        buf = np.empty((tile, nb), np.float32)
+    for r0 in range(0, na_rows, tile):
+        r1 = min(r0 + tile, na_rows)
+        if a_f32 is None:
+            if r1 - r0 != tile:
+                out = _nk.empty((r1 - r0, nb), dtype=acc)
+                buf = np.asarray(out)
+            _nk.dots_packed(a[r0:r1], packed, out=out)
+            dots = buf
+        else:
+            dots = np.matmul(a_f32[r0:r1], b_t, out=buf[: r1 - r0])
+        _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, rd1, cm1, cm2)
+    return cm1, cm2
+
+
 def _match(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet], delta: float,
            backend: str, pairs_delta: float | None) -> tuple[BatchMatch, list[Pairs] | None]:
     a = _check_u8(a, "a")
@@ -561,7 +608,7 @@ def _match(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet], delta: float
     matched = np.zeros((k, na_rows), bool)
     none = np.zeros(0, np.int64)
     pairs: list[Pairs] | None = None if pairs_delta is None else [(none, none)] * k
-    use_nk = _use_numkong(backend)
+    use_nk = use_numkong(backend)
     prepared = [s if isinstance(s, PreparedSet) else prepare(s, backend) for s in sets]
     for s in prepared:
         if s.desc.shape[1] != a.shape[1] and len(s) and na_rows:
@@ -572,7 +619,6 @@ def _match(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet], delta: float
     na = norms_u8(a)
     inv_na = (1.0 / na).astype(np.float32)
     a_f32 = None if use_nk else a.astype(np.float32)
-    tile = min(_TILE, na_rows)
     rm1 = np.empty(na_rows, np.float32)
     rm2 = np.empty(na_rows, np.float32)
     rj1 = np.empty(na_rows, np.int64)
@@ -582,27 +628,8 @@ def _match(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet], delta: float
         nb = len(s)
         if nb < 2:
             continue
-        cm1 = np.full(nb, -1.0, np.float32)
-        cm2 = np.full(nb, -1.0, np.float32)
-        if use_nk:
-            packed = s.packed if s.packed is not None else _nk.dots_pack(s.desc, dtype="uint8")
-            out = _nk.empty((tile, nb), dtype="uint32")
-            buf = np.asarray(out)
-        else:
-            b_t = s.desc.astype(np.float32).T
-            buf = np.empty((tile, nb), np.float32)
-        for r0 in range(0, na_rows, tile):
-            r1 = min(r0 + tile, na_rows)
-            if use_nk:
-                if r1 - r0 != tile:
-                    out = _nk.empty((r1 - r0, nb), dtype="uint32")
-                    buf = np.asarray(out)
-                _nk.dots_packed(a[r0:r1], packed, out=out)
-                dots = buf
-            else:
-                assert a_f32 is not None
-                dots = np.matmul(a_f32[r0:r1], b_t, out=buf[: r1 - r0])
-            _scan_tile(dots, r0, inv_na, s.inv_norms, rm1, rj1, rm2, rd1, cm1, cm2)
+        cm1, cm2 = scan_set(a, a_f32, inv_na, s.desc, s.packed, s.inv_norms, "uint8",
+                            (rm1, rj1, rm2, rd1), -1.0)
         counts[idx] = _decide(a, na, s.desc, s.norms, inv_na, rm1, rj1, rm2, rd1, cm1, cm2,
                               float(delta), _TOL, matched[idx], partner)
         if pairs is not None and pairs_delta is not None:

@@ -34,10 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from service.vision.matcher import _nk, _scan_tile, fastest_gemm
-
-_TILE = 256  # rows of A per GEMM tile
-MAX_DIMS = (2**24 - 1) // (127 * 127)  # longest code whose dots stay exact in float32
+from service.vision.matcher import _nk, check_codes, scan_set, use_numkong
 
 Pairs = tuple[np.ndarray, np.ndarray]
 
@@ -55,13 +52,7 @@ class PreparedCodes:
 
 
 def _check_i8(x: np.ndarray, name: str) -> np.ndarray:
-    x = np.asarray(x)
-    if x.dtype != np.int8 or x.ndim != 2:
-        raise ValueError(f"{name}: expected a 2-D int8 code array, got {x.dtype} {x.shape}")
-    if x.shape[1] > MAX_DIMS:
-        raise ValueError(f"{name}: codes of length {x.shape[1]} are too long for exact "
-                         f"float32 dot products (at most {MAX_DIMS})")
-    return np.ascontiguousarray(x)
+    return check_codes(x, name, "int8")
 
 
 def inv_norms_i8(x: np.ndarray) -> np.ndarray:
@@ -74,20 +65,11 @@ def inv_norms_i8(x: np.ndarray) -> np.ndarray:
     return (1.0 / np.sqrt(sq.astype(np.float64))).astype(np.float32)
 
 
-def _numkong(backend: str) -> bool:
-    if backend not in ("auto", "numkong", "blas"):
-        raise ValueError(f"unknown matcher backend {backend!r}: use auto, numkong or blas")
-    if backend == "numkong" and _nk is None:
-        raise ValueError("matcher backend 'numkong' needs the numkong package")
-    return backend == "numkong" or (backend == "auto" and _nk is not None
-                                    and fastest_gemm("int8").backend == "numkong")
-
-
 def prepare_codes(b: np.ndarray, backend: str = "auto") -> PreparedCodes:
     """Prepare a map image's int8 codes once: inverse norms and (NumKong) packed layout."""
     b = _check_i8(b, "set")
     inv = inv_norms_i8(b) if len(b) else np.zeros(0, np.float32)
-    packed = _nk.dots_pack(b, dtype="int8") if _numkong(backend) and len(b) else None
+    packed = _nk.dots_pack(b, dtype="int8") if use_numkong(backend, "int8") and len(b) else None
     return PreparedCodes(b, inv, packed)
 
 
@@ -121,7 +103,7 @@ def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos
     if na_rows == 0:
         return scores, out
     inv_na = inv_norms_i8(a)
-    use_nk = _numkong(backend)
+    use_nk = use_numkong(backend, "int8")
     a_f32 = None if use_nk else a.astype(np.float32)
     rm1 = np.empty(na_rows, np.float32)
     rm2 = np.empty(na_rows, np.float32)
@@ -133,22 +115,8 @@ def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos
             continue
         if s.codes.shape[1] != a.shape[1]:
             raise ValueError(f"code length differs: {a.shape[1]} vs {s.codes.shape[1]}")
-        cm1 = np.full(nb, -np.inf, np.float32)
-        cm2 = np.full(nb, -np.inf, np.float32)
-        if use_nk:
-            packed = s.packed if s.packed is not None else _nk.dots_pack(s.codes, dtype="int8")
-        else:
-            b_t = s.codes.astype(np.float32).T
-        for r0 in range(0, na_rows, _TILE):
-            r1 = min(r0 + _TILE, na_rows)
-            if use_nk:
-                buf = _nk.empty((r1 - r0, nb), dtype="int32")
-                _nk.dots_packed(a[r0:r1], packed, out=buf)
-                dots = np.asarray(buf)
-            else:
-                assert a_f32 is not None
-                dots = a_f32[r0:r1] @ b_t
-            _scan_tile(dots, r0, inv_na, s.inv_norms, rm1, rj1, rm2, rd1, cm1, cm2)
+        cm1, _ = scan_set(a, a_f32, inv_na, s.codes, s.packed, s.inv_norms, "int8",
+                          (rm1, rj1, rm2, rd1), -np.inf)
         col_key = rd1.astype(np.float32) * inv_na
         out[k] = _decide(rm1, rj1, rm2, col_key, cm1, inv_na, nb, min_cos, max_ratio)
         scores[k] = len(out[k][0]) / min(na_rows, nb)
