@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -104,3 +105,20 @@ def test_default_features_match_across_lighting_better(sunny1, cloudy1) -> None:
             r.append(s[0] / max(float(np.median(s[1:])), 1e-3))
         ratios[name] = float(np.median(r))
     assert ratios["default"] > ratios["papers"]
+
+
+def test_a_rich_frame_keeps_its_strongest_features_up_to_the_cap() -> None:
+    """A full-width frame of fine texture gives SIFT thousands of keypoints; the default keeps
+    the 2,048 strongest (a comparison's exact matching stays bounded), ``n_features=0`` all of
+    them, and a frame below the cap keeps every feature either way."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (370, 1226)).astype(np.uint8), (3, 3), 0)
+    capped = extract(texture, SiftParams(width=1226, height=370))
+    every = extract(texture, SiftParams(width=1226, height=370, n_features=0))
+    assert len(every) > 2 * 2048
+    assert 2048 <= len(capped) <= 2048 + 8  # OpenCV keeps ties at the cut
+    small = cv2.resize(texture, (160, 120), interpolation=cv2.INTER_AREA)
+    few = extract(small, SiftParams(width=160, height=120))
+    assert 0 < len(few) < 2048
+    np.testing.assert_array_equal(
+        few.codes, extract(small, SiftParams(width=160, height=120, n_features=0)).codes)

@@ -52,7 +52,10 @@ class SiftParams:
 
     width: int = 320
     height: int = 240
-    n_features: int = 0  # 0: keep all (OpenCV default)
+    # the strongest kept (0: all, OpenCV's default): bounds a comparison's exact matching on
+    # rich frames, as XFeat's top_k does (KITTI at full width gives 5,400; docs/research/
+    # performance.md, "A cap on features per frame")
+    n_features: int = 2048
     contrast_threshold: float = 0.04
     edge_threshold: float = 10.0
     sigma: float = 1.6
@@ -67,7 +70,7 @@ class SiftParams:
     @classmethod
     def papers(cls, width: int = 320, height: int = 240) -> SiftParams:
         """Plain SIFT as in the papers (no contrast normalisation, no RootSIFT)."""
-        return cls(width=width, height=height, clahe=False, root=False)
+        return cls(width=width, height=height, n_features=0, clahe=False, root=False)
 
 
 @dataclass(frozen=True)
