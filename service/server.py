@@ -101,10 +101,11 @@ def warm_kernels(settings: Settings, service: LocalizationService) -> str:
     for p in dict.fromkeys(m.feature_params for m in service.maps.values()):
         extract(rng.integers(0, 256, (p.height, p.width), dtype=np.uint8), p)  # XFeat: ONNX
     gemm = fastest_gemm()  # measured now, not on the first frame
-    fastest_gemm("int8")  # XFeat's
+    gemm_xfeat = fastest_gemm("int8")
     warm_up()
     warm_up_mnn()
-    took = f"ready in {time.perf_counter() - t0:.1f} s, exact GEMM {gemm.describe()}"
+    took = (f"ready in {time.perf_counter() - t0:.1f} s, exact GEMM {gemm.describe()}, "
+            f"XFeat's {gemm_xfeat.describe()}")
     if used is None:
         return (f"{took}, compiled at each start: {wanted} is not writable "
                 "(SWARMLOC_NUMBA_CACHE_DIR)")

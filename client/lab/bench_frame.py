@@ -274,7 +274,7 @@ def report(b: FrameBench, emit: Callable[[str], None] = print) -> None:
     emit(f"map '{b.map_name}' ({b.map_images} images), matcher {b.matcher}; {b.frames} frames "
          f"per path after the warm-up; {b.features:.0f} features and {b.comparisons:.1f} "
          "comparisons per frame")
-    emit(f"exact GEMM: {fastest_gemm().describe()}")
+    emit(f"exact GEMM: {fastest_gemm().describe()}; XFeat's: {fastest_gemm('int8').describe()}")
     head = f"{'stage (ms)':<12}" + "".join(f"{n + ' p50':>14}{'p90':>8}" for n in b.paths)
     emit(head)
     for stage in (*STAGES, "total"):
