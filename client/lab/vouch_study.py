@@ -80,6 +80,9 @@ def vouching(table: TypedTable, rule: str | None) -> Iterator[None]:
         yield
         return
     image_at = {tuple(np.round(p, 6)): i for i, p in enumerate(np.asarray(table.map.positions))}
+    if len(image_at) != table.map.n_images:  # the monitor sees positions, not image ids
+        raise ValueError(f"map '{table.map.name}': two images share a position; this study "
+                         "needs a map of one traversal")
     twins: dict[int, DistinctnessMonitor] = {}
 
     def judge(self: DistinctnessMonitor, positions: np.ndarray, scores: np.ndarray,

@@ -564,18 +564,25 @@ def match_batch_u8_pairs(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet]
     return r, pairs
 
 
+def row_state(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The per-row outputs of the scan for ``n`` rows of A (best key, its column, second key,
+    best dot), filled by ``scan_set`` for each set in turn."""
+    return (np.empty(n, np.float32), np.empty(n, np.int64), np.empty(n, np.float32),
+            np.empty(n, np.int64))
+
+
 def scan_set(a: np.ndarray, a_f32: np.ndarray | None, inv_na: np.ndarray, codes: np.ndarray,
              packed: Any, inv_nb: np.ndarray, dtype: Literal["uint8", "int8"],
-             rows: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], floor: float
+             rows: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
              ) -> tuple[np.ndarray, np.ndarray]:
     """A's rows against one prepared set, 256 rows at a time: the exact GEMM (NumKong's packed
     ``dtype`` kernels where ``a_f32`` is None, else float32 BLAS on ``a_f32``) and the fused
     scan, which fills ``rows`` (each row's best key, its column, its second key and its best
-    dot); returns each column's two best keys (starting from ``floor``)."""
+    dot, ``row_state``); returns each column's two best keys."""
     rm1, rj1, rm2, rd1 = rows
     nb, na_rows = len(codes), len(a)
-    cm1 = np.full(nb, floor, np.float32)
-    cm2 = np.full(nb, floor, np.float32)
+    cm1 = np.full(nb, -np.inf, np.float32)  # below any key (int8 keys may be negative)
+    cm2 = np.full(nb, -np.inf, np.float32)
     tile = min(_TILE, na_rows)
     acc: Literal["uint32", "int32"] = "uint32" if dtype == "uint8" else "int32"
     if a_f32 is None:
@@ -619,17 +626,13 @@ def _match(a: np.ndarray, sets: Sequence[np.ndarray | PreparedSet], delta: float
     na = norms_u8(a)
     inv_na = (1.0 / na).astype(np.float32)
     a_f32 = None if use_nk else a.astype(np.float32)
-    rm1 = np.empty(na_rows, np.float32)
-    rm2 = np.empty(na_rows, np.float32)
-    rj1 = np.empty(na_rows, np.int64)
-    rd1 = np.empty(na_rows, np.int64)
+    state = rm1, rj1, rm2, rd1 = row_state(na_rows)
     partner = np.empty(na_rows, np.int64)
     for idx, s in enumerate(prepared):
         nb = len(s)
         if nb < 2:
             continue
-        cm1, cm2 = scan_set(a, a_f32, inv_na, s.desc, s.packed, s.inv_norms, "uint8",
-                            (rm1, rj1, rm2, rd1), -1.0)
+        cm1, cm2 = scan_set(a, a_f32, inv_na, s.desc, s.packed, s.inv_norms, "uint8", state)
         counts[idx] = _decide(a, na, s.desc, s.norms, inv_na, rm1, rj1, rm2, rd1, cm1, cm2,
                               float(delta), _TOL, matched[idx], partner)
         if pairs is not None and pairs_delta is not None:

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from service.vision.matcher import _nk, check_codes, scan_set, use_numkong
+from service.vision.matcher import _nk, check_codes, row_state, scan_set, use_numkong
 
 Pairs = tuple[np.ndarray, np.ndarray]
 
@@ -90,8 +90,7 @@ def _decide(rm1: np.ndarray, rj1: np.ndarray, rm2: np.ndarray, col_key: np.ndarr
 
 
 def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos: float,
-                 max_ratio: float = 1.0, backend: str = "auto"
-                 ) -> tuple[np.ndarray, list[Pairs]]:
+              max_ratio: float = 1.0, backend: str = "auto") -> tuple[np.ndarray, list[Pairs]]:
     """m(A, B) for each set B (matches over min(|A|, |B|)) and each set's matches (rows of
     A, rows of B), by the rule in this module's docstring."""
     a = _check_i8(a, "a")
@@ -105,18 +104,14 @@ def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos
     inv_na = inv_norms_i8(a)
     use_nk = use_numkong(backend, "int8")
     a_f32 = None if use_nk else a.astype(np.float32)
-    rm1 = np.empty(na_rows, np.float32)
-    rm2 = np.empty(na_rows, np.float32)
-    rj1 = np.empty(na_rows, np.int64)
-    rd1 = np.empty(na_rows, np.int64)
+    rows = rm1, rj1, rm2, rd1 = row_state(na_rows)
     for k, s in enumerate(prepared):
         nb = len(s)
         if nb == 0:
             continue
         if s.codes.shape[1] != a.shape[1]:
             raise ValueError(f"code length differs: {a.shape[1]} vs {s.codes.shape[1]}")
-        cm1, _ = scan_set(a, a_f32, inv_na, s.codes, s.packed, s.inv_norms, "int8",
-                          (rm1, rj1, rm2, rd1), -np.inf)
+        cm1, _ = scan_set(a, a_f32, inv_na, s.codes, s.packed, s.inv_norms, "int8", rows)
         col_key = rd1.astype(np.float32) * inv_na
         out[k] = _decide(rm1, rj1, rm2, col_key, cm1, inv_na, nb, min_cos, max_ratio)
         scores[k] = len(out[k][0]) / min(na_rows, nb)
