@@ -455,3 +455,45 @@ def test_warm_up_covers_a_step_on_a_map_of_both_types(dual_map: RouteMap, cloudy
                              env={**os.environ, "PYTHONPATH": str(root)})
         added[which] = int(out.stdout.strip().splitlines()[-1])
     assert added == {"both": 0, "rootsift": 1}
+
+
+def test_the_first_types_own_m_reaches_the_lost_detection(dual_map: RouteMap, small_map: RouteMap,
+                                                          cloudy1: Round) -> None:
+    """The similarity tells the first type's own m beside the fused one it returns, and the
+    localizer hands it to DPSO's second monitor (its vouching); a map of one type has none."""
+    f = extract(cloudy1.load_image(30), dual_map.feature_params)
+    ids = np.arange(dual_map.n_images)
+    told: dict[int, float] = {}
+
+    def tell(i: np.ndarray, m: np.ndarray) -> None:
+        told.update(zip(i.tolist(), m, strict=True))
+    fused = dual_map.similarity(f, ids, first=tell)
+    first, _ = dual_map.type_similarities(f, ids)
+    assert np.array_equal(fused, dual_map.similarity(f, ids))
+    assert np.array_equal([told[i] for i in ids.tolist()], first)
+    assert not np.array_equal(first, fused)
+    loc = Localizer(dual_map, "dpso", {}, seed=2)
+    for k in range(4):
+        loc.localize(cloudy1.load_image(k), t=float(k))
+    assert loc.estimator.first_monitor.background is not None  # type: ignore[attr-defined]
+    one = Localizer(small_map, "dpso", {}, seed=2)
+    for k in range(4):
+        one.localize(cloudy1.load_image(k), t=float(k))
+    assert one.estimator.first_monitor.background is None  # type: ignore[attr-defined]
+
+
+def test_the_labs_table_keeps_the_first_types_own_m(dual_map: RouteMap, cloudy1: Round) -> None:
+    """``swarmloc experiment``'s replays vouch as the service does: the table keeps each
+    frame's first-type m beside the fused one."""
+    from client.lab.experiments import SimilarityTable
+
+    feats = [extract(cloudy1.load_image(i), dual_map.feature_params) for i in (5, 6)]
+    table = SimilarityTable(dual_map, feats)
+    ids = np.array([3, 7, 11])
+    fused = table.scores(1, ids)
+    first_of = table.first_of(1)
+    assert first_of is not None
+    first, _ = dual_map.type_similarities(feats[1], ids)
+    assert np.array_equal(fused, dual_map.similarity(feats[1], ids))
+    assert np.array_equal(first_of(ids), first)
+    assert np.isnan(table.first[0]).all()  # type: ignore[index]  # frame 0: nothing compared

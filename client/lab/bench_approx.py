@@ -47,8 +47,8 @@ class _ExactGeometry:
         self.geometry = exact_map.geometry
 
     def similarity(self, frame: Features | np.ndarray, image_ids: Any, keep: Any = None,
-                   keep_second: Any = None) -> np.ndarray:
-        return self._map.similarity(frame, image_ids)
+                   keep_second: Any = None, first: Any = None) -> np.ndarray:
+        return self._map.similarity(frame, image_ids, first=first)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._map, name)

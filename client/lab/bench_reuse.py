@@ -45,8 +45,8 @@ class _MatchAgain:
 
     def similarity(self, frame: Features | np.ndarray, image_ids: Any,
                    keep: FramePairs | None = None,
-                   keep_second: FramePairs | None = None) -> np.ndarray:
-        return self._map.similarity(frame, image_ids)
+                   keep_second: FramePairs | None = None, first: Any = None) -> np.ndarray:
+        return self._map.similarity(frame, image_ids, first=first)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._map, name)

@@ -102,6 +102,7 @@ def eval_pair(map_dir: Path, query_dir: Path, *, spacing: float = 2.5, width: in
     replay = query.subset(order.tolist())
     sub = SimilarityTable(m, [table.queries[int(q)] for q in order])
     sub.table = table.table[order]
+    sub.first = None if table.first is None else table.first[order]
     status: Counter[str] = Counter()
     wrong = tracking_wrong = 0
     admitted = 0

@@ -82,18 +82,31 @@ def stored_table(dataset: Path, m: RouteMap, query: str, queries: Sequence[Featu
         saved = np.load(path)
         if saved.shape == table.table.shape:
             table.table = saved
+    first = _first_path(path)
+    if table.first is not None and first.is_file():
+        saved = np.load(first)
+        if saved.shape == table.first.shape:
+            table.first = saved
     table.cache_path = path
     return table
+
+
+def _first_path(path: Path) -> Path:
+    """Where a table of a map of two types keeps the first type's own m."""
+    return path.with_name(path.name.replace(".table.npy", ".first.npy"))
 
 
 def save_table(table: SimilarityTable) -> None:
     import numpy as np
 
     path = table.cache_path
-    if path is not None:
-        tmp = path.with_suffix(".tmp.npy")
-        np.save(tmp, table.table)
-        tmp.replace(path)
+    if path is None:
+        return
+    for target, values in ((path, table.table), (_first_path(path), table.first)):
+        if values is not None:
+            tmp = target.with_suffix(".tmp.npy")
+            np.save(tmp, values)
+            tmp.replace(target)
 
 
 def metrics(runs: list[Run], warmup: int) -> dict[str, Any]:

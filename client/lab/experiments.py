@@ -18,6 +18,7 @@ from client.dataset import Round
 from client.runs import Run, frame_sequence, odometry_along
 from service.api.models import Odometry
 from service.engine.localizer import Localizer
+from service.estimators.fitness import SimilarityFn
 from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
 
@@ -35,6 +36,9 @@ class SimilarityTable:
         self.map = route_map
         self.queries = queries
         self.table = np.full((len(queries), route_map.n_images), np.nan, np.float64)
+        # a map of two feature types: the first type's own m too (DPSO's vouching), else None
+        self.first = np.full_like(self.table, np.nan) if route_map.fusion is not None \
+            else None
         self.cache_path: Path | None = None  # where ``swarmloc experiment`` keeps it
 
     @classmethod
@@ -49,10 +53,26 @@ class SimilarityTable:
 
     def scores(self, q: int, ids: np.ndarray) -> np.ndarray:
         row = self.table[q]
-        missing = ids[np.isnan(row[ids])]
+        if self.first is None:
+            missing = ids[np.isnan(row[ids])]
+            if len(missing):
+                row[missing] = self.map.similarity(self.queries[q], missing)
+            return row[ids]
+        first = self.first[q]
+        missing = ids[np.isnan(row[ids]) | np.isnan(first[ids])]
         if len(missing):
-            row[missing] = self.map.similarity(self.queries[q], missing)
+            def record(i: np.ndarray, m: np.ndarray) -> None:
+                first[i] = m
+            row[missing] = self.map.similarity(self.queries[q], missing, first=record)
         return row[ids]
+
+    def first_of(self, q: int) -> SimilarityFn | None:
+        """The first feature type's own m of frame ``q`` for the images ``scores`` compared
+        (a map of two types; None otherwise)."""
+        if self.first is None:
+            return None
+        row = self.first[q]
+        return lambda ids: row[ids]
 
 
 def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str = "dpso",
@@ -82,7 +102,8 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
             x=float(odom[it, 0]), y=float(odom[it, 1]), yaw=float(odom[it, 2])))
         loc.seed_places(table.queries[q].codes)  # the place index, while searching
         e = loc.estimator.step(partial(table.scores, int(q)), it * dt,
-                               loc.locator(table.queries[q]), motion)
+                               loc.locator(table.queries[q]), motion,
+                               first=table.first_of(int(q)))
         ms.append(1e3 * (time.perf_counter() - t0))
         est.append(e.position)
         comps.append(e.comparisons)

@@ -213,6 +213,12 @@ class DPSOParams(CommonParams):
     distinct_floor_m: float = Field(0.004, ge=0, le=1, description="... and at least this "
                                     "similarity m (share of features; 4 in 1,000), so noise "
                                     "alone never counts as good")
+    vouch_distinct: float = Field(2.0, ge=0, le=1e3, description="on a map of two feature "
+                                  "types, a frame whose fused m is not good counts as good "
+                                  "while tracking when the first type's own m is good and "
+                                  "the fused m stands out at least this many times (no unit; "
+                                  "0: never): RootSIFT vouches for a place XFeat's chance "
+                                  "level hides")
     distinct_far_m: float = Field(10.0, ge=0, le=1e5, description="images farther than this "
                                   "from the best form that background (m); 10 m, our choice: "
                                   "beyond the true place's neighbours, which look like it")

@@ -17,7 +17,7 @@ from service.api.models import (
 )
 from service.api.params import DPSOParams
 from service.estimators.base import Status, StepResult
-from service.estimators.fitness import ComparisonCache, LocateFn
+from service.estimators.fitness import ComparisonCache, LocateFn, TypeScores
 from service.estimators.odometry import OdomStep, body_step
 from service.estimators.registry import make_estimator
 from service.maps.experiences import LayerChoice, base_images, experience_layers
@@ -112,16 +112,22 @@ class Localizer:
         kept2 = FramePairs(GeometryParams().delta) if self._second_geometry(features) \
             else None
         locate = self.locator(features, kept, kept2)
+        # a map of two types: the first type's own m beside the fused one (its vouching)
+        first = TypeScores() if self.map.fusion is not None and features.second is not None \
+            else None
+        record = None if first is None else first.record
         if not learned:
             res = self.estimator.step(
-                lambda ids: self.map.similarity(features, ids, kept, kept2), t, locate, motion)
+                lambda ids: self.map.similarity(features, ids, kept, kept2, first=record), t,
+                locate, motion, first=first)
             comparisons = res.comparisons
         else:  # one layer per particle, then the layer probes (service/maps/experiences.py)
             similarity = ComparisonCache(
-                lambda ids: self.map.similarity(features, ids, kept, kept2))
+                lambda ids: self.map.similarity(features, ids, kept, kept2, first=record))
             res = self.estimator.step(self.choice.scaled(self.map, similarity), t, locate,
                                       motion,
-                                      nearest=self.choice.nearest(self.map, self._at()))
+                                      nearest=self.choice.nearest(self.map, self._at()),
+                                      first=first)
             if res.status is Status.TRACKING:  # the probes score the layers at the true place
                 self.choice.probe(self.map, similarity, res.position)
             comparisons = similarity.comparisons

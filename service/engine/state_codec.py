@@ -56,10 +56,11 @@ REBUILT: dict[str, frozenset[str]] = {
 # odometry pose and the map heading fitted from odometry, both empty at the start, and the
 # located frames' odometry gate, empty at the start; experience
 # maps, issue 34: the layer choice, so a session stored before maps had experiences matches
-# the map's own images.)
+# the map's own images. The first feature type's lost-detection monitor on maps of two
+# types, issue 28: its background starts again at the next frame.)
 ADDED: dict[str, frozenset[str]] = {
     "localizer": frozenset({"odom_prev", "choice"}),
-    "estimator": frozenset({"odometry", "gate"}),
+    "estimator": frozenset({"odometry", "gate", "first_monitor"}),
 }
 
 # classes an object in a state may be rebuilt as (a blob names its classes: never import

@@ -282,14 +282,16 @@ class Estimator:
 
     def step(self, similarity: SimilarityFn, t: float | None = None,
              locate: LocateFn | None = None, odom: OdomStep | None = None,
-             nearest: NearestFn | None = None) -> StepResult:
+             nearest: NearestFn | None = None, first: SimilarityFn | None = None
+             ) -> StepResult:
         """One frame: ``similarity`` compares it with map images; ``locate``, where given,
         places its camera relative to one (two-view geometry, for an estimator that uses
         it); ``odom``, where given, is the robot's motion since the previous frame;
         ``nearest``, where given, names the images each particle is compared with (default:
-        the nearest of every layer)."""
+        the nearest of every layer); ``first``, on a map of two feature types, the first
+        type's own m of the images ``similarity`` compared (``fitness.TypeScores``)."""
         fitness = FrameFitness(self.index, similarity, self.params.penalty_sigma_m, locate,
-                               nearest)
+                               nearest, first)
         try:
             result = self._step(fitness, t, odom)
         except ValueError:  # e.g. a KD-tree query refusing non-finite particles

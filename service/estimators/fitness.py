@@ -72,15 +72,35 @@ class ComparisonCache:
         return self._ids, self._scores
 
 
+class TypeScores:
+    """The first feature type's own m of the map images a frame was compared with, on a map
+    of two types (recorded by the similarity beside the fused m it returns; read by the lost
+    detection, service/estimators/lost_detection.py). Called with ids like a similarity;
+    an image not compared has NaN."""
+
+    def __init__(self) -> None:
+        self._m: dict[int, float] = {}
+
+    def record(self, ids: np.ndarray, m: np.ndarray) -> None:
+        self._m.update(zip((int(i) for i in ids), (float(v) for v in m), strict=True))
+
+    def __call__(self, ids: np.ndarray) -> np.ndarray:
+        return np.array([self._m.get(int(i), np.nan) for i in np.ravel(ids)]).reshape(
+            np.shape(ids))
+
+
 class FrameFitness:
     """Eq. 3 for one frame, with a per-frame comparison cache and counter."""
 
     def __init__(self, index: MapIndex, similarity: SimilarityFn, penalty_sigma_m: float,
-                 locate: LocateFn | None = None, nearest: NearestFn | None = None) -> None:
+                 locate: LocateFn | None = None, nearest: NearestFn | None = None,
+                 first: SimilarityFn | None = None) -> None:
         self._index = index
         self._nearest = nearest or index.nearest_per_layer
         self._cache = ComparisonCache(similarity)
         self.locate = locate  # None: the frame can only be placed at map images
+        # the first feature type's own m (a map of two types: ``TypeScores``), else None
+        self.first = first
         self._inv_two_sigma2 = 1.0 / (2.0 * penalty_sigma_m**2)
 
     @property

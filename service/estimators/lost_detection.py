@@ -14,6 +14,15 @@ a wrong place sees nothing that stands out there. A frame is *good* when its
 best match stands out by ``min_ratio`` and is above a small absolute floor (a frame without
 any structure, e.g. at night, is never good). The background is smoothed over frames (EMA),
 so a frame that compared no far image still has one.
+
+On a map of two feature types the similarity is their fused m (service/vision/fusion.py). Where
+one type sees nothing, at dusk or on a map of long shadows, its chance level in the fused m
+can hide a place the other type shows clearly. So the first type (CLAHE + RootSIFT) may
+*vouch* for a frame the fused m leaves in doubt (``vouch``): its own m, judged against its own
+background by a second monitor, is good, and the fused m stands out at least
+``vouch_distinct`` times. A vouched frame holds tracking but never restores it
+(``MultiSwarmDPSO``): at the true place it keeps a weak stretch from being declared lost, and
+a swarm already in doubt still needs the fused m's own evidence.
 """
 
 from __future__ import annotations
@@ -31,6 +40,17 @@ class Evidence:
     background: float
     distinct: float
     good: bool
+    vouched: bool = False  # good only because the first feature type vouched (``vouch``)
+
+
+def vouch(fused: Evidence, own: Evidence, min_distinct: float) -> Evidence:
+    """The fused m's evidence ``fused``, made good where it is not and the first type's own
+    evidence ``own`` is, provided the fused m stands out at least ``min_distinct`` times
+    (0: never); its distinctiveness is then the larger of the two."""
+    if fused.good or not own.good or min_distinct <= 0 or fused.distinct < min_distinct:
+        return fused
+    return Evidence(fused.best_m, fused.background, max(fused.distinct, own.distinct), True,
+                    vouched=True)
 
 
 class DistinctnessMonitor:

@@ -60,7 +60,10 @@ changes, each measured in docs/research/lighting.md:
   its std from service/vision/map_geometry.py); a frame not located keeps the odometry's
   heading or the direction of motion.
 - **Lost detection** is relative (service/estimators/lost_detection.py): recovery starts when no
-  match stands out for ``lost_frames`` frames, not when matches are merely weak.
+  match stands out for ``lost_frames`` frames, not when matches are merely weak. On a map of
+  two feature types the first type's own m may vouch for a frame the fused m leaves in doubt
+  (``vouch_distinct``): a vouched frame counts as good only while the swarm tracks with no
+  bad frame in a row (it holds tracking, it never restores it).
 """
 
 from __future__ import annotations
@@ -82,7 +85,7 @@ from service.estimators.base import (
 )
 from service.estimators.fitness import FrameFitness, MapIndex
 from service.estimators.located_noise import LocatedNoise
-from service.estimators.lost_detection import DistinctnessMonitor
+from service.estimators.lost_detection import DistinctnessMonitor, Evidence, vouch
 from service.estimators.odometry import LocatedGate, OdomStep
 from service.estimators.paper_dpso import DPSO
 
@@ -124,6 +127,9 @@ class MultiSwarmDPSO(DPSO):
         self.frame_count = 0  # frames stepped (local scouts run every local_scout_every-th)
         self.monitor = DistinctnessMonitor(params.distinct_ratio, params.distinct_floor_m,
                                            params.distinct_far_m, params.ema_alpha)
+        # the first feature type's own m on a map of two types, with its own background
+        self.first_monitor = DistinctnessMonitor(params.distinct_ratio, params.distinct_floor_m,
+                                                 params.distinct_far_m, params.ema_alpha)
         self.smoother = AlongTrackSmoother()  # the reported position (tracked frames)
         self.unverified = 0  # tracked frames in a row the geometry could not locate
         self.noise = LocatedNoise()  # the located positions' noise: their radius
@@ -135,6 +141,7 @@ class MultiSwarmDPSO(DPSO):
         self.evidence = np.zeros(self.params.n_particles)
         self.age = np.zeros(self.params.n_particles)
         self.monitor.reset()
+        self.first_monitor.reset()
         self.smoother.reset()
         self.unverified = 0
         self.noise.reset()
@@ -191,11 +198,15 @@ class MultiSwarmDPSO(DPSO):
         pos = image_centre(compared_xy, scores, pos, p.estimate_image_radius_m,
                            p.estimate_image_power)
         ev = self.monitor.judge(compared_xy, scores, pos, p.species_radius_m)
+        if fitness.first is not None:  # a map of two types: the first may vouch
+            own = self.first_monitor.judge(compared_xy, fitness.first(ids), pos,
+                                           p.species_radius_m)
+            ev = vouch(ev, own, p.vouch_distinct)
         cov = cov + np.eye(2) * (match_sigma(ev.best_m, p) ** 2 + p.lateral_sigma_m ** 2)
         # the geometry's verdict on the last frames: the place the swarm holds is refuted
         # when the frame could not be located at it for verify_frames tracked frames in a row
         refuted = 0 < p.verify_frames <= self.unverified
-        status, lost = self._update_evidence_status(ev.good and not refuted)
+        status, lost = self._update_evidence_status(self._counts_good(ev) and not refuted)
         # a weak frame's estimate lags where images look alike: it does not teach the velocity
         self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))
         if self.recovery_phase(lost):
@@ -424,6 +435,13 @@ class MultiSwarmDPSO(DPSO):
             self.level = best_m if self.level is None else (1 - a) * self.level + a * best_m
         self.weak_frames = self.weak_frames + 1 if weak else 0
         return weak
+
+    def _counts_good(self, ev: Evidence) -> bool:
+        """Whether a frame counts as good for the status: a vouched one only while the swarm
+        tracks with no bad frame in a row (it holds tracking, never restores it)."""
+        if ev.vouched:
+            return self._converged and self._bad == 0
+        return ev.good
 
     def _update_evidence_status(self, good: bool) -> tuple[Status, bool]:
         p = self.params

@@ -457,20 +457,26 @@ class RouteMap:
 
     def similarity(self, frame: Features | np.ndarray, image_ids: Iterable[int],
                    keep: FramePairs | None = None,
-                   keep_second: FramePairs | None = None) -> np.ndarray:
+                   keep_second: FramePairs | None = None,
+                   first: Callable[[np.ndarray, np.ndarray], object] | None = None
+                   ) -> np.ndarray:
         """m(frame, map image) for each id on the frame's ``Features`` (or, on a map of one
         feature type, its descriptor codes ``Features.codes``): the exact uint8 matcher
         (service/vision/matcher.py) for RootSIFT, mutual nearest neighbours for XFeat
         (service/vision/xfeat.py), both fused (service/vision/fusion.py) on a map of two.
         ``keep`` (RootSIFT): the same pass also keeps the frame's matches at ``keep.delta``
         with each image, for the two-view geometry (XFeat: its matches, whatever the delta;
-        a map of two: RootSIFT's, and XFeat's in ``keep_second``)."""
+        a map of two: RootSIFT's, and XFeat's in ``keep_second``). ``first(ids, m)``, on a
+        map of two: told the first type's own m (the lost detection's, ``TypeScores``)."""
         ids = [int(i) for i in image_ids]
         if self.second is None:
             codes = frame.codes if isinstance(frame, Features) else frame
             return self._first_similarity(codes, ids, keep)
         assert self.fusion is not None
-        return self.fusion.fuse(*self.type_similarities(frame, ids, keep, keep_second))
+        own, other = self.type_similarities(frame, ids, keep, keep_second)
+        if first is not None:
+            first(np.asarray(ids, np.int64), own)
+        return self.fusion.fuse(own, other)
 
     def type_similarities(self, frame: Features | np.ndarray, image_ids: Iterable[int],
                           keep: FramePairs | None = None,
