@@ -73,7 +73,6 @@ def prepare_codes(b: np.ndarray, backend: str = "auto") -> PreparedCodes:
     return PreparedCodes(b, inv, packed)
 
 
-# ---- public API ---------------------------------------------------------------------------
 def _decide(rm1: np.ndarray, rj1: np.ndarray, rm2: np.ndarray, col_key: np.ndarray,
             cm1: np.ndarray, inv_na: np.ndarray, nb: int, min_cos: float, max_ratio: float
             ) -> Pairs:
@@ -89,6 +88,7 @@ def _decide(rm1: np.ndarray, rj1: np.ndarray, rm2: np.ndarray, col_key: np.ndarr
     return rows, rj1[rows]
 
 
+# ---- public API ---------------------------------------------------------------------------
 def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos: float,
               max_ratio: float = 1.0, backend: str = "auto") -> tuple[np.ndarray, list[Pairs]]:
     """m(A, B) for each set B (matches over min(|A|, |B|)) and each set's matches (rows of
