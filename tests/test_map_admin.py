@@ -456,3 +456,53 @@ def test_stale_temporaries_go_and_other_maps_files_stay(tmp_path: Path, small_ma
     with pytest.raises(Conflict, match=r"x\.swmap holds the loaded map 'small'"):
         service.admin.install_upload("x", staged)
     assert not staged.exists() and service.maps["small"].path == maps / "x.swmap"
+
+
+def test_services_on_one_maps_directory_follow_each_others_maps(tmp_path: Path, small_map,
+                                                                map_files, caplog) -> None:
+    """Two services on one maps directory (replicas): a map uploaded through one is served by
+    the other; a replace through one is the version the other's preconditions see (no lost
+    update); a delete through one ends it on the other; a half-copied file is left out of
+    listings, logged once, and served once it is whole."""
+    import logging
+
+    from service.api.errors import NotFound, PreconditionFailed
+    from service.api.models import SessionConfig
+
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    save_map(small_map, maps / "small")
+    a, b = (LocalizationService(Settings(maps_dir=maps, zenoh_enabled=False,
+                                         warm_geometry=False)) for _ in range(2))
+
+    def upload(svc: LocalizationService, key: str, **pre: str | None) -> str:
+        staged = svc.admin.staging_file("upload")
+        staged.write_bytes(map_files[key].read_bytes())
+        return svc.admin.install_upload("alt", staged, **pre)[0].checksum or ""
+
+    assert [s.name for s in b.map_summaries()] == ["small"]
+    etag1 = upload(a, "v1", if_none_match="*")
+    assert b.map_summary("alt").checksum == etag1  # B serves what A uploaded
+    assert [s.name for s in b.map_summaries()] == ["alt", "small"]
+    with pytest.raises(PreconditionFailed, match="already exists"):
+        upload(b, "v1", if_none_match="*")  # B knows it exists on disk
+    etag2 = upload(a, "v2", if_match=etag1)
+    with pytest.raises(PreconditionFailed, match=f"at version {etag2}"):
+        upload(b, "v1", if_match=etag1)  # before: B checked its own v1 and overwrote v2
+    info, _ = b.put_session("r1", SessionConfig(map="alt"))
+    assert info.map_checksum == etag2
+    a.admin.delete("alt", force=True)
+    with pytest.raises(NotFound, match="was deleted"):
+        b.put_session("r2", SessionConfig(map="alt"))
+    assert [s.name for s in b.map_summaries()] == ["small"]
+    # a map file copied in by hand, half-way: not served, logged once; whole: served
+    data = map_files["v1"].read_bytes()
+    (maps / "alt.swmap").write_bytes(data[: len(data) // 2])
+    with caplog.at_level(logging.WARNING, logger="swarmloc"):
+        assert [s.name for s in b.map_summaries()] == ["small"]
+        assert [s.name for s in b.map_summaries()] == ["small"]
+        with pytest.raises(NotFound):
+            b.get_map("alt")
+    assert sum("alt.swmap" in r.getMessage() for r in caplog.records) == 1
+    (maps / "alt.swmap").write_bytes(data)
+    assert b.get_map("alt").meta["checksum"] == etag1

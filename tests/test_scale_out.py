@@ -337,6 +337,30 @@ def test_two_robots_learn_on_two_replicas_one_writer_both_serve_it(
     assert got["b"].headers["ETag"] == etag != before  # both serve the new version
 
 
+def test_a_map_uploaded_or_deleted_through_one_replica_on_the_other(
+        replicas, frames, small_map, tmp_path: Path) -> None:
+    """Replicas on one maps directory: a map uploaded through A is served by B (the same
+    ETag, listed, a robot localizes on it through B) without a restart; deleted through A,
+    it ends the robot's session and B no longer serves it."""
+    a, b = replicas["a"].url, replicas["b"].url
+    data = save_map(dataclasses.replace(small_map, name="shared"), tmp_path / "shared"
+                    ).read_bytes()
+    r = httpx.put(f"{a}/maps/shared", content=data, timeout=60,
+                  headers={"content-type": "application/octet-stream", "if-none-match": "*"})
+    assert r.status_code == 201, r.text
+    got = httpx.get(f"{b}/maps/shared", timeout=30)
+    assert got.status_code == 200 and got.headers["ETag"] == r.headers["ETag"]
+    assert "shared" in [m["name"] for m in httpx.get(f"{b}/maps", timeout=30).json()]
+    r = httpx.put(f"{b}/sessions/sharer", timeout=30, json={"map": "shared", "seed": SEED})
+    assert r.status_code == 201, r.text
+    assert _est(_post(b, "sharer", frames[0], 0))["frame_id"] == "shared"
+    r = httpx.delete(f"{a}/maps/shared", params={"force": "true"}, timeout=30)
+    assert r.status_code == 200 and r.json()["ended_sessions"] == ["sharer"], r.text
+    assert httpx.get(f"{b}/maps/shared", timeout=30).status_code == 404
+    assert "shared" not in [m["name"] for m in httpx.get(f"{b}/maps", timeout=30).json()]
+    assert httpx.get(f"{b}/sessions/sharer", timeout=30).status_code == 404
+
+
 def _all_written(rdb, urls: tuple[str, ...]) -> bool:
     """No learned batch waits in a replica, in the map's list or in a write (the lease)."""
     for url in urls:

@@ -206,10 +206,22 @@ class LocalizationService:
         raise InvalidParameters(f"no default map: name one of {sorted(self.maps)}")
 
     def get_map(self, name: str) -> RouteMap:
-        try:
-            return self.maps[name]
-        except KeyError:
-            raise NotFound(f"unknown map '{name}'; loaded maps: {sorted(self.maps)}") from None
+        """Map ``name``; one another service on the maps directory wrote is loaded first."""
+        m = self.maps.get(name) or self.admin.discover(name)
+        if m is None:
+            raise NotFound(f"unknown map '{name}'; loaded maps: {sorted(self.maps)}")
+        return m
+
+    def map_summaries(self) -> list[MapSummary]:
+        """The maps served, by name, after following the maps directory (maps another
+        service on it added or deleted; one deleted while listed is left out)."""
+        out = []
+        for name in self.admin.sync():
+            try:
+                out.append(self.map_summary(name))
+            except NotFound:
+                pass
+        return out
 
     def map_summary(self, name: str) -> MapSummary:
         return self._summary(self.admin.refresh(name))
@@ -226,7 +238,7 @@ class LocalizationService:
 
     def resolve_map(self, name: str, checksum: str | None, strict: bool = True) -> RouteMap:
         """The loaded map a stored session runs on; with ``strict`` the same version."""
-        m = self.maps.get(name)
+        m = self.maps.get(name) or self.admin.discover(name)
         if m is None:
             raise NotFound(f"the session's map '{name}' is not loaded here; loaded maps: "
                            f"{sorted(self.maps)}")

@@ -54,6 +54,7 @@ from service.api.models import (
     MapSummary,
 )
 from service.engine.duty import rest
+from service.engine.shared_maps import DirectoryFollower
 from service.maps.experiences import (
     NewImage,
     add_experience,
@@ -158,6 +159,7 @@ class MapAdmin:
         self._jobs: dict[str, Job] = {}
         self._queue: queue.Queue[Job] = queue.Queue()
         self._worker: threading.Thread | None = None
+        self.follower = DirectoryFollower(self)  # maps other services on the directory wrote
         self.remove_stale()
 
     def remove_stale(self, older_than_s: float = STALE_S) -> list[str]:
@@ -184,15 +186,45 @@ class MapAdmin:
     def directory(self) -> Path:
         return Path(self.settings.maps_dir)
 
-    # ---- versions -----------------------------------------------------------------------
-    def etag(self, name: str) -> str | None:
-        m = self.service.maps.get(name)
-        return None if m is None else m.meta.get("checksum")
+    def served(self) -> dict[str, RouteMap]:
+        return self.service.maps
 
+    # ---- a maps directory shared with other services (service/engine/shared_maps.py) --
+    def discover(self, name: str) -> RouteMap | None:
+        """Map ``name``, loaded first when another service on the maps directory wrote it;
+        None where this service has no such map."""
+        with self._lock:
+            return self.service.maps.get(name) or self.follower.discover(name)
+
+    def sync(self) -> list[str]:
+        """The names of the maps served, after following the maps directory (maps other
+        services added are loaded, those they deleted dropped)."""
+        with self._lock:
+            self.follower.sync()
+            self.service.metrics.maps.set(len(self.service.maps))
+            return sorted(self.service.maps)
+
+    @contextlib.contextmanager
+    def _file_lock(self, path: Path) -> Iterator[None]:
+        """An exclusive lock on map file ``path`` across every process on this maps
+        directory (its hidden lock file): one writer at a time, and a precondition checked
+        against the version on disk stays true until the rename."""
+        fd = os.open(path.with_name(f".{path.name}.lock"), os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            yield
+        finally:
+            os.close(fd)  # releases the lock
+
+    # ---- versions -----------------------------------------------------------------------
     def check_preconditions(self, name: str, if_match: str | None,
                             if_none_match: str | None) -> None:
-        current = self.etag(name)
-        exists = name in self.service.maps
+        """Against the newest version on disk (another service on the maps directory may
+        have written it)."""
+        try:
+            current, exists = self.refresh(name).meta.get("checksum"), True
+        except NotFound:
+            current, exists = None, False
         wanted = _tags(if_match)
         if wanted is not None and not (exists and ("*" in wanted or current in wanted)):
             raise PreconditionFailed(
@@ -235,12 +267,13 @@ class MapAdmin:
                 os.fsync(fh.fileno())
             staged.chmod(0o644)  # mkstemp made it private; maps are readable like save_map's
             with self._lock:
-                self.check_preconditions(name, if_match, if_none_match)
                 final = self._file_of(name)
-                os.replace(staged, final)
-                _fsync_dir(final.parent)
-                m.path = final
-                created = self._register(m, "upload")
+                with self._file_lock(final):
+                    self.check_preconditions(name, if_match, if_none_match)
+                    os.replace(staged, final)
+                    _fsync_dir(final.parent)
+                    m.path = final
+                    created = self.register(m, "upload")
         except ServiceError:
             metrics.map_uploads.labels("rejected").inc()
             raise
@@ -260,7 +293,7 @@ class MapAdmin:
                            f"first or use another name than '{name}'")
         return path
 
-    def _register(self, m: RouteMap, source: str) -> bool:
+    def register(self, m: RouteMap, source: str) -> bool:
         created = m.name not in self.service.maps
         self.service.maps[m.name] = m
         self.service.adopt(m)
@@ -283,21 +316,23 @@ class MapAdmin:
                ) -> MapDeleted:
         with self._lock:
             m = self.service.get_map(name)
-            self.check_preconditions(name, if_match, None)
-            users = self.service.sessions_on_map(name)
-            if users and not force:
-                raise Conflict(f"map '{name}' is used by {len(users)} session(s): "
-                               f"{', '.join(users)}; delete or move them first, or send "
-                               "?force=true to end them")
-            for robot_id in users:
-                try:
-                    self.service.delete_session(robot_id)
-                except NotFound:
-                    pass
-            del self.service.maps[name]
-            if m.path is not None and m.path.parent == self.directory:
-                m.path.unlink(missing_ok=True)
-                _fsync_dir(self.directory)
+            own = m.path is not None and m.path.parent == self.directory
+            with self._file_lock(m.path) if own and m.path else contextlib.nullcontext():
+                self.check_preconditions(name, if_match, None)
+                users = self.service.sessions_on_map(name)
+                if users and not force:
+                    raise Conflict(f"map '{name}' is used by {len(users)} session(s): "
+                                   f"{', '.join(users)}; delete or move them first, or send "
+                                   "?force=true to end them")
+                for robot_id in users:
+                    try:
+                        self.service.delete_session(robot_id)
+                    except NotFound:
+                        pass
+                del self.service.maps[name]
+                if own and m.path is not None:
+                    m.path.unlink(missing_ok=True)
+                    _fsync_dir(self.directory)
             self.service.metrics.maps.set(len(self.service.maps))
             self.service.metrics.map_deletes.inc()
         return MapDeleted(map=name, ended_sessions=users)
@@ -311,11 +346,17 @@ class MapAdmin:
 
     def refresh(self, name: str) -> RouteMap:
         """The loaded map ``name``, first reloaded when its file holds another version (one
-        that another replica on the same maps directory wrote); a header read."""
+        that another replica on the same maps directory wrote); a header read. A map whose
+        file another replica deleted is no longer served (NotFound)."""
         with self._lock:
             m = self.service.get_map(name)
             if m.path is None or m.path.parent != self.directory:
                 return m
+            if self.follower.gone(m):
+                del self.service.maps[name]
+                self.service.metrics.maps.set(len(self.service.maps))
+                raise NotFound(f"map '{name}' was deleted: its file {m.path.name} is gone from "
+                               "the maps directory")
             on_disk = file_version(m.path)
             if on_disk is None or on_disk == m.meta.get("checksum"):
                 return m
@@ -325,7 +366,7 @@ class MapAdmin:
                 log.warning("map %s: newer file not loaded: %s", name, exc)
                 return m
             if new.name == name:
-                self._register(new, "reload")
+                self.register(new, "reload")
                 return new
             return m
 
@@ -335,13 +376,8 @@ class MapAdmin:
         exclusive lock on its lock file), with the map at its newest version on disk."""
         with self._lock:
             path = self._writable(self.service.get_map(name))
-            lock = path.with_name(f".{path.name}.lock")
-            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX)
+            with self._file_lock(path):
                 yield self.refresh(name)
-            finally:
-                os.close(fd)  # releases the lock
 
     def commit_experience(self, name: str, exp_id: str, images: list[NewImage],
                           condition: str | None, robot: str) -> None:
@@ -357,7 +393,7 @@ class MapAdmin:
                     budget_bytes=budget_bytes(self.settings.experience_budget_mb),
                     usage=self.service.learner.usage(name, clear=True))
                 if new is not m:
-                    self._register(new, "experience")
+                    self.register(new, "experience")
         except Exception:
             self.service.metrics.map_loads.labels("experience", "failed").inc()
             raise
@@ -374,7 +410,7 @@ class MapAdmin:
                                f"{sorted(experience_layers(m))}")
             new = remove_experience(m, self._writable(m), exp_id,
                                     self.service.learner.usage(name, clear=True))
-            self._register(new, "experience")
+            self.register(new, "experience")
         return self.service.map_summary(name)
 
     # ---- builds -------------------------------------------------------------------------
@@ -463,15 +499,17 @@ class MapAdmin:
                                       params=named_params(job.features),
                                       source={"name": rnd.name, "uploaded": True, "job": job.id})
             with self._lock:
-                self.check_preconditions(job.map, job.if_match, job.if_none_match)
-                final = save_map(m, self._file_of(job.map))
-                try:
-                    loaded = load_map(final, verify=True,
-                                      matcher=self.service.settings.matcher)
-                except MapError:
-                    metrics.map_loads.labels("build", "failed").inc()
-                    raise
-                self._register(loaded, "build")
+                target = self._file_of(job.map)
+                with self._file_lock(target):
+                    self.check_preconditions(job.map, job.if_match, job.if_none_match)
+                    final = save_map(m, target)
+                    try:
+                        loaded = load_map(final, verify=True,
+                                          matcher=self.service.settings.matcher)
+                    except MapError:
+                        metrics.map_loads.labels("build", "failed").inc()
+                        raise
+                    self.register(loaded, "build")
             job.checksum = loaded.meta.get("checksum")
             job.state = "done"
             metrics.map_builds.labels("done").inc()

@@ -218,8 +218,9 @@ async def head_metrics(service: ServiceDep) -> Response:
 
 @api_router.get("/maps", tags=["maps"])
 async def list_maps(service: ServiceDep) -> list[MapSummary]:
-    """The maps loaded, by name."""
-    return [service.map_summary(n) for n in sorted(service.maps)]
+    """The maps served, by name (with replicas on one maps directory: those any of them
+    uploaded, built or learned, less those deleted)."""
+    return service.map_summaries()
 
 
 @api_router.get("/maps/{name}", tags=["maps"])

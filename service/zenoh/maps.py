@@ -69,7 +69,7 @@ def declare_map_queryables(session: zenoh.Session, prefix: str, service: Localiz
 
     def maps(name: str, data: bytes, opts: dict[str, Any]) -> Any:
         if not name:
-            return [service.map_summary(n).model_dump(mode="json") for n in sorted(service.maps)]
+            return [s.model_dump(mode="json") for s in service.map_summaries()]
         action = opts.get("action") or ("put" if data else "get")
         match_, none_match = opts.get("if_match"), opts.get("if_none_match")
         if action == "get":
