@@ -9,9 +9,11 @@ service's default session) and BLAS on one thread (as ``swarmloc serve`` runs it
   frame of the query round);
 - ``step``: the median ms of ``Localizer.step`` on a map of that feature type at that size,
   over the query frames the localizer reports ``tracking`` after a warm-up (DPSO, the
-  service's defaults, the two-view geometry where the dataset has the camera). The map is the
-  ``map`` round; when the query round is the map round, the map takes its even frames and the
-  query its odd frames (KITTI's protocol).
+  service's defaults, the two-view geometry where the dataset has the camera), with the map's
+  geometry structures built first, as the service's background warmer builds them after a
+  map is loaded (``SWARMLOC_WARM_GEOMETRY``, default on). The map is the ``map`` round;
+  when the query round is the map round, the map takes its even frames and the query its
+  odd frames (KITTI's protocol).
 
 The ratio step / extraction of each row (issue 29's target: at most 0.5) and the ratio
 XFeat / RootSIFT of each are printed beside them.
@@ -35,6 +37,7 @@ import cv2
 import numpy as np
 
 from client.dataset import Round, read_round
+from service.engine.geometry_warmer import GeometryWarmer
 from service.engine.localizer import Localizer
 from service.maps.route_map import build_map_from_rounds
 from service.vision.features import DualParams, Features, SiftParams, extract, named_params
@@ -99,6 +102,9 @@ def time_steps(map_rnd: Round, query: Round, params: FeatureParams, frames: int,
     """ms of ``Localizer.step`` for the frames after ``warmup`` that the localizer reports
     tracking (at most ``frames`` of them)."""
     m = build_map_from_rounds([map_rnd], params=params)
+    warmer = GeometryWarmer(duty=1.0)  # the service's, at a whole core
+    warmer.submit(m)
+    warmer.wait(3600)
     loc = Localizer(m, "dpso", {}, seed)
     n = min(len(query), frames + warmup)
     feats = [extract(query.load_image(i), params) for i in range(n)]
