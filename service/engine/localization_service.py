@@ -240,8 +240,9 @@ class LocalizationService:
         """The loaded map a stored session runs on; with ``strict`` the same version."""
         m = self.maps.get(name) or self.admin.discover(name)
         if m is None:
-            raise NotFound(f"the session's map '{name}' is not loaded here; loaded maps: "
-                           f"{sorted(self.maps)}")
+            raise NotFound(f"the session's map '{name}' is not served here (deleted, or its "
+                           f"file is not in this service's maps directory); loaded maps: "
+                           f"{sorted(self.maps)}; create the session again on one of them")
         # a version that differs only by experiences continues; one this replica has not
         # loaded yet (another replica wrote it) is loaded first
         if strict and not compatible(m, checksum):
