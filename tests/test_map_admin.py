@@ -506,3 +506,6 @@ def test_services_on_one_maps_directory_follow_each_others_maps(tmp_path: Path, 
     assert sum("alt.swmap" in r.getMessage() for r in caplog.records) == 1
     (maps / "alt.swmap").write_bytes(data)
     assert b.get_map("alt").meta["checksum"] == etag1
+    for path_like in ("../maps/small", ".alt", "alt.swmap/"):  # a name never names a path
+        with pytest.raises(NotFound):
+            b.get_map(path_like)

@@ -193,6 +193,8 @@ class MapAdmin:
     def discover(self, name: str) -> RouteMap | None:
         """Map ``name``, loaded first when another service on the maps directory wrote it;
         None where this service has no such map."""
+        if not _NAME.fullmatch(name or ""):
+            return None  # never a path: only a map name names a file
         with self._lock:
             return self.service.maps.get(name) or self.follower.discover(name)
 

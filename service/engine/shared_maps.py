@@ -62,10 +62,9 @@ class DirectoryFollower:
         return self._own(m) and m.path is not None and not m.path.exists()
 
     def discover(self, name: str) -> RouteMap | None:
-        """Map ``name`` from the file ``NAME.swmap`` another service wrote; None where there
-        is no such file or it cannot be served."""
-        if "/" in name or name.startswith("."):
-            return None  # never a path outside the directory
+        """Map ``name`` (a valid map name: ``MapAdmin.discover`` checks it) from the file
+        ``NAME.swmap`` another service wrote; None where there is no such file or it cannot
+        be served."""
         path = self.host.directory / f"{name}{SUFFIX}"
         if not path.is_file() or path.name in self._files():
             return None  # none, or the file of a map served under the name in its header
