@@ -119,6 +119,12 @@ class DPSOParams(CommonParams):
                       "axis range per iteration) and the start value of the "
                       "self-adaptation; 0.015 is the conference paper's setting for the "
                       "original speed")
+    v0_spacings: float = Field(
+        2.0, ge=0, le=1000, description="multi-swarm DPSO: v0 starts at least this many map "
+        "image spacings per frame (over the longer axis range, at most v0_max), so that on a "
+        "short map with images far apart the swarm can follow a robot that moves one image "
+        "per frame (the self-adaptation's target is twice the swarm's speed); 2 leaves "
+        "routes of ~100 m with images ~0.6 m apart at v0; 0: v0 as given")
     v0_min: float = Field(0.001, gt=0, le=1, description="floor of v0's self-adaptation "
                           "(fraction of the axis range per iteration); our choice, so the "
                           "swarm never freezes")

@@ -3,6 +3,11 @@
 The swarm moves as in the papers (Eqs. 4-6, self-adaptive v0, recovery boost), with these
 changes, each measured in docs/research/lighting.md:
 
+- **A start speed in map spacings.** v0 starts at least ``v0_spacings`` map image spacings
+  per frame (over the longer axis range): the papers' v0 is a fraction of the map's extent,
+  which on a short map with images far apart is slower than a robot moving an image per
+  frame (routes of ~100 m with images ~0.6 m apart keep the papers' v0).
+
 - **Coasting.** A frame whose best match falls below ``coast_ratio`` of the level seen while
   tracking is weak: its estimate does not feed the tracked velocity, and the next frame's
   swarm is carried by the velocity tracked before (at most ``coast_max_frames`` frames), as a
@@ -135,6 +140,14 @@ class MultiSwarmDPSO(DPSO):
         self.noise = LocatedNoise()  # the located positions' noise: their radius
         self.gate = LocatedGate()  # located frames against the odometry's prediction
         self._reset_coasting()
+
+    def start_v0(self) -> float:
+        """v0 at the start: at least ``v0_spacings`` map image spacings per frame over the
+        longer axis range (a short map with images far apart: a robot moving an image per
+        frame outruns the papers' fraction of its extent), at most ``v0_max``."""
+        p = self.params
+        floor = p.v0_spacings * self._spacing / float(np.max(self.delta))
+        return float(min(max(p.v0, floor), max(p.v0, p.v0_max)))
 
     def _initialize(self) -> None:
         super()._initialize()

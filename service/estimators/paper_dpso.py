@@ -45,10 +45,14 @@ class DPSO(Estimator):
 
     def _init_adaptive(self) -> None:
         p = self.params
-        self.v0, self.q_r, self.phi2 = p.v0, p.quantum_ratio, p.phi2
+        self.v0, self.q_r, self.phi2 = self.start_v0(), p.quantum_ratio, p.phi2
         self.recovering = False
-        self._v0_before_recovery = p.v0
+        self._v0_before_recovery = self.v0
         self.reset_motion()
+
+    def start_v0(self) -> float:
+        """v0 at the start (and after a reset): the papers' ``v0``."""
+        return self.params.v0
 
     def particles(self) -> np.ndarray | None:
         return None if self._needs_init else self.x
@@ -62,7 +66,7 @@ class DPSO(Estimator):
         n = p.n_particles
         self.x = self.sample_positions(n)
         ang = self.rng.uniform(0, 2 * math.pi, n)
-        mag = self.rng.uniform(0, 1, n) * p.v0
+        mag = self.rng.uniform(0, 1, n) * self.start_v0()
         self.v = np.column_stack([np.cos(ang), np.sin(ang)]) * mag[:, None] * self.delta
         self._init_adaptive()
         self._needs_init = False
