@@ -464,6 +464,7 @@ def test_services_on_one_maps_directory_follow_each_others_maps(tmp_path: Path, 
     the other; a replace through one is the version the other's preconditions see (no lost
     update); a delete through one ends it on the other; a half-copied file is left out of
     listings, logged once, and served once it is whole."""
+    import dataclasses
     import logging
 
     from service.api.errors import NotFound, PreconditionFailed
@@ -506,6 +507,8 @@ def test_services_on_one_maps_directory_follow_each_others_maps(tmp_path: Path, 
     assert sum("alt.swmap" in r.getMessage() for r in caplog.records) == 1
     (maps / "alt.swmap").write_bytes(data)
     assert b.get_map("alt").meta["checksum"] == etag1
-    for path_like in ("../maps/small", ".alt", "alt.swmap/"):  # a name never names a path
+    # a name never names a path: a map file beside the directory, named like a path to it
+    save_map(dataclasses.replace(small_map, name="../outside"), tmp_path / "outside")
+    for path_like in ("../outside", ".alt", "alt.swmap/"):
         with pytest.raises(NotFound):
             b.get_map(path_like)

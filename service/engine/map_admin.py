@@ -354,8 +354,7 @@ class MapAdmin:
             m = self.service.get_map(name)
             if m.path is None or m.path.parent != self.directory:
                 return m
-            if self.follower.gone(m):
-                del self.service.maps[name]
+            if self.follower.drop_if_gone(m):
                 self.service.metrics.maps.set(len(self.service.maps))
                 raise NotFound(f"map '{name}' was deleted: its file {m.path.name} is gone from "
                                "the maps directory")

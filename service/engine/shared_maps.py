@@ -12,8 +12,8 @@ a learned experience: ``MapAdmin.refresh`` reloads it) or none left (a delete).
   delete naming it finds it;
 - ``sync()``: a listing loads every file no served map came from, and drops the maps whose
   file is gone;
-- ``gone(m)``: whether a served map's file was deleted from the directory (by another
-  replica; ``MapAdmin.refresh`` then drops it).
+- ``drop_if_gone(m)``: a served map whose file was deleted from the directory (by another
+  replica) is no longer served (``MapAdmin.refresh`` and ``sync``).
 
 A file that cannot be loaded (half-copied by hand, damaged, another map's name) is logged once
 per version of the file (its size and modification time) and tried again when it changes.
@@ -57,9 +57,15 @@ class DirectoryFollower:
         """Whether ``m`` was loaded from a file of the maps directory."""
         return m.path is not None and m.path.parent == self.host.directory
 
-    def gone(self, m: RouteMap) -> bool:
-        """Whether a served map's file in the maps directory no longer exists."""
-        return self._own(m) and m.path is not None and not m.path.exists()
+    def drop_if_gone(self, m: RouteMap) -> bool:
+        """Stop serving ``m`` when its file in the maps directory no longer exists (deleted
+        through another service); whether it was dropped."""
+        if not self._own(m) or m.path is None or m.path.exists():
+            return False
+        self.host.served().pop(m.name, None)
+        log.info("map %s: its file %s is gone from the maps directory (deleted through "
+                 "another service); no longer served", m.name, m.path.name)
+        return True
 
     def discover(self, name: str) -> RouteMap | None:
         """Map ``name`` (a valid map name: ``MapAdmin.discover`` checks it) from the file
@@ -78,13 +84,8 @@ class DirectoryFollower:
     def sync(self) -> None:
         """Load the directory's map files that no served map came from; drop the served maps
         whose file is gone."""
-        served = self.host.served()
-        for name, m in list(served.items()):
-            if self.gone(m):
-                del served[name]
-                log.info("map %s: its file %s is gone from the maps directory (deleted "
-                         "through another service); no longer served", name,
-                         m.path.name if m.path else "?")
+        for m in list(self.host.served().values()):
+            self.drop_if_gone(m)
         known = self._files()
         for path in list_maps(self.host.directory):
             if path.name not in known:
