@@ -130,9 +130,10 @@ def test_state_is_compact(small_map: RouteMap, frames) -> None:
     # with the located frames' odometry gate, ~110 bytes; 4.5 KB with the smoother's count of
     # frames carried by odometry alone; 4.53 KB with two more parameters, metric_disagree_m
     # and odom_drift, stored with the session's parameters; 4.72 KB with the first feature
-    # type's lost-detection monitor and its parameter vouch_distinct, ~190 bytes)
+    # type's lost-detection monitor and its parameter vouch_distinct, ~190 bytes; 4.83 KB
+    # with the jump hold and its parameter jump_hold_m, ~80 bytes)
     n = int(loc.params["n_particles"])
-    assert len(blob) < n * 6 * 8 + 4750
+    assert len(blob) < n * 6 * 8 + 4850
 
 
 def test_bad_blobs_are_refused(small_map: RouteMap) -> None:

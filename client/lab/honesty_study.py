@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -23,7 +24,7 @@ import numpy as np
 import typer
 
 from client.runs import BAD_STATUS, WRONG_M, Run, run_metrics
-from service.estimators.lost_detection import DistinctnessMonitor, Evidence
+from service.estimators.lost_detection import Evidence
 from service.estimators.multi_swarm_dpso import MultiSwarmDPSO
 from service.estimators.odometry import LocatedGate
 
@@ -33,20 +34,23 @@ app = typer.Typer(add_completion=False)
 @contextmanager
 def recorded_evidence() -> Iterator[tuple[list[Evidence], list[tuple[np.ndarray, Any]],
                                            list[int]]]:
-    """Every ``DistinctnessMonitor.judge`` verdict and every ``_located`` call (the image
-    estimate it was given, the located camera or None) while inside, in call order (one
-    each per DPSO frame), and one entry per located frame a ``LocatedGate`` held back."""
+    """The evidence each DPSO frame's status used, ``good`` as the status counted it (after a
+    map of two types' vouching: the monitors' ``judge`` runs once per type, so the evidence is
+    taken where the status counts it; before, the two types' verdicts alternated in the list)
+    and every ``_located`` call (the image estimate it was given, the located camera or None)
+    while inside, in call order (one each per DPSO frame), and one entry per located frame a
+    ``LocatedGate`` held back."""
     seen: list[Evidence] = []
     placed: list[tuple[np.ndarray, Any]] = []
     held: list[int] = []
-    judge = DistinctnessMonitor.judge
+    counts_good = MultiSwarmDPSO._counts_good
     located = MultiSwarmDPSO._located
     admit = LocatedGate.admit
 
-    def spy(self: DistinctnessMonitor, *args: Any, **kwargs: Any) -> Evidence:
-        ev = judge(self, *args, **kwargs)
-        seen.append(ev)
-        return ev
+    def spy(self: MultiSwarmDPSO, ev: Evidence) -> bool:
+        ok = counts_good(self, ev)
+        seen.append(replace(ev, good=ok))
+        return ok
 
     def spy_admit(self: LocatedGate, where: Any, *args: Any) -> bool:
         ok = admit(self, where, *args)
@@ -60,13 +64,13 @@ def recorded_evidence() -> Iterator[tuple[list[Evidence], list[tuple[np.ndarray,
         placed.append((np.array(pos, float), None if out is None else out[0]))
         return out
 
-    DistinctnessMonitor.judge = spy  # type: ignore[method-assign]
+    MultiSwarmDPSO._counts_good = spy  # type: ignore[method-assign]
     MultiSwarmDPSO._located = spy_located  # type: ignore[method-assign,assignment]
     LocatedGate.admit = spy_admit  # type: ignore[method-assign,assignment]
     try:
         yield seen, placed, held
     finally:
-        DistinctnessMonitor.judge = judge  # type: ignore[method-assign]
+        MultiSwarmDPSO._counts_good = counts_good  # type: ignore[method-assign]
         MultiSwarmDPSO._located = located  # type: ignore[method-assign]
         LocatedGate.admit = admit  # type: ignore[method-assign]
 
@@ -225,10 +229,11 @@ def _study(m: Any, table: Any, rnd: Any, params_v: dict[str, Any], starts: int, 
             img_err = float(np.linalg.norm(img_pos - r.true_xy[i]))
             cam_err = float("nan") if cam is None else float(np.linalg.norm(cam - r.true_xy[i]))
             rows.append({"run": k, "i": i, "frame": int(r.frames[i]), "err": float(err[i]),
+                         "x": float(r.est_xy[i, 0]), "y": float(r.est_xy[i, 1]),
                          "jump": jump, "img_err": img_err, "cam_err": cam_err,
                          "status": r.status[i], "acc": float(r.accuracy_m[i]),
                          "best_m": ev.best_m, "bg": ev.background, "distinct": ev.distinct,
-                         "good": ev.good,
+                         "good": ev.good, "vouched": ev.vouched,
                          "located": bool(r.located is not None and r.located[i])})
         mt = run_metrics(r, warmup)
         wrong = err[warmup:] > WRONG_M
@@ -245,7 +250,8 @@ def _study(m: Any, table: Any, rnd: Any, params_v: dict[str, Any], starts: int, 
                 typer.echo(f"    {j:4d} err {row['err']:6.1f} {row['status']:11s} "
                            f"acc {row['acc']:5.1f} best {row['best_m']:.4f} bg "
                            f"{row['bg']:.4f} distinct {row['distinct']:6.2f} good "
-                           f"{int(row['good'])} located {int(row['located'])} jump "
+                           f"{int(row['good'])}{'v' if row['vouched'] else ' '} located "
+                           f"{int(row['located'])} jump "
                            f"{row['jump']:5.1f} image estimate off {row['img_err']:5.1f}")
     t = metrics(runs, warmup)
     typer.echo(f"summary {params_v}: mean {t['error_mean_m']:.2f} median "

@@ -372,6 +372,16 @@ class DPSOParams(CommonParams):
         "its accuracy_m at least that distance, while the swarm follows the located camera "
         "as usual (m; 0: off); 8 m, metric_search_m: at dusk such frames are single "
         "look-alikes 10-15 m off, in daylight almost never seen (docs/research/lighting.md)")
+    jump_hold_m: float = Field(
+        10.0, ge=0, le=1e4, description="a reported position farther than this from where "
+        "the previous frame predicted it (the tracked step, or the odometry's) is a jump to "
+        "another place: reported 'recovering', accuracy_m at least the jump, until "
+        "jump_confirm_frames good frames in a row or one good located frame confirm it (m; "
+        "0: off; report only); 10 m, two sub-swarm radii")
+    jump_confirm_frames: int = Field(
+        5, ge=1, le=1000, description="good frames in a row that confirm the place of a "
+        "jump (frames); 5: at dusk a look-alike place the swarm jumps to can give three good "
+        "frames in a row, more than a start's converge_frames (docs/research/lighting.md)")
     metric_map_sigma_m: float = Field(
         0.28, ge=0, le=1e3, description="standard deviation of the map's recorded positions "
         "per axis, the floor of a located frame's radius (m; "

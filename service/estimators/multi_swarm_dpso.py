@@ -89,6 +89,7 @@ from service.estimators.base import (
     weighted_covariance,
 )
 from service.estimators.fitness import FrameFitness, MapIndex
+from service.estimators.jump_hold import JumpHold
 from service.estimators.located_noise import LocatedNoise
 from service.estimators.lost_detection import DistinctnessMonitor, Evidence, vouch
 from service.estimators.odometry import LocatedGate, OdomStep
@@ -139,6 +140,7 @@ class MultiSwarmDPSO(DPSO):
         self.unverified = 0  # tracked frames in a row the geometry could not locate
         self.noise = LocatedNoise()  # the located positions' noise: their radius
         self.gate = LocatedGate()  # located frames against the odometry's prediction
+        self.jump = JumpHold()  # a far jump of the reported place, until confirmed
         self._reset_coasting()
 
     def start_v0(self) -> float:
@@ -159,6 +161,7 @@ class MultiSwarmDPSO(DPSO):
         self.unverified = 0
         self.noise.reset()
         self.gate.reset()
+        self.jump.reset()
         self._reset_coasting()
 
     def _reset_coasting(self) -> None:
@@ -219,7 +222,9 @@ class MultiSwarmDPSO(DPSO):
         # the geometry's verdict on the last frames: the place the swarm holds is refuted
         # when the frame could not be located at it for verify_frames tracked frames in a row
         refuted = 0 < p.verify_frames <= self.unverified
-        status, lost = self._update_evidence_status(self._counts_good(ev) and not refuted)
+        good = self._counts_good(ev) and not refuted
+        step_before = odom_d if odom_d is not None else self.ema_step  # the predicted motion
+        status, lost = self._update_evidence_status(good)
         # a weak frame's estimate lags where images look alike: it does not teach the velocity
         self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))
         if self.recovery_phase(lost):
@@ -277,6 +282,11 @@ class MultiSwarmDPSO(DPSO):
         reported = self._reported(pos, status, ids, compared_xy,
                                   self._along_alpha(geometry, located is not None), odom_d,
                                   confirmed, ev.good)
+        # a far jump of the reported place is not tracking until confirmed (report only)
+        jumped = self.jump.judge(reported, step_before, p.jump_hold_m, good,
+                                 located is not None, p.jump_confirm_frames)
+        if jumped:
+            cov = cov + np.eye(2) * sigma_for_accuracy(jumped) ** 2
         self.odom_observe(odom, pos, status is Status.TRACKING and confirmed,
                           lost or self.recovering)
         cam = camera[1] if camera is not None else None
@@ -287,7 +297,8 @@ class MultiSwarmDPSO(DPSO):
         if cam is not None and cam.heading is not None:  # the camera's yaw
             heading, source, h_sigma = cam.heading, "camera", cam.heading_sigma
         return StepResult(reported, cov, heading, speed,
-                          Status.RECOVERING if disagree else status, lost or self.recovering,
+                          Status.RECOVERING if disagree or (jumped and status is Status.TRACKING)
+                          else status, lost or self.recovering,
                           ev.best_m, fitness.comparisons, spread, hypotheses, source, h_sigma,
                           located is not None)
 
