@@ -230,6 +230,7 @@ def _study(m: Any, table: Any, rnd: Any, params_v: dict[str, Any], starts: int, 
             cam_err = float("nan") if cam is None else float(np.linalg.norm(cam - r.true_xy[i]))
             rows.append({"run": k, "i": i, "frame": int(r.frames[i]), "err": float(err[i]),
                          "x": float(r.est_xy[i, 0]), "y": float(r.est_xy[i, 1]),
+                         "true_x": float(r.true_xy[i, 0]), "true_y": float(r.true_xy[i, 1]),
                          "jump": jump, "img_err": img_err, "cam_err": cam_err,
                          "status": r.status[i], "acc": float(r.accuracy_m[i]),
                          "best_m": ev.best_m, "bg": ev.background, "distinct": ev.distinct,
