@@ -103,6 +103,30 @@ def test_ties_and_near_ties_follow_the_reference(backend) -> None:
         _same(match_batch_u8(a, sets, backend=backend), match_batch_u8_reference(a, sets))
 
 
+def test_gemm_width_moves_only_widths_near_a_multiple_of_512() -> None:
+    """The packed GEMM runs some columns wider (zero rows) where its output rows would lie a
+    multiple of 2 KiB apart; every other width is the set's own."""
+    from service.vision.matcher import gemm_width
+
+    moved = {n: gemm_width(n) for n in range(0, 4200) if gemm_width(n) != n}
+    assert all(0 < w - n <= 28 and min(w % 512, 512 - w % 512) >= 16 for n, w in moved.items())
+    assert {512, 1024, 1016, 1036, 2048} <= set(moved) and not {499, 600, 1000, 1300} & set(moved)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_sets_the_gemm_runs_wider_match_as_the_reference(backend) -> None:
+    """Sets of 505, 512 and 1,030 rows (their GEMM is wider than the set, with zero rows) and
+    one of a frame's near copy padded to 1,024 rows: the same matches as the reference."""
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 40, (300, 128)).astype(np.uint8)
+    near = np.clip(a.astype(int) + rng.integers(-2, 3, a.shape), 0, 255).astype(np.uint8)
+    sets = [rng.integers(0, 40, (n, 128)).astype(np.uint8) for n in (505, 512, 1030)]
+    sets.append(np.vstack([rng.integers(0, 40, (724, 128)).astype(np.uint8), near]))
+    got = match_batch_u8(a, sets, backend=backend)
+    _same(got, match_batch_u8_reference(a, sets))
+    assert got.counts[-1] > 100  # the near copy matches
+
+
 def _reference_pairs(a: np.ndarray, b: np.ndarray, delta: float) -> tuple[np.ndarray, ...]:
     """The reference's matches at ``delta`` and each one's exact nearest neighbour in b."""
     rows = np.flatnonzero(match_batch_u8_reference(a, [b], delta).matched[0])

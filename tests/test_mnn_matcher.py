@@ -35,12 +35,14 @@ def _same(got: tuple[np.ndarray, np.ndarray], want: tuple[np.ndarray, np.ndarray
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_the_fast_path_equals_the_reference(backend: str) -> None:
-    """Sizes below, at and beyond the 256-row tile and the scan's 32 lanes, a near copy of
-    the frame among the sets (many matches), gates on and off."""
+    """Sizes below, at and beyond the 256-row tile and the scan's 32 lanes and where the GEMM
+    runs wider than the set (512, 1,024: ``gemm_width``), a near copy of the frame among the
+    sets (many matches; once padded to 1,024 rows), gates on and off."""
     rng = np.random.default_rng(0)
     a = _codes(rng, 601)
     near = np.clip(a.astype(int) + rng.integers(-6, 7, a.shape), -127, 127).astype(np.int8)
-    sets = [_codes(rng, n) for n in (1, 2, 31, 33, 256, 700)] + [near[::-1].copy()]
+    sets = [_codes(rng, n) for n in (1, 2, 31, 33, 256, 512, 700)] + [near[::-1].copy()] + \
+        [np.vstack([_codes(rng, 423), near])]
     total = 0
     for min_cos, ratio in ((0.82, 0.93), (0.0, 1.0), (0.3, 0.8)):
         scores, pairs = mnn_batch(a, [prepare_codes(b, backend) for b in sets], min_cos,
@@ -50,7 +52,7 @@ def test_the_fast_path_equals_the_reference(backend: str) -> None:
             assert _same(pairs[k], want), (backend, min_cos, ratio, len(b))
             assert scores[k] == len(want[0]) / min(len(a), len(b))
             total += len(want[0])
-    assert total > 600  # the near copy matches: the comparison is not of empty sets
+    assert total > 1200  # the near copies match: the comparison is not of empty sets
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -59,12 +61,12 @@ def test_negative_keys_and_ties(backend: str) -> None:
     below any key), and a duplicated map row makes a tie: both rows of A that pick it stay
     mutual, and the ratio test refuses the tie."""
     rng = np.random.default_rng(1)
-    b = np.abs(_codes(rng, 40))
     a = -np.abs(_codes(rng, 5))  # every dot of A with B is negative
-    for ratio in (1.0, 0.999):
-        got = mnn_batch(a, [b], -1.0, ratio, backend)[1][0]
-        assert _same(got, mnn_pairs_reference(a, b, -1.0, ratio))
-        assert len(got[0]) >= 1
+    for b in (np.abs(_codes(rng, 40)), np.abs(_codes(rng, 1024))):  # 1,024: a wider GEMM,
+        for ratio in (1.0, 0.999):  # whose zero dots beyond the set no scan may read
+            got = mnn_batch(a, [b], -1.0, ratio, backend)[1][0]
+            assert _same(got, mnn_pairs_reference(a, b, -1.0, ratio))
+            assert len(got[0]) >= 1
     b = _codes(rng, 3)
     twin = np.stack([b[0], b[0], b[1]])
     plain = mnn_batch(b[:1], [twin], 0.5, 1.0, backend)[1][0]

@@ -20,8 +20,9 @@ XFeat / RootSIFT of each are printed beside them.
 
 The sweep (``caps``; ``--sweep 500,1000,2000,4000``): the same step on maps and frames capped at N
 features per frame (SIFT's ``n_features`` with a low contrast threshold, XFeat's ``top_k``
-with a low detection threshold, so that the cap, not the detector, sets the count), at one
-size; the step's growth from the first count on is printed beside the growth of the count
+with a low detection threshold, so that the cap, not the detector, sets the count; on
+maps of both types XFeat keeps at most its own cap of 1,024, as the product's frames do), at
+one size; the step's growth from the first count on is printed beside the growth of the count
 (linear: equal; the target is at most linear from 1,000 to 4,000).
 """
 
@@ -156,11 +157,14 @@ def _row(image: np.ndarray, params: FeatureParams, kind: str, size: tuple[int, i
 
 def capped_params(kind: str, size: tuple[int, int], n: int) -> FeatureParams:
     """Feature parameters of ``kind`` at ``size`` keeping the ``n`` strongest features, with
-    a detector threshold low enough that most frames have that many."""
+    a detector threshold low enough that most frames have that many. Both types (the default
+    map): RootSIFT's ``n``, XFeat's at most its own cap (``top_k``, 1,024), as a richer frame
+    gives them; the ``xfeat`` rows sweep XFeat's cap itself."""
     params = named_params(kind, *size)
     if isinstance(params, DualParams):
         return DualParams(replace(params.sift, n_features=n, contrast_threshold=0.005),
-                          replace(params.xfeat, top_k=n, detection_threshold=0.005))
+                          replace(params.xfeat, top_k=min(n, params.xfeat.top_k),
+                                  detection_threshold=0.005))
     if isinstance(params, SiftParams):
         return replace(params, n_features=n, contrast_threshold=0.005)
     return replace(params, top_k=n, detection_threshold=0.005)

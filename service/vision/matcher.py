@@ -147,8 +147,30 @@ def prepare(b: np.ndarray, backend: str = "auto") -> PreparedSet:
     inv = (1.0 / norms).astype(np.float32) if len(b) else np.zeros(0, np.float32)
     packed = None
     if use_numkong(backend) and len(b):
-        packed = _nk.dots_pack(b, dtype="uint8")
+        packed = pack(b, "uint8")
     return PreparedSet(b, norms, inv, packed)
+
+
+def gemm_width(n: int) -> int:
+    """The width NumKong's packed GEMM runs at for a set of ``n`` rows: ``n``, or up to 28
+    more (zero rows packed after the set) where ``n`` lies within 12 of a multiple of 512.
+    There the output tile's rows lie a multiple of 2 KiB apart, its stores alias in the cache,
+    and the GEMM ran 2-2.5x slower: 0.29 against 0.12 ns per dot for 1,024 x 1,024 int8 codes
+    of 64, 1,040 columns as fast as 1,000 (docs/research/performance.md). XFeat keeps 1,024
+    features per image and SIFT 2,048 on rich frames, so most comparisons fell there."""
+    r = n % 512
+    if n < 500 or 12 < r < 500:
+        return n
+    return n - r + (512 if r >= 500 else 0) + 16
+
+
+def pack(codes: np.ndarray, dtype: Literal["uint8", "int8"]) -> Any:
+    """NumKong's packed operand of ``codes`` (rows), with zero rows up to ``gemm_width``: the
+    GEMM's extra columns are zero dots, which no scan reads."""
+    extra = gemm_width(len(codes)) - len(codes)
+    if extra:
+        codes = np.concatenate([codes, np.zeros((extra, codes.shape[1]), codes.dtype)])
+    return _nk.dots_pack(codes, dtype=dtype)
 
 
 def top_columns(a: np.ndarray, s: PreparedSet, w: int) -> np.ndarray:
@@ -161,7 +183,7 @@ def top_columns(a: np.ndarray, s: PreparedSet, w: int) -> np.ndarray:
     for r0 in range(0, len(a), _TILE):
         r1 = min(r0 + _TILE, len(a))
         if s.packed is not None:
-            nk_out = _nk.empty((r1 - r0, len(s)), dtype="uint32")
+            nk_out = _nk.empty((r1 - r0, gemm_width(len(s))), dtype="uint32")
             _nk.dots_packed(a[r0:r1], s.packed, out=nk_out)
             dots = np.asarray(nk_out)
         else:
@@ -242,11 +264,13 @@ def fastest_gemm(dtype: Literal["uint8", "int8"] = "uint8") -> GemmChoice:
 
 # ---- numba kernels ------------------------------------------------------------------------
 def _scan_columns(dots, r0, inv_na, cm1, cm2):
-    """Update the two best float32 keys d * (1/|a|) of every column with rows r0.. of a tile.
+    """Update the two best float32 keys d * (1/|a|) of every column with rows r0.. of a tile
+    (the columns of ``cm1``: the tile may be wider, ``gemm_width``).
 
     Four rows per sweep: the column state is loaded and stored once for four updates.
     """
-    nr, nb = dots.shape
+    nr = dots.shape[0]
+    nb = cm1.shape[0]
     r = 0
     while r + 4 <= nr:
         sa = inv_na[r0 + r]
@@ -291,7 +315,7 @@ def _finish_row(row, inv_nb, nfull, lm1, lm2, lj1):
     m1 = np.float32(-np.inf)  # below any key (int8 codes' keys may be negative)
     m2 = np.float32(-np.inf)
     j1 = -1
-    for j in range(nfull, row.shape[0]):
+    for j in range(nfull, inv_nb.shape[0]):
         k = np.float32(row[j]) * inv_nb[j]
         if k > m1:
             m2 = m1
@@ -312,12 +336,14 @@ def _finish_row(row, inv_nb, nfull, lm1, lm2, lj1):
 
 
 def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1):
-    """Best key d * (1/|b|), its column and dot, and the second key of rows r0.. of a tile.
+    """Best key d * (1/|b|), its column and dot, and the second key of rows r0.. of a tile
+    (the columns of ``inv_nb``: the tile may be wider, ``gemm_width``).
 
     Two rows at a time, each over 32 independent lanes: the loop vectorises, enough chains are
     in flight to hide the latency of max, and the 1/|b| loads are shared; then lanes merge.
     """
-    nr, nb = dots.shape
+    nr = dots.shape[0]
+    nb = inv_nb.shape[0]
     nl = 32
     a1 = np.empty(nl, np.float32)
     a2 = np.empty(nl, np.float32)
@@ -484,14 +510,15 @@ def _ivf_scan(a, na, words, b, nb, starts, rc1, rc2, rj, cc1, cc2, ci):
 
 
 def _top_w(dots, inv_nb, out):
-    """Each row's ``out.shape[1]`` columns of the largest dots x inv_nb, best first."""
+    """Each row's ``out.shape[1]`` columns of the largest dots x inv_nb, best first (the
+    columns of ``inv_nb``: ``dots`` may be wider, ``gemm_width``)."""
     w = out.shape[1]
     best = np.empty(w, np.float32)
     for i in range(dots.shape[0]):
         for q in range(w):
             best[q] = -np.inf
             out[i, q] = -1
-        for j in range(dots.shape[1]):
+        for j in range(inv_nb.shape[0]):
             v = np.float32(dots[i, j]) * inv_nb[j]
             if v > best[w - 1]:
                 q = w - 1
@@ -586,8 +613,8 @@ def scan_set(a: np.ndarray, a_f32: np.ndarray | None, inv_na: np.ndarray, codes:
     tile = min(_TILE, na_rows)
     acc: Literal["uint32", "int32"] = "uint32" if dtype == "uint8" else "int32"
     if a_f32 is None:
-        packed = packed if packed is not None else _nk.dots_pack(codes, dtype=dtype)
-        out = _nk.empty((tile, nb), dtype=acc)
+        packed = packed if packed is not None else pack(codes, dtype)
+        out = _nk.empty((tile, gemm_width(nb)), dtype=acc)
         buf = np.asarray(out)
     else:
         b_t = codes.astype(np.float32).T
@@ -596,7 +623,7 @@ def scan_set(a: np.ndarray, a_f32: np.ndarray | None, inv_na: np.ndarray, codes:
         r1 = min(r0 + tile, na_rows)
         if a_f32 is None:
             if r1 - r0 != tile:
-                out = _nk.empty((r1 - r0, nb), dtype=acc)
+                out = _nk.empty((r1 - r0, gemm_width(nb)), dtype=acc)
                 buf = np.asarray(out)
             _nk.dots_packed(a[r0:r1], packed, out=out)
             dots = buf

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from service.vision.matcher import _nk, check_codes, row_state, scan_set, use_numkong
+from service.vision.matcher import check_codes, pack, row_state, scan_set, use_numkong
 
 Pairs = tuple[np.ndarray, np.ndarray]
 
@@ -69,7 +69,7 @@ def prepare_codes(b: np.ndarray, backend: str = "auto") -> PreparedCodes:
     """Prepare a map image's int8 codes once: inverse norms and (NumKong) packed layout."""
     b = _check_i8(b, "set")
     inv = inv_norms_i8(b) if len(b) else np.zeros(0, np.float32)
-    packed = _nk.dots_pack(b, dtype="int8") if use_numkong(backend, "int8") and len(b) else None
+    packed = pack(b, "int8") if use_numkong(backend, "int8") and len(b) else None
     return PreparedCodes(b, inv, packed)
 
 
