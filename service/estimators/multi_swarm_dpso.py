@@ -224,6 +224,9 @@ class MultiSwarmDPSO(DPSO):
         refuted = 0 < p.verify_frames <= self.unverified
         good = self._counts_good(ev) and not refuted
         step_before = odom_d if odom_d is not None else self.ema_step  # the predicted motion
+        # jumps are judged from the first convergence on: the global search before it has no
+        # place to leave
+        hold_m = p.jump_hold_m if self._converged else 0.0
         status, lost = self._update_evidence_status(good)
         # a weak frame's estimate lags where images look alike: it does not teach the velocity
         self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))
@@ -283,8 +286,8 @@ class MultiSwarmDPSO(DPSO):
                                   self._along_alpha(geometry, located is not None), odom_d,
                                   confirmed, ev.good)
         # a far jump of the reported place is not tracking until confirmed (report only)
-        jumped = self.jump.judge(reported, step_before, p.jump_hold_m, good,
-                                 located is not None, p.jump_confirm_frames)
+        jumped = self.jump.judge(reported, step_before, hold_m, good, located is not None,
+                                 p.jump_confirm_frames)
         if jumped:
             cov = cov + np.eye(2) * sigma_for_accuracy(jumped) ** 2
         self.odom_observe(odom, pos, status is Status.TRACKING and confirmed,
