@@ -8,9 +8,10 @@ follows a look-alike place that matched a little better for a frame or two (at d
 place holds for several frames while its matches still count as good). Both look the same
 from one frame, so the new place has to earn ``tracking`` the way a start does: the status
 says ``recovering`` until ``confirm_frames`` good frames in a row, or one good frame that the
-two-view geometry located, have been seen since the jump. This is a report only: the swarm,
-the reported position and the lost detection are untouched. Meanwhile ``accuracy_m`` is at
-least the jump's length, since the robot may be at either place.
+two-view geometry located, have been seen since the jump (DPSO judges jumps from its first
+convergence on: the global search before it has no place to leave). This is a report only:
+the swarm, the reported position and the lost detection are untouched. Meanwhile
+``accuracy_m`` is at least the jump's length, since the robot may be at either place.
 """
 
 from __future__ import annotations
