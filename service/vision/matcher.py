@@ -616,9 +616,10 @@ def scan_set(a: np.ndarray, a_f32: np.ndarray | None, inv_na: np.ndarray, codes:
         packed = packed if packed is not None else pack(codes, dtype)
         out = _nk.empty((tile, gemm_width(nb)), dtype=acc)
         buf = np.asarray(out)
-    else:
-        b_t = codes.astype(np.float32).T
-        buf = np.empty((tile, nb), np.float32)
+    else:  # the transposed set, as wide as the packed GEMM's (its rows alias there too)
+        b_t = np.zeros((codes.shape[1], gemm_width(nb)), np.float32)
+        b_t[:, :nb] = codes.T
+        buf = np.empty((tile, b_t.shape[1]), np.float32)
     for r0 in range(0, na_rows, tile):
         r1 = min(r0 + tile, na_rows)
         if a_f32 is None:
