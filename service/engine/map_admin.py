@@ -189,6 +189,11 @@ class MapAdmin:
     def served(self) -> dict[str, RouteMap]:
         return self.service.maps
 
+    def own_file(self, m: RouteMap) -> Path | None:
+        """The file ``m`` was loaded from where it lies in this service's maps directory (the
+        one file uploads replace, deletes remove and experiences rewrite); None otherwise."""
+        return m.path if m.path is not None and m.path.parent == self.directory else None
+
     # ---- a maps directory shared with other services (service/engine/shared_maps.py) --
     def discover(self, name: str) -> RouteMap | None:
         """Map ``name``, loaded first when another service on the maps directory wrote it;
@@ -286,8 +291,9 @@ class MapAdmin:
 
     def _file_of(self, name: str) -> Path:
         old = self.service.maps.get(name)
-        if old is not None and old.path is not None and old.path.parent == self.directory:
-            return old.path  # replace the file it was loaded from (its name may differ)
+        own = self.own_file(old) if old is not None else None
+        if own is not None:
+            return own  # replace the file it was loaded from (its name may differ)
         path = self.directory / f"{name}{SUFFIX}"
         other = [m.name for m in self.service.maps.values() if m.path == path]
         if other:
@@ -318,8 +324,8 @@ class MapAdmin:
                ) -> MapDeleted:
         with self._lock:
             m = self.service.get_map(name)
-            own = m.path is not None and m.path.parent == self.directory
-            with self._file_lock(m.path) if own and m.path else contextlib.nullcontext():
+            own = self.own_file(m)
+            with self._file_lock(own) if own is not None else contextlib.nullcontext():
                 self.check_preconditions(name, if_match, None)
                 users = self.service.sessions_on_map(name)
                 if users and not force:
@@ -332,8 +338,8 @@ class MapAdmin:
                     except NotFound:
                         pass
                 del self.service.maps[name]
-                if own and m.path is not None:
-                    m.path.unlink(missing_ok=True)
+                if own is not None:
+                    own.unlink(missing_ok=True)
                     _fsync_dir(self.directory)
             self.service.metrics.maps.set(len(self.service.maps))
             self.service.metrics.map_deletes.inc()
@@ -341,10 +347,11 @@ class MapAdmin:
 
     # ---- experiences (service/maps/experiences.py) ----------------------------------------
     def _writable(self, m: RouteMap) -> Path:
-        if m.path is None or m.path.parent != self.directory:
+        own = self.own_file(m)
+        if own is None:
             raise Conflict(f"map '{m.name}' has no file in this service's maps directory; its "
                            "experiences cannot be written")
-        return m.path
+        return own
 
     def refresh(self, name: str) -> RouteMap:
         """The loaded map ``name``, first reloaded when its file holds another version (one
@@ -352,17 +359,18 @@ class MapAdmin:
         file another replica deleted is no longer served (NotFound)."""
         with self._lock:
             m = self.service.get_map(name)
-            if m.path is None or m.path.parent != self.directory:
+            own = self.own_file(m)
+            if own is None:
                 return m
             if self.follower.drop_if_gone(m):
                 self.service.metrics.maps.set(len(self.service.maps))
-                raise NotFound(f"map '{name}' was deleted: its file {m.path.name} is gone from "
+                raise NotFound(f"map '{name}' was deleted: its file {own.name} is gone from "
                                "the maps directory")
-            on_disk = file_version(m.path)
+            on_disk = file_version(own)
             if on_disk is None or on_disk == m.meta.get("checksum"):
                 return m
             try:
-                new = load_map(m.path, verify="lazy", matcher=m.matcher)
+                new = load_map(own, verify="lazy", matcher=m.matcher)
             except MapError as exc:  # half-seen or broken: keep serving the loaded version
                 log.warning("map %s: newer file not loaded: %s", name, exc)
                 return m

@@ -42,6 +42,7 @@ class FollowerHost(Protocol):
     @property
     def settings(self) -> Settings: ...
     def served(self) -> dict[str, RouteMap]: ...
+    def own_file(self, m: RouteMap) -> Path | None: ...
     def register(self, m: RouteMap, source: str) -> bool: ...
 
 
@@ -53,18 +54,15 @@ class DirectoryFollower:
         self.host = host
         self._refused: dict[str, tuple[int, int]] = {}  # file name -> (size, mtime) refused
 
-    def _own(self, m: RouteMap) -> bool:
-        """Whether ``m`` was loaded from a file of the maps directory."""
-        return m.path is not None and m.path.parent == self.host.directory
-
     def drop_if_gone(self, m: RouteMap) -> bool:
         """Stop serving ``m`` when its file in the maps directory no longer exists (deleted
         through another service); whether it was dropped."""
-        if not self._own(m) or m.path is None or m.path.exists():
+        own = self.host.own_file(m)
+        if own is None or own.exists():
             return False
         self.host.served().pop(m.name, None)
         log.info("map %s: its file %s is gone from the maps directory (deleted through "
-                 "another service); no longer served", m.name, m.path.name)
+                 "another service); no longer served", m.name, own.name)
         return True
 
     def discover(self, name: str) -> RouteMap | None:
@@ -78,8 +76,8 @@ class DirectoryFollower:
 
     def _files(self) -> set[str]:
         """The names of the directory's files that served maps came from."""
-        return {m.path.name for m in self.host.served().values()
-                if self._own(m) and m.path is not None}
+        return {own.name for own in map(self.host.own_file, self.host.served().values())
+                if own is not None}
 
     def sync(self) -> None:
         """Load the directory's map files that no served map came from; drop the served maps
