@@ -339,54 +339,58 @@ def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1):
     """Best key d * (1/|b|), its column and dot, and the second key of rows r0.. of a tile
     (the columns of ``inv_nb``: the tile may be wider, ``gemm_width``).
 
-    Two rows at a time, each over 32 independent lanes: the loop vectorises, enough chains are
-    in flight to hide the latency of max, and the 1/|b| loads are shared; then lanes merge.
+    Each row over 16 lanes (lane q: the columns q, q + 16, ...), four blocks of 16 columns per
+    sweep: a lane's state stays in registers for four updates, the loop vectorises, and a lane
+    keeps the block of its best column (an int32 counter, not the column: no 64-bit index
+    vector in the loop). Then the lanes merge with the tail.
     """
     nr = dots.shape[0]
     nb = inv_nb.shape[0]
-    nl = 32
+    nl = 16
+    nblk = 4
     a1 = np.empty(nl, np.float32)
     a2 = np.empty(nl, np.float32)
     aj = np.empty(nl, np.int32)
-    b1 = np.empty(nl, np.float32)
-    b2 = np.empty(nl, np.float32)
-    bj = np.empty(nl, np.int32)
     nfull = nb - nb % nl
-    for r in range(0, nr, 2):
+    nsweep = nfull - nfull % (nblk * nl)
+    for r in range(nr):
         ra = dots[r]
-        rb = dots[min(r + 1, nr - 1)]  # an odd last row is simply done twice
         for q in range(nl):
             a1[q] = -np.inf
             a2[q] = -np.inf
             aj[q] = -1
-            b1[q] = -np.inf
-            b2[q] = -np.inf
-            bj[q] = -1
-        for jb in range(0, nfull, nl):
+        blk = np.int32(0)
+        for jb in range(0, nsweep, nblk * nl):
+            for q in range(nl):
+                l1 = a1[q]
+                l2 = a2[q]
+                lj = aj[q]
+                for t in range(nblk):
+                    j = jb + t * nl + q
+                    k = np.float32(ra[j]) * inv_nb[j]
+                    lj = blk + np.int32(t) if k > l1 else lj
+                    l2 = max(l2, min(l1, k))
+                    l1 = max(l1, k)
+                a1[q] = l1
+                a2[q] = l2
+                aj[q] = lj
+            blk += np.int32(nblk)
+        for jb in range(nsweep, nfull, nl):
             for q in range(nl):
                 j = jb + q
-                s = inv_nb[j]
-                k = np.float32(ra[j]) * s
+                k = np.float32(ra[j]) * inv_nb[j]
                 l1 = a1[q]
-                aj[q] = np.int32(j) if k > l1 else aj[q]
+                aj[q] = blk if k > l1 else aj[q]
                 a2[q] = max(a2[q], min(l1, k))
                 a1[q] = max(l1, k)
-                k = np.float32(rb[j]) * s
-                l1 = b1[q]
-                bj[q] = np.int32(j) if k > l1 else bj[q]
-                b2[q] = max(b2[q], min(l1, k))
-                b1[q] = max(l1, k)
+            blk += np.int32(1)
+        for q in range(nl):  # block -> column
+            aj[q] = aj[q] * nl + q if aj[q] >= 0 else -1
         m1, j1, m2 = _finish_row(ra, inv_nb, nfull, a1, a2, aj)
         rm1[r0 + r] = m1
         rj1[r0 + r] = j1
         rm2[r0 + r] = m2
         rd1[r0 + r] = ra[j1]
-        if r + 1 < nr:
-            m1, j1, m2 = _finish_row(rb, inv_nb, nfull, b1, b2, bj)
-            rm1[r0 + r + 1] = m1
-            rj1[r0 + r + 1] = j1
-            rm2[r0 + r + 1] = m2
-            rd1[r0 + r + 1] = rb[j1]
 
 
 def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, rd1, cm1, cm2):
