@@ -310,6 +310,35 @@ def _scan_columns(dots, r0, inv_na, cm1, cm2):
         r += 1
 
 
+def _scan_columns_best(dots, r0, inv_na, cm1):
+    """``_scan_columns`` for the best key of every column only (XFeat's mutual check needs no
+    second): one max per element instead of three operations."""
+    nr = dots.shape[0]
+    nb = cm1.shape[0]
+    r = 0
+    while r + 4 <= nr:
+        sa = inv_na[r0 + r]
+        sb = inv_na[r0 + r + 1]
+        sc = inv_na[r0 + r + 2]
+        sd = inv_na[r0 + r + 3]
+        ra = dots[r]
+        rb = dots[r + 1]
+        rc = dots[r + 2]
+        rd = dots[r + 3]
+        for j in range(nb):
+            c1 = max(cm1[j], np.float32(ra[j]) * sa)
+            c1 = max(c1, np.float32(rb[j]) * sb)
+            c1 = max(c1, np.float32(rc[j]) * sc)
+            cm1[j] = max(c1, np.float32(rd[j]) * sd)
+        r += 4
+    while r < nr:
+        sa = inv_na[r0 + r]
+        ra = dots[r]
+        for j in range(nb):
+            cm1[j] = max(cm1[j], np.float32(ra[j]) * sa)
+        r += 1
+
+
 def _finish_row(row, inv_nb, nfull, lm1, lm2, lj1):
     """Best key, its column and the second key of a row from its lanes plus the tail."""
     m1 = np.float32(-np.inf)  # below any key (int8 codes' keys may be negative)
@@ -395,8 +424,11 @@ def _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1):
 
 def _scan_tile(dots, r0, inv_na, inv_nb, rm1, rj1, rm2, rd1, cm1, cm2):
     """The float32 top-2 keys of rows r0.. (best column and its dot kept) and of every column
-    (values)."""
-    _scan_columns(dots, r0, inv_na, cm1, cm2)
+    (values; the best only where ``cm2`` is empty)."""
+    if cm2.shape[0] == 0:
+        _scan_columns_best(dots, r0, inv_na, cm1)
+    else:
+        _scan_columns(dots, r0, inv_na, cm1, cm2)
     _scan_rows(dots, r0, inv_nb, rm1, rj1, rm2, rd1)
 
 
@@ -549,6 +581,7 @@ def _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, delta, matched):
 
 
 _scan_columns = _jit(_scan_columns)
+_scan_columns_best = _jit(_scan_columns_best)
 _finish_row = _jit(_finish_row)
 _scan_rows = _jit(_scan_rows)
 _scan_tile = _jit(_scan_tile)
@@ -561,9 +594,9 @@ _decide = _jit(_decide)
 _ivf_scan = _jit(_ivf_scan)
 _ivf_decide = _jit(_ivf_decide)
 _top_w = _jit(_top_w)
-_KERNELS: tuple[Any, ...] = (_scan_columns, _finish_row, _scan_rows, _scan_tile, _dot, _cos,
-                             _exact_scan, _passes, _ratio, _decide, _ivf_scan, _ivf_decide,
-                             _top_w)
+_KERNELS: tuple[Any, ...] = (_scan_columns, _scan_columns_best, _finish_row, _scan_rows,
+                             _scan_tile, _dot, _cos, _exact_scan, _passes, _ratio, _decide,
+                             _ivf_scan, _ivf_decide, _top_w)
 cache_kernels_in(default_cache_dir())
 
 
@@ -604,16 +637,17 @@ def row_state(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 
 def scan_set(a: np.ndarray, a_f32: np.ndarray | None, inv_na: np.ndarray, codes: np.ndarray,
              packed: Any, inv_nb: np.ndarray, dtype: Literal["uint8", "int8"],
-             rows: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-             ) -> tuple[np.ndarray, np.ndarray]:
+             rows: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+             column_second: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """A's rows against one prepared set, 256 rows at a time: the exact GEMM (NumKong's packed
     ``dtype`` kernels where ``a_f32`` is None, else float32 BLAS on ``a_f32``) and the fused
     scan, which fills ``rows`` (each row's best key, its column, its second key and its best
-    dot, ``row_state``); returns each column's two best keys."""
+    dot, ``row_state``); returns each column's two best keys (the second an empty array
+    where ``column_second`` is False: the scan then keeps each column's best alone)."""
     rm1, rj1, rm2, rd1 = rows
     nb, na_rows = len(codes), len(a)
     cm1 = np.full(nb, -np.inf, np.float32)  # below any key (int8 keys may be negative)
-    cm2 = np.full(nb, -np.inf, np.float32)
+    cm2 = np.full(nb if column_second else 0, -np.inf, np.float32)
     tile = min(_TILE, na_rows)
     acc: Literal["uint32", "int32"] = "uint32" if dtype == "uint8" else "int32"
     if a_f32 is None:

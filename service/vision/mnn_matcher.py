@@ -21,7 +21,7 @@ rendered world's map images the matches were identical to that former float32 pa
 Fast path: the dots of 256 rows of A at a time come from an exact GEMM, NumKong's packed int8
 kernels or float32 BLAS (exact: every dot is an integer below 2^24), whichever this CPU runs
 faster (``matcher.fastest_gemm("int8")``), and the RootSIFT matcher's fused scan keeps each
-row's two best keys and best column and each column's best keys; nothing else is
+row's two best keys and best column and each column's best key; nothing else is
 materialised. The reference, ``mnn_pairs_reference``, computes the same in NumPy; both agree
 bit for bit (tested).
 """
@@ -111,7 +111,8 @@ def mnn_batch(a: np.ndarray, sets: Sequence[np.ndarray | PreparedCodes], min_cos
             continue
         if s.codes.shape[1] != a.shape[1]:
             raise ValueError(f"code length differs: {a.shape[1]} vs {s.codes.shape[1]}")
-        cm1, _ = scan_set(a, a_f32, inv_na, s.codes, s.packed, s.inv_norms, "int8", rows)
+        cm1, _ = scan_set(a, a_f32, inv_na, s.codes, s.packed, s.inv_norms, "int8", rows,
+                          column_second=False)
         col_key = rd1.astype(np.float32) * inv_na
         out[k] = _decide(rm1, rj1, rm2, col_key, cm1, inv_na, nb, min_cos, max_ratio)
         scores[k] = len(out[k][0]) / min(na_rows, nb)
