@@ -39,7 +39,8 @@ import numpy as np
 from service.vision.features import DEFAULT_DELTA, BatchMatch
 
 _TOL = 1e-6  # relative; the float32 key error is at most ~2.5e-7
-_TILE = 256  # rows of A per GEMM tile (the uint32 tile stays in L2)
+_TILE = 256  # rows of A per GEMM tile at most (``tile_rows``)
+_TILE_BYTES = 512 * 1024  # a tile of 4-byte dots this large at most: it stays in L2
 
 
 def _jit(fn: Callable) -> Any:
@@ -162,6 +163,15 @@ def gemm_width(n: int) -> int:
     if n < 500 or 12 < r < 500:
         return n
     return n - r + (512 if r >= 500 else 0) + 16
+
+
+def tile_rows(width: int) -> int:
+    """Rows of A per NumKong GEMM tile against a set this wide: at most 256, at least 32, a
+    tile of at most 512 KiB of 4-byte dots. NumKong writes the tile and the two scans read
+    it: 256 rows of 1,300 columns (1.3 MiB) took 10 % longer per comparison than 96 rows, 256
+    of 4,000 columns 45 % longer than 32 (docs/research/performance.md). The float32 BLAS
+    path keeps 256 rows: smaller tiles made it slower (4,000 columns: 35 %)."""
+    return max(32, min(_TILE, _TILE_BYTES // (4 * max(width, 1)) // 16 * 16))
 
 
 def pack(codes: np.ndarray, dtype: Literal["uint8", "int8"]) -> Any:
@@ -639,7 +649,7 @@ def scan_set(a: np.ndarray, a_f32: np.ndarray | None, inv_na: np.ndarray, codes:
              packed: Any, inv_nb: np.ndarray, dtype: Literal["uint8", "int8"],
              rows: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
              column_second: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """A's rows against one prepared set, 256 rows at a time: the exact GEMM (NumKong's packed
+    """A's rows against one prepared set, a tile at a time: the exact GEMM (NumKong's packed
     ``dtype`` kernels where ``a_f32`` is None, else float32 BLAS on ``a_f32``) and the fused
     scan, which fills ``rows`` (each row's best key, its column, its second key and its best
     dot, ``row_state``); returns each column's two best keys (the second an empty array
@@ -648,21 +658,22 @@ def scan_set(a: np.ndarray, a_f32: np.ndarray | None, inv_na: np.ndarray, codes:
     nb, na_rows = len(codes), len(a)
     cm1 = np.full(nb, -np.inf, np.float32)  # below any key (int8 keys may be negative)
     cm2 = np.full(nb if column_second else 0, -np.inf, np.float32)
-    tile = min(_TILE, na_rows)
+    width = gemm_width(nb)
+    tile = min(tile_rows(width) if a_f32 is None else _TILE, na_rows)
     acc: Literal["uint32", "int32"] = "uint32" if dtype == "uint8" else "int32"
     if a_f32 is None:
         packed = packed if packed is not None else pack(codes, dtype)
-        out = _nk.empty((tile, gemm_width(nb)), dtype=acc)
+        out = _nk.empty((tile, width), dtype=acc)
         buf = np.asarray(out)
     else:  # the transposed set, as wide as the packed GEMM's (its rows alias there too)
-        b_t = np.zeros((codes.shape[1], gemm_width(nb)), np.float32)
+        b_t = np.zeros((codes.shape[1], width), np.float32)
         b_t[:, :nb] = codes.T
         buf = np.empty((tile, b_t.shape[1]), np.float32)
     for r0 in range(0, na_rows, tile):
         r1 = min(r0 + tile, na_rows)
         if a_f32 is None:
             if r1 - r0 != tile:
-                out = _nk.empty((r1 - r0, gemm_width(nb)), dtype=acc)
+                out = _nk.empty((r1 - r0, width), dtype=acc)
                 buf = np.asarray(out)
             _nk.dots_packed(a[r0:r1], packed, out=out)
             dots = buf
