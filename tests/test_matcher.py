@@ -127,6 +127,31 @@ def test_sets_the_gemm_runs_wider_match_as_the_reference(backend) -> None:
     assert got.counts[-1] > 100  # the near copy matches
 
 
+def test_tiles_hold_at_most_512_kib_of_dots() -> None:
+    """NumKong's tile against a set: 32-256 rows, a multiple of 16, at most 512 KiB of 4-byte
+    dots where 32 rows allow it, fewer rows for wider sets."""
+    from service.vision.matcher import tile_rows
+
+    widths = [1, 300, 610, 1040, 1300, 2064, 4000, 20000]
+    rows = [tile_rows(w) for w in widths]
+    assert all(32 <= r <= 256 and r % 16 == 0 for r in rows)
+    assert all(r * 4 * w <= 512 * 1024 for r, w in zip(rows, widths, strict=True) if r > 32)
+    assert rows == sorted(rows, reverse=True) and rows[0] == 256 and rows[-1] == 32
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_wide_set_in_many_small_tiles_matches_as_the_reference(backend) -> None:
+    """A set of 4,000 rows: NumKong runs 130 frame rows in tiles of 32 (the last one of 2);
+    the same matches as the reference."""
+    rng = np.random.default_rng(4)
+    a = rng.integers(0, 40, (130, 128)).astype(np.uint8)
+    b = rng.integers(0, 40, (4000, 128)).astype(np.uint8)
+    b[1000:1130] = np.clip(a.astype(int) + rng.integers(-2, 3, a.shape), 0, 255)
+    got = match_batch_u8(a, [b], backend=backend)
+    _same(got, match_batch_u8_reference(a, [b]))
+    assert got.counts[0] > 60
+
+
 def _reference_pairs(a: np.ndarray, b: np.ndarray, delta: float) -> tuple[np.ndarray, ...]:
     """The reference's matches at ``delta`` and each one's exact nearest neighbour in b."""
     rows = np.flatnonzero(match_batch_u8_reference(a, [b], delta).matched[0])
