@@ -273,6 +273,12 @@ def fastest_gemm(dtype: Literal["uint8", "int8"] = "uint8") -> GemmChoice:
 
 
 # ---- numba kernels ------------------------------------------------------------------------
+def _four_rows(dots, r, r0, inv_na):
+    """Rows r.. r + 3 of a tile and their scales (rows r0 + r.. of A): a column sweep's four."""
+    return (inv_na[r0 + r], inv_na[r0 + r + 1], inv_na[r0 + r + 2], inv_na[r0 + r + 3],
+            dots[r], dots[r + 1], dots[r + 2], dots[r + 3])
+
+
 def _scan_columns(dots, r0, inv_na, cm1, cm2):
     """Update the two best float32 keys d * (1/|a|) of every column with rows r0.. of a tile
     (the columns of ``cm1``: the tile may be wider, ``gemm_width``).
@@ -283,14 +289,7 @@ def _scan_columns(dots, r0, inv_na, cm1, cm2):
     nb = cm1.shape[0]
     r = 0
     while r + 4 <= nr:
-        sa = inv_na[r0 + r]
-        sb = inv_na[r0 + r + 1]
-        sc = inv_na[r0 + r + 2]
-        sd = inv_na[r0 + r + 3]
-        ra = dots[r]
-        rb = dots[r + 1]
-        rc = dots[r + 2]
-        rd = dots[r + 3]
+        sa, sb, sc, sd, ra, rb, rc, rd = _four_rows(dots, r, r0, inv_na)
         for j in range(nb):
             c1 = cm1[j]
             c2 = cm2[j]
@@ -327,14 +326,7 @@ def _scan_columns_best(dots, r0, inv_na, cm1):
     nb = cm1.shape[0]
     r = 0
     while r + 4 <= nr:
-        sa = inv_na[r0 + r]
-        sb = inv_na[r0 + r + 1]
-        sc = inv_na[r0 + r + 2]
-        sd = inv_na[r0 + r + 3]
-        ra = dots[r]
-        rb = dots[r + 1]
-        rc = dots[r + 2]
-        rd = dots[r + 3]
+        sa, sb, sc, sd, ra, rb, rc, rd = _four_rows(dots, r, r0, inv_na)
         for j in range(nb):
             c1 = max(cm1[j], np.float32(ra[j]) * sa)
             c1 = max(c1, np.float32(rb[j]) * sb)
@@ -590,6 +582,7 @@ def _ivf_decide(rc1, rc2, rj, cc1, cc2, ci, delta, matched):
     return count
 
 
+_four_rows = _jit(_four_rows)
 _scan_columns = _jit(_scan_columns)
 _scan_columns_best = _jit(_scan_columns_best)
 _finish_row = _jit(_finish_row)
@@ -604,9 +597,9 @@ _decide = _jit(_decide)
 _ivf_scan = _jit(_ivf_scan)
 _ivf_decide = _jit(_ivf_decide)
 _top_w = _jit(_top_w)
-_KERNELS: tuple[Any, ...] = (_scan_columns, _scan_columns_best, _finish_row, _scan_rows,
-                             _scan_tile, _dot, _cos, _exact_scan, _passes, _ratio, _decide,
-                             _ivf_scan, _ivf_decide, _top_w)
+_KERNELS: tuple[Any, ...] = (_four_rows, _scan_columns, _scan_columns_best, _finish_row,
+                             _scan_rows, _scan_tile, _dot, _cos, _exact_scan, _passes, _ratio,
+                             _decide, _ivf_scan, _ivf_decide, _top_w)
 cache_kernels_in(default_cache_dir())
 
 
