@@ -18,12 +18,12 @@ This is the float32 matching of unit descriptors that XFeat's upstream matcher d
 each product rounded once instead of a GEMM's 64-term float sums: on 378 comparisons of a
 rendered world's map images the matches were identical to that former float32 path.
 
-Fast path: the dots of 256 rows of A at a time come from an exact GEMM, NumKong's packed int8
-kernels or float32 BLAS (exact: every dot is an integer below 2^24), whichever this CPU runs
-faster (``matcher.fastest_gemm("int8")``), and the RootSIFT matcher's fused scan keeps each
-row's two best keys and best column and each column's best key; nothing else is
-materialised. The reference, ``mnn_pairs_reference``, computes the same in NumPy; both agree
-bit for bit (tested).
+Fast path: the dots of a tile of A's rows at a time (``matcher.scan_set``) come from an exact
+GEMM, NumKong's packed int8 kernels or float32 BLAS (exact: every dot is an integer below
+2^24), whichever this CPU runs faster (``matcher.fastest_gemm("int8")``), and the RootSIFT
+matcher's fused scan keeps each row's two best keys and best column and each column's best
+key; nothing else is materialised. The reference, ``mnn_pairs_reference``, computes the
+same in NumPy; both agree bit for bit (tested).
 """
 
 from __future__ import annotations
