@@ -35,13 +35,15 @@ def _same(got: tuple[np.ndarray, np.ndarray], want: tuple[np.ndarray, np.ndarray
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_the_fast_path_equals_the_reference(backend: str) -> None:
-    """Sizes below, at and beyond the 256-row tile and the scan's 32 lanes and where the GEMM
-    runs wider than the set (512, 1,024: ``gemm_width``), a near copy of the frame among the
-    sets (many matches; once padded to 1,024 rows), gates on and off."""
+    """Sizes around the row scan's 16 lanes and 64-column sweeps, several NumKong tiles
+    (``tile_rows``) of the frame's 601 rows, sets the GEMM runs wider (512, 1,024:
+    ``gemm_width``), a near copy of the frame among the sets (many matches; once padded to
+    1,024 rows), gates on and off."""
     rng = np.random.default_rng(0)
     a = _codes(rng, 601)
     near = np.clip(a.astype(int) + rng.integers(-6, 7, a.shape), -127, 127).astype(np.int8)
-    sets = [_codes(rng, n) for n in (1, 2, 31, 33, 256, 512, 700)] + [near[::-1].copy()] + \
+    sets = [_codes(rng, n) for n in (1, 2, 15, 17, 31, 33, 63, 65, 256, 512, 700)] + \
+        [near[::-1].copy()] + \
         [np.vstack([_codes(rng, 423), near])]
     total = 0
     for min_cos, ratio in ((0.82, 0.93), (0.0, 1.0), (0.3, 0.8)):
