@@ -101,12 +101,13 @@ PruneOpt = Annotated[bool, typer.Option(
     help="the papers' neighbour pruning (drops the features that survive lighting changes)")]
 
 
-def feature_params(name: str, width: int = 320, height: int = 240) -> FeatureParams:
+def feature_params(name: str, width: int = 320, height: int = 240,
+                   max_features: int | None = None) -> FeatureParams:
     """The feature parameters of a feature type name (the CLI's --features)."""
     from service.vision.features import named_params
 
     try:
-        return named_params(name, width, height)
+        return named_params(name, width, height, max_features)
     except ValueError as exc:
         _fail(str(exc))
 
@@ -247,6 +248,10 @@ def map_build(
         help="the camera's horizontal field of view (degrees; square pixels, centred), where "
              "the rounds' dataset.json 'camera' or calib.txt do not give it; with a camera "
              "the service locates frames between map images")] = None,
+    max_features: Annotated[int | None, typer.Option(
+        min=0, help="SIFT's features kept per map image and frame, the strongest (default "
+                    "2,048; 0: all). Above 2,048 the service compares the map through its "
+                    "inverted file (SWARMLOC_MATCHER=auto); XFeat keeps its 1,024")] = None,
 ) -> None:
     """Build a map from one or more rounds: features, optional pruning, atomic write."""
     from dataclasses import replace
@@ -267,7 +272,8 @@ def map_build(
     try:
         m = build_map_from_rounds(
             rounds, name=out.name.removesuffix(".swmap"),
-            params=feature_params(features, width, height), delta=delta, prune_features=prune,
+            params=feature_params(features, width, height, max_features), delta=delta,
+            prune_features=prune,
             source={"rounds": [{"round": str(r.path), "name": r.name} for r in rounds]},
             wrap=lambda it: tqdm(it, total=sum(len(r) for r in rounds), desc="features",
                                  unit="img"))

@@ -72,10 +72,13 @@ class Settings(BaseSettings):
         "installed package). Unwritable: they compile at each start (seconds, before the "
         "service reports ready)")
     matcher: Matcher = Field(
-        "exact", description="how a frame's features are compared with a map image's: "
+        "auto", description="how a frame's features are compared with a map image's: "
         "'exact' every pair (the papers' similarity), 'words' only the pairs that share a "
         "visual word of the map (an inverted file trained from the map's own features at "
-        "load, seeded: less work per comparison, nearly the same matches; RootSIFT maps)")
+        "load, seeded: less work per comparison, nearly the same matches; RootSIFT maps), "
+        "'auto' words on a map whose images hold more than 2,048 RootSIFT features (the "
+        "median image; built with a cap above the default), where every pair grows with the "
+        "square of the features, exact on every other map")
     image_cache_mb: int = Field(
         512, ge=0, le=2**20, description="per map: memory for its images' descriptors as the "
         "matchers take them (made on first use, the least recently used dropped beyond this "

@@ -4,14 +4,17 @@ with every word probed it is the exact matcher; bad values are refused."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
-from service.maps.route_map import RouteMap, load_map, save_map
+from service.maps.route_map import RICH_FEATURES, RouteMap, load_map, save_map
 from service.settings import Settings
+from service.vision.features import Features
 from service.vision.map_geometry import FramePairs
 from service.vision.matcher import compiled_signatures, warm_up
 from service.vision.vocabulary import words_for
@@ -24,10 +27,10 @@ def _kept(m: RouteMap, codes: np.ndarray, ids: list[int], delta: float = 0.9
 
 
 def test_bad_matcher_values_are_refused_with_the_choices(camera_map: RouteMap) -> None:
-    with pytest.raises(ValidationError, match="'exact' or 'words'"):
+    with pytest.raises(ValidationError, match="'auto', 'exact' or 'words'"):
         Settings(matcher="fast")
     assert camera_map.path is not None
-    with pytest.raises(ValueError, match="unknown matcher 'fast': use one of exact, words"):
+    with pytest.raises(ValueError, match="unknown matcher 'fast': use one of auto, exact, words"):
         load_map(camera_map.path, matcher="fast")
 
 
@@ -142,3 +145,94 @@ def test_the_words_matchers_best_images_are_matched_again_exactly(camera_map: Ro
             assert np.array_equal(re, ra) and np.array_equal(ce, ca)
         differs += int(not np.array_equal(s_words[top], s_exact[top]))
     assert differs > 0  # one probe misses matches: the exact pass changed something
+
+
+def _with_features(m: RouteMap, per_image: int, **meta: object) -> RouteMap:
+    """``m`` with ``per_image`` features in every image: each image's codes repeated and
+    jittered (distinct features that still match the image's own), its keypoints likewise."""
+    rng = np.random.default_rng(0)
+    codes, kps = [], []
+    for i in range(m.n_images):
+        rows = np.arange(m.offsets[i], m.offsets[i + 1])
+        take = rows[np.arange(per_image) % len(rows)]
+        c = m.codes[take].astype(np.int16) + rng.integers(-2, 3, (per_image, m.codes.shape[1]))
+        codes.append(np.clip(c, 0, 255).astype(np.uint8))
+        kps.append(np.asarray(m.keypoints[take], np.float32) + rng.uniform(0, 0.5, (per_image, 2)))
+    offsets = np.arange(m.n_images + 1, dtype=np.int64) * per_image
+    return dataclasses.replace(m, name=f"{m.name}{per_image}", meta={**m.meta, **meta},
+                               codes=np.concatenate(codes), offsets=offsets,
+                               keypoints=np.concatenate(kps),
+                               place_index=None, lazy_digests=None, path=None)
+
+
+def test_auto_compares_maps_of_rich_images_through_their_words(tmp_path,
+                                                               small_map: RouteMap) -> None:
+    """The default ``auto``: a map whose images hold more RootSIFT features than a frame's
+    default cap is loaded with its inverted file (trained at load) and reported as such; a
+    map at the cap, and the same rich map with ``exact``, compare every pair."""
+    assert small_map.matcher == "auto" and not small_map.uses_words  # ~300 per image
+    rich = load_map(save_map(_with_features(small_map, RICH_FEATURES + 64), tmp_path / "rich"))
+    at_cap = load_map(save_map(_with_features(small_map, RICH_FEATURES), tmp_path / "cap"))
+    assert rich.rich_images and rich.uses_words and rich._words is not None  # trained at load
+    assert rich.summary()["matcher"] == "words"
+    assert not at_cap.rich_images and not at_cap.uses_words
+    assert at_cap.summary()["matcher"] == "exact"
+    exact = load_map(tmp_path / "rich.swmap", matcher="exact")
+    assert not exact.uses_words and exact._words is None
+    # the step goes through the words: no map image prepared for the exact GEMM
+    loc = Localizer(rich, "dpso", {}, seed=0)
+    rows = slice(int(rich.offsets[5]), int(rich.offsets[6]))
+    frame = Features(np.asarray(rich.keypoints[rows]), np.asarray(rich.codes[rows]))
+    for t in range(3):
+        loc.step(frame, float(t))
+    assert rich.inverted_file.indexed()
+    assert not any(k[0] == "prepared" for k in rich.image_cache.keys())
+    svc = LocalizationService(Settings(maps_dir=tmp_path, session_store="memory",
+                                       zenoh_enabled=False))
+    try:
+        assert svc.settings.matcher == "auto"
+        assert svc.maps[rich.name].uses_words and not svc.maps[at_cap.name].uses_words
+        assert svc.map_summary(rich.name).meta["matcher"] == "words"
+    finally:
+        svc.close()
+
+
+def test_auto_leaves_the_papers_sift_on_the_papers_similarity(small_map: RouteMap) -> None:
+    from service.vision.features import SiftParams
+
+    papers = {"type": "sift", **dataclasses.asdict(SiftParams.papers(320, 240))}
+    plain = _with_features(small_map, RICH_FEATURES + 64, feature=papers)
+    assert plain.rich_images and not plain.first_params.root
+    assert not plain.uses_words and plain.with_matcher("words").uses_words
+
+
+def test_map_build_caps_sifts_features_per_image_and_frame(tmp_path, sunny1) -> None:
+    """``swarmloc map build --max-features N``: the map's images hold at most N RootSIFT
+    features, its metadata keeps the cap, so frames extracted for it are capped alike; XFeat
+    keeps its own cap and says so."""
+    from typer.testing import CliRunner
+
+    from client.cli import app
+    from service.vision.features import SiftParams, extract
+
+    rnd = tmp_path / "part"
+    rnd.mkdir()
+    part = sunny1.subset(range(4))
+    lines = ["image,x,y"] + [f"{n},{x:.3f},{y:.3f}" for n, (x, y) in zip(
+        part.images, part.xy, strict=True)]
+    (rnd / "poses.csv").write_text("\n".join(lines) + "\n")
+    for n in part.images:
+        (rnd / n).write_bytes((sunny1.path / n).read_bytes())
+    assert len(extract(sunny1.load_image(0), SiftParams()).codes) > 100
+    out = CliRunner().invoke(app, ["map", "build", str(rnd), "--out", str(tmp_path / "m"),
+                                   "--features", "clahe-rootsift", "--max-features", "60"])
+    assert out.exit_code == 0, out.output
+    m = load_map(tmp_path / "m.swmap")
+    p = m.feature_params
+    assert isinstance(p, SiftParams) and p.n_features == 60 and p.root
+    # OpenCV keeps the N strongest and their ties (a keypoint's second orientation)
+    assert np.all((np.diff(m.offsets) >= 60) & (np.diff(m.offsets) <= 64)) and not m.uses_words
+    assert 60 <= len(extract(sunny1.load_image(1), p).codes) <= 64
+    out = CliRunner().invoke(app, ["map", "build", str(rnd), "--out", str(tmp_path / "x"),
+                                   "--features", "xfeat", "--max-features", "60"])
+    assert out.exit_code != 0 and "XFeat keeps its own 1024" in out.output

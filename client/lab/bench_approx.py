@@ -88,7 +88,7 @@ def compare(map_rnd: Round, query: Round, name: str, size: tuple[int, int], fram
             exact_geometry: bool = False, images: int = 18, exact_top: int = 0) -> ApproxRow:
     params = capped_params("clahe-rootsift", size, cap) if cap else \
         named_params("clahe-rootsift", *size)
-    m = build_map_from_rounds([map_rnd], params=params)
+    m = build_map_from_rounds([map_rnd], params=params).with_matcher("exact")
     t0 = time.perf_counter()
     wm = m.with_words(k or None, probes, exact_top)
     train_ms = 1e3 * (time.perf_counter() - t0)

@@ -72,7 +72,7 @@ class FrameBench:
     comparisons: float  # mean comparisons per frame
     paths: dict[str, PathTimes]
     identical: bool  # the three robots got identical estimates for every frame
-    matcher: str = "exact"  # the service's SWARMLOC_MATCHER
+    matcher: str = "auto"  # the service's SWARMLOC_MATCHER
 
     @property
     def step_ratio(self) -> float:
@@ -181,7 +181,7 @@ def _serialise_ms(transport: str, est: Any, repeats: int = 3) -> float:
 
 def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int = 10,
                 seed: int = 0, transports: tuple[str, ...] = ("http", "zenoh"),
-                workers: int = 0, matcher: Matcher = "exact",
+                workers: int = 0, matcher: Matcher = "auto",
                 warm_geometry: bool = True) -> FrameBench:
     """Per-frame stage times in process and over each transport, in one run (see the module
     docstring). ``maps_dir`` must hold one map (or a map named ``demo``); ``matcher``: the

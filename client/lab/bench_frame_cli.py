@@ -26,8 +26,8 @@ def register(bench_app: typer.Typer) -> None:
         via: Annotated[str, typer.Option(help="transports beside in-process")] = "http,zenoh",
         seed: int = 0,
         matcher: Annotated[str, typer.Option(help="the service's matcher(s), comma-separated "
-                                                  "(exact, words): one run each, in turn")]
-        = "exact",
+                                                  "(auto, exact, words): one run each, in turn")]
+        = "auto",
         warm_geometry: Annotated[bool, typer.Option(
             help="the service builds its maps' geometry structures before the frames (as it "
                  "does after start-up, SWARMLOC_WARM_GEOMETRY); off: frames build them")]

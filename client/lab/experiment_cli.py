@@ -190,8 +190,9 @@ def experiment(
              "clahe-rootsift+xfeat (the papers' variants always use the papers' SIFT)")]
     = "clahe-rootsift",
     matcher: Annotated[str, typer.Option(
-        help="matcher of our maps: exact, or words (the inverted file, SWARMLOC_MATCHER)")]
-    = "exact",
+        help="matcher of our maps: auto (the service's default), exact, or words (the "
+             "inverted file), as SWARMLOC_MATCHER")]
+    = "auto",
     exact_top: Annotated[int, typer.Option(
         help="with --matcher words: the best N images of each comparison matched again "
              "exactly")] = 0,
@@ -223,6 +224,8 @@ def experiment(
             for papers in {METHODS[c].papers_map for c in chosen}}
     if matcher == "words" and False in maps:
         maps[False] = maps[False].with_words(exact_top=exact_top)
+    elif matcher != "auto" and False in maps:
+        maps[False] = maps[False].with_matcher(matcher)
     for q in [x for x in query.split(",") if x]:
         rnd = read_round(dataset / q)
         tables = {papers: cached_table(dataset, m, rnd) for papers, m in maps.items()}

@@ -33,8 +33,9 @@ StatusName = Literal["initializing", "tracking", "recovering", "lost"]
 #: class)
 EstimatorName = Literal["dpso", "pf-g", "pf-l"]
 #: how a frame's RootSIFT features are compared with a map image's (service/maps/route_map.py):
-#: "exact" every pair, "words" only the pairs that share a visual word (inverted file)
-Matcher = Literal["exact", "words"]
+#: "exact" every pair, "words" only the pairs that share a visual word (inverted file),
+#: "auto" words on a map whose images hold more features than a frame keeps by default
+Matcher = Literal["auto", "exact", "words"]
 MATCHERS: tuple[str, ...] = get_args(Matcher)
 #: what an Estimate's heading is (service/estimators/odometry.py)
 HeadingSource = Literal["motion", "odometry", "camera"]

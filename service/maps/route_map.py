@@ -158,6 +158,10 @@ def _dtypes_v6(kind: str) -> dict[str, np.dtype]:
 
 Verify = bool | Literal["lazy"]
 SUFFIX = ".swmap"
+#: the ``auto`` matcher compares through the inverted file on maps whose median image holds
+#: more RootSIFT features than this: a frame's default cap, so every map built with the
+#: defaults keeps the exact matcher (docs/research/performance.md, "Rich maps")
+RICH_FEATURES = SiftParams().n_features
 _ALIGN = 64
 
 
@@ -233,8 +237,9 @@ class RouteMap:
     lazy_digests: np.ndarray | None = None
     second: SecondSet | None = None  # XFeat beside RootSIFT (feature type sift+xfeat)
     # how a frame's RootSIFT codes are compared with the map's (MATCHERS): "exact" every
-    # pair, "words" the pairs that share a visual word (service/vision/vocabulary.py)
-    matcher: str = "exact"
+    # pair, "words" the pairs that share a visual word (service/vision/vocabulary.py),
+    # "auto" words where the map's images are rich (``rich_images``), else exact
+    matcher: str = "auto"
     # the words matcher: the best ``exact_top`` images of each comparison (by their words
     # score) are compared again with the exact matcher (0: none)
     exact_top: int = 0
@@ -255,6 +260,7 @@ class RouteMap:
                                   self.second.lazy_digests is not None else 0, bool)
         self._words_lock = threading.Lock()
         self._words: InvertedFileMatcher | None = None
+        self._median_features = float(np.median(np.diff(self.offsets))) if n else 0.0
 
     def _check_image(self, image_id: int) -> None:
         """With lazy verification: the image's codes and keypoints against their digests,
@@ -424,10 +430,23 @@ class RouteMap:
         return self.image_cache.get(("prepared", int(image_id)), make)
 
     @property
+    def rich_images(self) -> bool:
+        """The median map image holds more features than a frame keeps by default
+        (``RICH_FEATURES``: the map was built with a higher cap), so that comparing every
+        pair would grow with the square of the features."""
+        return self._median_features > RICH_FEATURES
+
+    @property
     def uses_words(self) -> bool:
         """The similarity (and the geometry's matches) go through the inverted file: the
-        ``words`` matcher on a map of RootSIFT codes (XFeat keeps its own matcher)."""
-        return self.matcher == "words" and not isinstance(self.first_params, XFeatParams)
+        ``words`` matcher on a map of SIFT codes, or ``auto`` on a RootSIFT map of rich
+        images (XFeat keeps its own matcher)."""
+        p = self.first_params
+        if isinstance(p, XFeatParams):
+            return False
+        # ``auto`` leaves the papers' plain SIFT on the papers' similarity
+        return self.matcher == "words" or (self.matcher == "auto" and p.root
+                                           and self.rich_images)
 
     @property
     def inverted_file(self) -> InvertedFileMatcher:
@@ -440,10 +459,14 @@ class RouteMap:
             return self._words
 
     def _train_words(self, k: int | None, probes: int) -> InvertedFileMatcher:
-        counts = np.diff(self.offsets)
         return InvertedFileMatcher(self.codes_of, self.codes, self.n_images, k, probes,
-                                   features_per_image=float(np.median(counts)),
+                                   features_per_image=self._median_features,
                                    cache=self.image_cache)
+
+    def with_matcher(self, matcher: str) -> RouteMap:
+        """This map (the same arrays) compared with ``matcher`` (MATCHERS); a vocabulary the
+        words matcher needs is trained on first use."""
+        return replace(self, matcher=check_matcher(matcher))
 
     def with_words(self, k: int | None = None, probes: int = DEFAULT_PROBES,
                    exact_top: int = 0) -> RouteMap:
@@ -590,6 +613,7 @@ class RouteMap:
             "spacing_m": self.spacing,
             **{k: v for k, v in self.meta.items() if k not in ("arrays", "checksum")},
             "place_index": self.place_index.meta() if self.place_index is not None else None,
+            "matcher": "words" if self.uses_words else "exact",
             **self._file_size(),
         }
 
@@ -1156,7 +1180,7 @@ def check_matcher(matcher: str) -> str:
     return matcher
 
 
-def load_map(path: str | Path, verify: Verify = True, matcher: str = "exact") -> RouteMap:
+def load_map(path: str | Path, verify: Verify = True, matcher: str = "auto") -> RouteMap:
     """Open a map memory-mapped; check version, layout and (by default) every checksum.
 
     ``verify="lazy"``: check the header and every array but the descriptors and keypoints

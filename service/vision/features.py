@@ -172,21 +172,31 @@ def feature_params(d: dict[str, Any]) -> FeatureParams:
 FEATURE_TYPES: tuple[str, ...] = get_args(FeatureTypeName)  # the CLI's, the API's and the lab's
 
 
-def named_params(name: str, width: int = 320, height: int = 240) -> FeatureParams:
+def named_params(name: str, width: int = 320, height: int = 240,
+                 max_features: int | None = None) -> FeatureParams:
     """The feature parameters of a feature type name at a working size: ``clahe-rootsift``
     (CLAHE + RootSIFT, the default), ``sift`` (the papers'), ``xfeat`` or
-    ``clahe-rootsift+xfeat`` (both, fused)."""
+    ``clahe-rootsift+xfeat`` (both, fused). ``max_features``: SIFT's cap per frame and map
+    image (``SiftParams.n_features``; 0 keeps all; None: the type's default); XFeat keeps its
+    own (``top_k``)."""
     from service.vision.xfeat import XFeatParams
 
-    if name == "clahe-rootsift":
-        return SiftParams(width=width, height=height)
+    if max_features is not None and max_features < 0:
+        raise ValueError(f"max_features must be 0 (all) or more, got {max_features}")
+    sift = SiftParams(width=width, height=height)
     if name == "sift":
-        return SiftParams.papers(width, height)
+        sift = SiftParams.papers(width, height)
+    if max_features is not None:
+        sift = replace(sift, n_features=max_features)
+    if name in ("clahe-rootsift", "sift"):
+        return sift
     if name == "xfeat":
+        if max_features is not None:
+            raise ValueError("max_features caps SIFT's features; XFeat keeps its own "
+                             f"{XFeatParams().top_k} (top_k)")
         return XFeatParams(width=width, height=height)
     if name == "clahe-rootsift+xfeat":
-        return DualParams(SiftParams(width=width, height=height),
-                          XFeatParams(width=width, height=height))
+        return DualParams(sift, XFeatParams(width=width, height=height))
     raise ValueError(f"unknown feature type {name!r}; choose one of {list(FEATURE_TYPES)}")
 
 
