@@ -20,7 +20,7 @@ from client.lab.bench_load_cli import register as register_load_bench
 from client.lab.bench_odometry import register as register_odometry_bench
 from client.lab.experiment_cli import experiment, sweep
 from client.lab.scale_map_cli import register as register_scale_map
-from service.api.models import DEFAULT_FEATURES
+from service.api.models import DEFAULT_FEATURES, MAX_FEATURES_CAP
 from service.cli import DebugOpt, run_cli, serve
 
 if TYPE_CHECKING:
@@ -99,6 +99,12 @@ FeaturesOpt = Annotated[str, typer.Option(
          "Runtime on the CPU)")]
 PruneOpt = Annotated[bool, typer.Option(
     help="the papers' neighbour pruning (drops the features that survive lighting changes)")]
+
+
+MaxFeaturesOpt = Annotated[int | None, typer.Option(
+    min=0, max=MAX_FEATURES_CAP, help="SIFT's features kept per map image and frame, the strongest "
+    "(default 2,048; 0: all). Above 2,048 the service compares the map through its inverted "
+    "file (SWARMLOC_MATCHER=auto); XFeat keeps its 1,024")]
 
 
 def feature_params(name: str, width: int = 320, height: int = 240,
@@ -248,10 +254,7 @@ def map_build(
         help="the camera's horizontal field of view (degrees; square pixels, centred), where "
              "the rounds' dataset.json 'camera' or calib.txt do not give it; with a camera "
              "the service locates frames between map images")] = None,
-    max_features: Annotated[int | None, typer.Option(
-        min=0, help="SIFT's features kept per map image and frame, the strongest (default "
-                    "2,048; 0: all). Above 2,048 the service compares the map through its "
-                    "inverted file (SWARMLOC_MATCHER=auto); XFeat keeps its 1,024")] = None,
+    max_features: MaxFeaturesOpt = None,
 ) -> None:
     """Build a map from one or more rounds: features, optional pruning, atomic write."""
     from dataclasses import replace
@@ -405,6 +408,7 @@ def map_build_remote(
     = False,
     token: Token = None,
     features: FeaturesOpt = DEFAULT_FEATURES,
+    max_features: MaxFeaturesOpt = None,
 ) -> None:
     """Zip a round, build its map on the service, follow the job with a progress bar."""
     import tempfile
@@ -421,7 +425,7 @@ def map_build_remote(
         archive = zip_round(round_dir, Path(tmp) / "round.zip")
         try:
             job = client.build_map_remote(name or round_dir.name, archive, "*" if new else None,
-                                          features)
+                                          features, max_features)
             with tqdm(total=job.total, desc=f"build {job.map}", unit="img") as bar:
                 def show(j: JobInfo) -> None:
                     bar.update(j.done - bar.n)

@@ -260,7 +260,8 @@ def test_bad_json_on_zenoh_is_a_400(http, peer, sunny2, raw) -> None:
     assert got and got[0]["status"] == 400
 
 
-@pytest.mark.parametrize("opts", [{"if_match": 5}, {"force": "yes"}, {"action": ["get"]}])
+@pytest.mark.parametrize("opts", [{"if_match": 5}, {"force": "yes"}, {"action": ["get"]},
+                                  {"max_features": "60"}, {"max_features": True}])
 def test_bad_map_options_on_zenoh_are_a_400(peer, opts) -> None:
     err = _err(list(peer.get("swarmloc/@maps/small", attachment=json.dumps(opts).encode(),
                              timeout=30)))

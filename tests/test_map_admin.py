@@ -249,6 +249,35 @@ def test_a_build_makes_the_feature_type_asked_for(srv, small_round, sunny2) -> N
     srv.http.delete_map("xbuilt", force=True)
 
 
+def test_a_build_keeps_the_sift_features_asked_for(srv, small_round) -> None:
+    """``?max_features=N``: the built map's images hold at most N RootSIFT features (OpenCV
+    keeps the N strongest and their ties) and its frames are extracted alike; a cap on XFeat
+    alone, or out of range, is refused before anything is built."""
+    archive = zip_round(small_round, small_round.parent / "part-cap.zip")
+    body, zipped = archive.read_bytes(), {"content-type": "application/zip"}
+    r = httpx.post(f"{srv.url}/maps/capped/build", content=body, headers=zipped,
+                   params={"features": "xfeat", "max_features": 60}, timeout=60)
+    assert r.status_code == 400 and "XFeat keeps its own" in r.text, r.text
+    r = httpx.post(f"{srv.url}/maps/capped/build", content=body, headers=zipped,
+                   params={"max_features": -1}, timeout=60)
+    assert r.status_code == 422 and "max_features" in r.text, r.text
+    assert httpx.get(f"{srv.url}/maps/capped").status_code == 404
+    assert not list(srv.maps.glob(".swarmloc-*"))  # nothing staged is left
+    job = srv.http.build_map_remote("capped", archive, features="clahe-rootsift",
+                                    max_features=60)
+    assert job.max_features == 60
+    deadline = time.monotonic() + 240
+    while job.state not in ("done", "failed") and time.monotonic() < deadline:
+        time.sleep(0.1)
+        job = srv.http.job(job.id)
+    assert job.state == "done", job
+    m = srv.service.get_map("capped")
+    counts = np.diff(m.offsets)
+    assert m.feature_params.n_features == 60 and np.all((counts >= 60) & (counts <= 64))
+    assert httpx.get(f"{srv.url}/maps/capped").json()["meta"]["matcher"] == "exact"
+    srv.http.delete_map("capped", force=True)
+
+
 def test_build_fails_cleanly_when_the_map_changed_meanwhile(srv, map_files, small_round
                                                             ) -> None:
     etag1 = _etag(_put(srv.url, "alt", map_files["v1"].read_bytes()))

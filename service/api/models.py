@@ -323,6 +323,8 @@ JobState = Literal["queued", "running", "done", "failed"]
 FeatureTypeName = Literal["clahe-rootsift", "sift", "xfeat", "clahe-rootsift+xfeat"]
 """A map's feature type: CLAHE + RootSIFT, the papers' SIFT, XFeat (learned, holds at night),
 or CLAHE + RootSIFT and XFeat both, their similarities fused (the default)."""
+MAX_FEATURES_CAP = 65_536
+"""The most SIFT features per image a map build may ask to keep (``max_features``)."""
 DEFAULT_FEATURES: FeatureTypeName = "clahe-rootsift+xfeat"
 """The feature type of a map built without naming one (CLI, HTTP, Zenoh, the demo map):
 both types, which measured best across light (docs/research/lighting.md)."""
@@ -340,6 +342,9 @@ class JobInfo(BaseModel):
     status: int | None = Field(None, description="HTTP status of that failure")
     checksum: str | None = Field(None, description="version of the map a done job installed")
     features: FeatureTypeName = Field(DEFAULT_FEATURES, description="the map's feature type")
+    max_features: int | None = Field(
+        None, description="SIFT's features kept per map image and frame (None: the default, "
+        "2,048; 0: all)")
     created: float
     started: float | None = None
     finished: float | None = None

@@ -20,6 +20,7 @@ from fastapi.responses import StreamingResponse
 from service.api.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
 from service.api.models import (
     DEFAULT_FEATURES,
+    MAX_FEATURES_CAP,
     ErrorBody,
     FeatureTypeName,
     JobInfo,
@@ -160,6 +161,12 @@ async def build_map(name: str, request: Request, response: Response, service: Se
                         description="feature type: clahe-rootsift+xfeat (default: both, "
                         "fused), clahe-rootsift, sift (the papers') or xfeat (learned, holds "
                         "at night)")] = DEFAULT_FEATURES,
+                    max_features: Annotated[int | None, Query(
+                        ge=0, le=MAX_FEATURES_CAP,
+                        description="SIFT's features kept per map image and frame, the "
+                        "strongest (default 2,048; 0: all). Above 2,048 the service compares "
+                        "the map through its inverted file (SWARMLOC_MATCHER=auto); XFeat keeps "
+                        "its own 1,024")] = None,
                     ) -> JobInfo:
     """Build a map from a zip/tar(.gz) of a round (poses.csv + images) in the background;
     follow GET /jobs/{id}. The map appears (or is replaced) when the build is done."""
@@ -170,7 +177,7 @@ async def build_map(name: str, request: Request, response: Response, service: Se
     async with _staged(request, service, "archive", service.settings.max_archive_bytes,
                        "round archive") as path:
         job = await anyio.to_thread.run_sync(
-            admin.submit_build, name, path, if_match, if_none_match, features)
+            admin.submit_build, name, path, if_match, if_none_match, features, max_features)
     response.headers["Location"] = f"/jobs/{job.id}"
     return job
 

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Protocol, get_args
 import cv2
 import numpy as np
 
-from service.api.models import FeatureTypeName
+from service.api.models import MAX_FEATURES_CAP, FeatureTypeName
 
 if TYPE_CHECKING:
     from typing import TypeAlias
@@ -181,8 +181,9 @@ def named_params(name: str, width: int = 320, height: int = 240,
     own (``top_k``)."""
     from service.vision.xfeat import XFeatParams
 
-    if max_features is not None and max_features < 0:
-        raise ValueError(f"max_features must be 0 (all) or more, got {max_features}")
+    if max_features is not None and not 0 <= max_features <= MAX_FEATURES_CAP:
+        raise ValueError(f"max_features must be from 0 (all) to {MAX_FEATURES_CAP}, got "
+                         f"{max_features}")
     sift = SiftParams(width=width, height=height)
     if name == "sift":
         sift = SiftParams.papers(width, height)

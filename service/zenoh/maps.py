@@ -44,12 +44,16 @@ def _reply(query: zenoh.Query, fn: Callable[[], Any]) -> None:
 
 
 _OPTION_TYPES: dict[str, type] = {"action": str, "if_match": str, "if_none_match": str,
-                                   "force": bool, "features": str}
+                                   "force": bool, "features": str, "max_features": int}
+
+
+_KIND_NAMES = {bool: "true or false", str: "a string", int: "an integer"}
 
 
 def _options(raw: bytes) -> dict[str, Any]:
     """The attachment of a map query: a JSON object of the options above (each a string,
-    ``force`` a boolean, any of them null or left out), else 400 as HTTP's header errors."""
+    ``force`` a boolean, ``max_features`` an integer, any of them null or left out), else
+    400 as HTTP's header errors."""
     opts = parse_json_object(raw, "attachment", '{"action": "put"}')
     for key, value in opts.items():
         want = _OPTION_TYPES.get(key)
@@ -58,7 +62,7 @@ def _options(raw: bytes) -> dict[str, Any]:
                              f"{', '.join(_OPTION_TYPES)}")
         if value is not None and type(value) is not want:
             raise BadRequest(f"attachment option '{key}' must be "
-                             f"{'true or false' if want is bool else 'a string'}")
+                             f"{_KIND_NAMES[want]}")
     return opts
 
 
@@ -85,7 +89,8 @@ def declare_map_queryables(session: zenoh.Session, prefix: str, service: Localiz
             admin.check_preconditions(name, match_, none_match)
             path = payload_to_file(admin, data, "archive", s.max_archive_bytes)
             job = admin.submit_build(name, path, match_, none_match,
-                                     opts.get("features") or DEFAULT_FEATURES)
+                                     opts.get("features") or DEFAULT_FEATURES,
+                                     opts.get("max_features"))
             return job.model_dump(mode="json")
         raise BadRequest(f"unknown action '{action}'; use get, put, delete or build")
 
