@@ -21,6 +21,7 @@ from client.cli import app as cli_app
 from client.dataset import write_round
 from client.map_remote import zip_round
 from client.transports import HttpClient, SwarmlocError, ZenohClient
+from service.api.models import JobInfo
 from service.engine.localization_service import LocalizationService
 from service.maps.route_map import build_map, save_map
 from service.server import free_port, running_server
@@ -228,6 +229,16 @@ def test_build_job_progress_and_map_appears_complete(srv, small_round, sunny2) -
     assert not list(srv.maps.glob(".swarmloc-*"))  # the extracted round is gone
 
 
+def _finished(srv, job: JobInfo, timeout_s: float = 240) -> JobInfo:
+    """The build job once it is done (asserted), polled over HTTP."""
+    deadline = time.monotonic() + timeout_s
+    while job.state not in ("done", "failed") and time.monotonic() < deadline:
+        time.sleep(0.1)
+        job = srv.http.job(job.id)
+    assert job.state == "done", job
+    return job
+
+
 def test_a_build_makes_the_feature_type_asked_for(srv, small_round, sunny2) -> None:
     archive = zip_round(small_round, small_round.parent / "part-x.zip")
     r = httpx.post(f"{srv.url}/maps/xbuilt/build", content=archive.read_bytes(),
@@ -236,11 +247,7 @@ def test_a_build_makes_the_feature_type_asked_for(srv, small_round, sunny2) -> N
     assert httpx.get(f"{srv.url}/maps/xbuilt").status_code == 404
     job = srv.http.build_map_remote("xbuilt", archive, features="xfeat")
     assert job.features == "xfeat"
-    deadline = time.monotonic() + 240
-    while job.state not in ("done", "failed") and time.monotonic() < deadline:
-        time.sleep(0.1)
-        job = srv.http.job(job.id)
-    assert job.state == "done", job
+    job = _finished(srv, job)
     m = srv.service.get_map("xbuilt")
     assert isinstance(m.feature_params, XFeatParams)
     srv.http.create_session("xfeat-bot", "xbuilt")
@@ -266,11 +273,7 @@ def test_a_build_keeps_the_sift_features_asked_for(srv, small_round) -> None:
     job = srv.http.build_map_remote("capped", archive, features="clahe-rootsift",
                                     max_features=60)
     assert job.max_features == 60
-    deadline = time.monotonic() + 240
-    while job.state not in ("done", "failed") and time.monotonic() < deadline:
-        time.sleep(0.1)
-        job = srv.http.job(job.id)
-    assert job.state == "done", job
+    job = _finished(srv, job)
     m = srv.service.get_map("capped")
     counts = np.diff(m.offsets)
     assert m.feature_params.n_features == 60 and np.all((counts >= 60) & (counts <= 64))
