@@ -138,6 +138,11 @@ def test_cli_extract_bench_sweeps_features_per_frame(rounds_dir: Path) -> None:
     assert [r[1] for r in rows] == ["100", "300"]
     assert float(rows[0][2]) <= 100 < float(rows[1][2]) <= 300
     assert all(float(r[4]) > 0 for r in rows) and rows[0][6] == "1.00"
+    line = re.search(r"clahe-rootsift: 100 → 300: step x([0-9.]+) for features x([0-9.]+)",
+                     out.output)
+    assert line is not None, out.output  # the growth from cap to cap, beside the table's
+    assert float(line[1]) == pytest.approx(float(rows[1][4]) / float(rows[0][4]), rel=0.05)
+    assert float(line[2]) == pytest.approx(float(rows[1][2]) / float(rows[0][2]), rel=0.01)
     bad = CliRunner().invoke(app, ["bench", "extract", "--image", str(rounds_dir / "x.png"),
                                    "--sweep", "100"])
     assert bad.exit_code != 0 and "DATASET" in bad.output

@@ -31,6 +31,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from itertools import pairwise
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -210,3 +211,22 @@ def report_sweep(rows: Sequence[ExtractRow], counts: Sequence[int],
             say(f"| {kind} | {cap} | {r.features:.0f} | {r.extract_ms:.1f} | {step} | "
                 f"{ratio} | {growth} |")
     say("(growth 1.00: the step grows as the features do, linearly; above 1: faster)")
+    for line in step_growth_lines(rows, counts):
+        say(line)
+
+
+def step_growth_lines(rows: Sequence[ExtractRow], counts: Sequence[int]) -> list[str]:
+    """Per feature type, the step's growth from each cap to the next beside the features'
+    (a step that grows faster than the features between two caps shows there, even where the
+    growth from the first cap does not)."""
+    out = []
+    for kind in dict.fromkeys(r.kind for r in rows):
+        mine = [(c, r) for c, r in zip(counts, [r for r in rows if r.kind == kind],
+                                      strict=True) if r.step_ms is not None]
+        parts = [f"{a} → {b}: step x{rb.step_ms / ra.step_ms:.2f} for features "
+                 f"x{rb.features / ra.features:.2f}"
+                 for (a, ra), (b, rb) in pairwise(mine)
+                 if ra.step_ms and rb.step_ms is not None]
+        if parts:
+            out.append(f"{kind}: " + "; ".join(parts))
+    return out
