@@ -33,6 +33,7 @@ def test_bench_frame_breakdown(maps_dir: Path, rounds_dir: Path) -> None:
     assert set(b.paths) == {"in-process", "http", "zenoh"}
     assert b.identical  # same seed, same frames: the same estimates on every path
     assert b.frames == 4 and b.map_images > 0 and b.features > 0 and b.comparisons > 0
+    assert b.matcher == "auto (exact on this map)"  # the setting, and what it chose here
     for name, p in b.paths.items():
         assert set(p.stages) == set(STAGES)
         assert all(len(v) == 4 for v in p.stages.values()) and len(p.total) == 4

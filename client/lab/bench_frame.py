@@ -72,7 +72,7 @@ class FrameBench:
     comparisons: float  # mean comparisons per frame
     paths: dict[str, PathTimes]
     identical: bool  # the three robots got identical estimates for every frame
-    matcher: str = "auto"  # the service's SWARMLOC_MATCHER
+    matcher: str = "auto"  # the service's SWARMLOC_MATCHER (auto: and what it chose)
 
     @property
     def step_ratio(self) -> float:
@@ -266,7 +266,9 @@ def bench_frame(maps_dir: Path, round_dir: Path, frames: int = 100, warmup: int 
         img = cv2.imdecode(np.frombuffer(frame, np.uint8), cv2.IMREAD_GRAYSCALE)
         features.append(len(extract(img, params)))
     return FrameBench(route_map.name, route_map.n_images, frames, float(np.mean(features)),
-                      float(np.mean(comparisons)), paths, identical, matcher)
+                      float(np.mean(comparisons)), paths, identical,
+                      f"{matcher} ({'words' if route_map.uses_words else 'exact'} on this map)"
+                      if matcher == "auto" else matcher)
 
 
 def report(b: FrameBench, emit: Callable[[str], None] = print) -> None:
