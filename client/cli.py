@@ -409,6 +409,9 @@ def map_build_remote(
     token: Token = None,
     features: FeaturesOpt = DEFAULT_FEATURES,
     max_features: MaxFeaturesOpt = None,
+    width: Annotated[int, typer.Option(help="the map's working width (keep the camera's "
+                                            "aspect)")] = 320,
+    height: Annotated[int, typer.Option(help="the map's working height")] = 240,
 ) -> None:
     """Zip a round, build its map on the service, follow the job with a progress bar."""
     import tempfile
@@ -425,7 +428,7 @@ def map_build_remote(
         archive = zip_round(round_dir, Path(tmp) / "round.zip")
         try:
             job = client.build_map_remote(name or round_dir.name, archive, "*" if new else None,
-                                          features, max_features)
+                                          features, max_features, width, height)
             with tqdm(total=job.total, desc=f"build {job.map}", unit="img") as bar:
                 def show(j: JobInfo) -> None:
                     bar.update(j.done - bar.n)

@@ -221,12 +221,15 @@ class HttpClient:
     def build_map_remote(self, name: str, archive: str | Path | bytes,
                          if_none_match: str | None = None,
                          features: str = DEFAULT_FEATURES,
-                         max_features: int | None = None) -> JobInfo:
+                         max_features: int | None = None, width: int = 320,
+                         height: int = 240) -> JobInfo:
         """Post a zip/tar(.gz) of a round; the service builds the map (of feature type
-        ``features``, SIFT keeping ``max_features`` per image; None: the default) as a job."""
+        ``features`` at the working size ``width`` x ``height``, SIFT keeping
+        ``max_features`` per image; None: the default) as a job."""
         headers = {"Content-Type": "application/octet-stream",
                    **_conditions(None, if_none_match)}
-        url, params = f"/maps/{name}/build", {"features": features}
+        url = f"/maps/{name}/build"
+        params = {"features": features, "width": str(width), "height": str(height)}
         if max_features is not None:
             params["max_features"] = str(max_features)
         if isinstance(archive, bytes):
@@ -393,10 +396,12 @@ class ZenohClient:
     def build_map_remote(self, name: str, archive: str | Path | bytes,
                          if_none_match: str | None = None,
                          features: str = DEFAULT_FEATURES,
-                         max_features: int | None = None) -> JobInfo:
+                         max_features: int | None = None, width: int = 320,
+                         height: int = 240) -> JobInfo:
         data = archive if isinstance(archive, bytes) else Path(archive).read_bytes()
         return JobInfo(**self._maps(name, data, action="build", if_none_match=if_none_match,
-                                    features=features, max_features=max_features))
+                                    features=features, max_features=max_features,
+                                    width=width, height=height))
 
     def job(self, job_id: str) -> JobInfo:
         return JobInfo(**self._query(f"@jobs/{job_id}", b""))

@@ -261,7 +261,8 @@ def test_bad_json_on_zenoh_is_a_400(http, peer, sunny2, raw) -> None:
 
 
 @pytest.mark.parametrize("opts", [{"if_match": 5}, {"force": "yes"}, {"action": ["get"]},
-                                  {"max_features": "60"}, {"max_features": True}])
+                                  {"max_features": "60"}, {"max_features": True},
+                                  {"width": 320.0}])
 def test_bad_map_options_on_zenoh_are_a_400(peer, opts) -> None:
     err = _err(list(peer.get("swarmloc/@maps/small", attachment=json.dumps(opts).encode(),
                              timeout=30)))

@@ -256,27 +256,30 @@ def test_a_build_makes_the_feature_type_asked_for(srv, small_round, sunny2) -> N
     srv.http.delete_map("xbuilt", force=True)
 
 
-def test_a_build_keeps_the_sift_features_asked_for(srv, small_round) -> None:
+def test_a_build_keeps_the_sift_features_and_the_size_asked_for(srv, small_round) -> None:
     """``?max_features=N``: the built map's images hold at most N RootSIFT features (OpenCV
-    keeps the N strongest and their ties) and its frames are extracted alike; a cap on XFeat
-    alone, or out of range, is refused before anything is built."""
+    keeps the N strongest and their ties) and its frames are extracted alike;
+    ``?width=&height=``: its working size. A cap on XFeat alone, or a cap or size out of
+    range, is refused before anything is built."""
     archive = zip_round(small_round, small_round.parent / "part-cap.zip")
     body, zipped = archive.read_bytes(), {"content-type": "application/zip"}
     r = httpx.post(f"{srv.url}/maps/capped/build", content=body, headers=zipped,
                    params={"features": "xfeat", "max_features": 60}, timeout=60)
     assert r.status_code == 400 and "XFeat keeps its own" in r.text, r.text
-    r = httpx.post(f"{srv.url}/maps/capped/build", content=body, headers=zipped,
-                   params={"max_features": -1}, timeout=60)
-    assert r.status_code == 422 and "max_features" in r.text, r.text
+    for bad in ({"max_features": -1}, {"width": 10}, {"height": 5000}):
+        r = httpx.post(f"{srv.url}/maps/capped/build", content=body, headers=zipped,
+                       params=bad, timeout=60)
+        assert r.status_code == 422 and next(iter(bad)) in r.text, r.text
     assert httpx.get(f"{srv.url}/maps/capped").status_code == 404
     assert not list(srv.maps.glob(".swarmloc-*"))  # nothing staged is left
     job = srv.http.build_map_remote("capped", archive, features="clahe-rootsift",
-                                    max_features=60)
-    assert job.max_features == 60
+                                    max_features=60, width=256, height=192)
+    assert job.max_features == 60 and (job.width, job.height) == (256, 192)
     job = _finished(srv, job)
     m = srv.service.get_map("capped")
     counts = np.diff(m.offsets)
     assert m.feature_params.n_features == 60 and np.all((counts >= 60) & (counts <= 64))
+    assert (m.feature_params.width, m.feature_params.height) == (256, 192)
     assert httpx.get(f"{srv.url}/maps/capped").json()["meta"]["matcher"] == "exact"
     srv.http.delete_map("capped", force=True)
 
@@ -423,13 +426,20 @@ def test_zenoh_map_operations_match_http(srv, map_files, small_round) -> None:
         with pytest.raises(SwarmlocError) as ez:
             z.build_map_remote("zbad", buf.getvalue(), features="surf")
         assert ez.value.status == 400 and "xfeat" in ez.value.message
-        job = z.build_map_remote("zbuilt", buf.getvalue())
+        with pytest.raises(SwarmlocError) as ez:  # a size out of range, as over HTTP
+            z.build_map_remote("zbad", buf.getvalue(), width=8)
+        assert ez.value.status == 400 and "working size" in ez.value.message
+        job = z.build_map_remote("zbuilt", buf.getvalue(), max_features=80, width=288,
+                                 height=216)
+        assert (job.max_features, job.width, job.height) == (80, 288, 216)
         deadline = time.monotonic() + 120
         while job.state not in ("done", "failed") and time.monotonic() < deadline:
             time.sleep(0.1)
             job = z.job(job.id)
         assert job.state == "done" and z.map_info("zbuilt").checksum == job.checksum
         assert job.done == job.total == 20
+        p = srv.service.get_map("zbuilt").feature_params
+        assert (p.width, p.height, p.sift.n_features) == (288, 216, 80)  # the default type
         with pytest.raises(SwarmlocError) as ez:
             z.job("nope")
         assert ez.value.status == 404

@@ -325,6 +325,8 @@ FeatureTypeName = Literal["clahe-rootsift", "sift", "xfeat", "clahe-rootsift+xfe
 or CLAHE + RootSIFT and XFeat both, their similarities fused (the default)."""
 MAX_FEATURES_CAP = 65_536
 """The most SIFT features per image a map build may ask to keep (``max_features``)."""
+WORKING_SIDE = (32, 4096)
+"""The least and the most pixels of a map's working width or height (a build's size)."""
 DEFAULT_FEATURES: FeatureTypeName = "clahe-rootsift+xfeat"
 """The feature type of a map built without naming one (CLI, HTTP, Zenoh, the demo map):
 both types, which measured best across light (docs/research/lighting.md)."""
@@ -345,6 +347,8 @@ class JobInfo(BaseModel):
     max_features: int | None = Field(
         None, description="SIFT's features kept per map image and frame (None: the default, "
         "2,048; 0: all)")
+    width: int = Field(320, description="the map's working width (frames are resized to it)")
+    height: int = Field(240, description="the map's working height")
     created: float
     started: float | None = None
     finished: float | None = None

@@ -21,6 +21,7 @@ from service.api.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
 from service.api.models import (
     DEFAULT_FEATURES,
     MAX_FEATURES_CAP,
+    WORKING_SIDE,
     ErrorBody,
     FeatureTypeName,
     JobInfo,
@@ -167,6 +168,13 @@ async def build_map(name: str, request: Request, response: Response, service: Se
                         "strongest (default 2,048; 0: all). Above 2,048 the service compares "
                         "the map through its inverted file (SWARMLOC_MATCHER=auto); XFeat keeps "
                         "its own 1,024")] = None,
+                    width: Annotated[int, Query(
+                        ge=WORKING_SIDE[0], le=WORKING_SIDE[1],
+                        description="the map's working width: frames are resized to it (keep "
+                        "the camera's aspect)")] = 320,
+                    height: Annotated[int, Query(
+                        ge=WORKING_SIDE[0], le=WORKING_SIDE[1],
+                        description="the map's working height")] = 240,
                     ) -> JobInfo:
     """Build a map from a zip/tar(.gz) of a round (poses.csv + images) in the background;
     follow GET /jobs/{id}. The map appears (or is replaced) when the build is done."""
@@ -177,7 +185,8 @@ async def build_map(name: str, request: Request, response: Response, service: Se
     async with _staged(request, service, "archive", service.settings.max_archive_bytes,
                        "round archive") as path:
         job = await anyio.to_thread.run_sync(
-            admin.submit_build, name, path, if_match, if_none_match, features, max_features)
+            admin.submit_build, name, path, if_match, if_none_match, features, max_features,
+            width, height)
     response.headers["Location"] = f"/jobs/{job.id}"
     return job
 

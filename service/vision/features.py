@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Protocol, get_args
 import cv2
 import numpy as np
 
-from service.api.models import MAX_FEATURES_CAP, FeatureTypeName
+from service.api.models import MAX_FEATURES_CAP, WORKING_SIDE, FeatureTypeName
 
 if TYPE_CHECKING:
     from typing import TypeAlias
@@ -181,6 +181,10 @@ def named_params(name: str, width: int = 320, height: int = 240,
     own (``top_k``)."""
     from service.vision.xfeat import XFeatParams
 
+    lo, hi = WORKING_SIDE
+    if not (lo <= width <= hi and lo <= height <= hi):
+        raise ValueError(f"the working size must be {lo}-{hi} pixels a side, got "
+                         f"{width}x{height}")
     if max_features is not None and not 0 <= max_features <= MAX_FEATURES_CAP:
         raise ValueError(f"max_features must be from 0 (all) to {MAX_FEATURES_CAP}, got "
                          f"{max_features}")

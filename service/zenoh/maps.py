@@ -44,7 +44,8 @@ def _reply(query: zenoh.Query, fn: Callable[[], Any]) -> None:
 
 
 _OPTION_TYPES: dict[str, type] = {"action": str, "if_match": str, "if_none_match": str,
-                                   "force": bool, "features": str, "max_features": int}
+                                   "force": bool, "features": str, "max_features": int,
+                                   "width": int, "height": int}
 
 
 _KIND_NAMES = {bool: "true or false", str: "a string", int: "an integer"}
@@ -52,8 +53,8 @@ _KIND_NAMES = {bool: "true or false", str: "a string", int: "an integer"}
 
 def _options(raw: bytes) -> dict[str, Any]:
     """The attachment of a map query: a JSON object of the options above (each a string,
-    ``force`` a boolean, ``max_features`` an integer, any of them null or left out), else
-    400 as HTTP's header errors."""
+    ``force`` a boolean, ``max_features``, ``width`` and ``height`` integers, any of them
+    null or left out), else 400 as HTTP's header errors."""
     opts = parse_json_object(raw, "attachment", '{"action": "put"}')
     for key, value in opts.items():
         want = _OPTION_TYPES.get(key)
@@ -90,7 +91,9 @@ def declare_map_queryables(session: zenoh.Session, prefix: str, service: Localiz
             path = payload_to_file(admin, data, "archive", s.max_archive_bytes)
             job = admin.submit_build(name, path, match_, none_match,
                                      opts.get("features") or DEFAULT_FEATURES,
-                                     opts.get("max_features"))
+                                     opts.get("max_features"),
+                                     *(320 if opts.get(k) is None else opts[k]
+                                       for k in ("width", "height")))
             return job.model_dump(mode="json")
         raise BadRequest(f"unknown action '{action}'; use get, put, delete or build")
 
