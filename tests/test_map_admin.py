@@ -216,6 +216,7 @@ def test_build_job_progress_and_map_appears_complete(srv, small_round, sunny2) -
     assert job["state"] == "done", job
     assert job["done"] == job["total"] == 20 and seen == sorted(seen)
     assert job["features"] == "clahe-rootsift+xfeat"  # the default build: both types
+    assert (job["max_features"], job["width"], job["height"]) == (2048, 320, 240)  # defaults
     detail = httpx.get(f"{srv.url}/maps/built").json()
     assert detail["checksum"] == job["checksum"] and detail["n_images"] == 20
     assert detail["meta"]["source"]["name"] == "part"

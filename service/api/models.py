@@ -345,8 +345,8 @@ class JobInfo(BaseModel):
     checksum: str | None = Field(None, description="version of the map a done job installed")
     features: FeatureTypeName = Field(DEFAULT_FEATURES, description="the map's feature type")
     max_features: int | None = Field(
-        None, description="SIFT's features kept per map image and frame (None: the default, "
-        "2,048; 0: all)")
+        None, description="SIFT's features kept per map image and frame (0: all; None: a map "
+        "of XFeat alone, which keeps its own 1,024)")
     width: int = Field(320, description="the map's working width (frames are resized to it)")
     height: int = Field(240, description="the map's working height")
     created: float

@@ -72,12 +72,13 @@ from service.maps.route_map import (
     load_map,
     save_map,
 )
-from service.vision.features import FEATURE_TYPES, named_params
+from service.vision.features import FEATURE_TYPES, named_params, sift_cap
 
 if TYPE_CHECKING:
     from service.engine.learning import Learner
     from service.engine.metrics import Metrics
     from service.settings import Settings
+    from service.vision.features import FeatureParams
 
 
 class MapHost(Protocol):
@@ -131,10 +132,8 @@ class Job:
     workdir: Path
     if_match: str | None
     if_none_match: str | None
-    features: FeatureTypeName = DEFAULT_FEATURES
-    max_features: int | None = None  # SIFT's cap (None: the feature type's default)
-    width: int = 320  # the working size
-    height: int = 240
+    features: FeatureTypeName
+    params: FeatureParams  # the features' settings (``build_params``)
     state: JobState = "queued"
     done: int = 0
     error: str | None = None
@@ -148,8 +147,8 @@ class Job:
         return JobInfo(id=self.id, map=self.map, state=self.state, done=self.done,
                        total=len(self.round), error=self.error, status=self.status,
                        checksum=self.checksum, features=self.features,
-                       max_features=self.max_features, width=self.width, height=self.height,
-                       created=self.created,
+                       max_features=sift_cap(self.params), width=self.params.width,
+                       height=self.params.height, created=self.created,
                        started=self.started,
                        finished=self.finished)
 
@@ -436,11 +435,11 @@ class MapAdmin:
     def submit_build(self, name: str, archive: Path, if_match: str | None = None,
                      if_none_match: str | None = None,
                      features: str = DEFAULT_FEATURES,
-                     max_features: int | None = None, width: int = 320,
-                     height: int = 240) -> JobInfo:
+                     max_features: int | None = None, width: int | None = None,
+                     height: int | None = None) -> JobInfo:
         """Extract and validate a round archive, queue its build with the feature type
         ``features`` at the working size ``width`` x ``height`` (SIFT keeping
-        ``max_features`` per image; None: its default); the archive is removed."""
+        ``max_features`` per image; None: the type's defaults); the archive is removed."""
         metrics = self.service.metrics
         workdir: Path | None = None
         try:
@@ -448,7 +447,7 @@ class MapAdmin:
             if features not in FEATURE_TYPES:
                 raise BadRequest(f"unknown feature type '{features[:40]}'; choose one of "
                                  f"{', '.join(FEATURE_TYPES)}")
-            check_build_params(features, max_features, width, height)
+            params = build_params(features, max_features, width, height)
             self.check_preconditions(name, if_match, if_none_match)
             workdir = Path(tempfile.mkdtemp(prefix=f"{TEMP_PREFIX}build-", dir=self.directory))
             rnd = extract_round(archive, workdir / "round", self.limits())
@@ -464,7 +463,7 @@ class MapAdmin:
         finally:
             archive.unlink(missing_ok=True)
         job = Job(uuid.uuid4().hex[:12], name, rnd, workdir, if_match, if_none_match,
-                  cast(FeatureTypeName, features), max_features, width, height)
+                  cast(FeatureTypeName, features), params)
         with self._lock:
             self._jobs[job.id] = job
             self._trim_jobs()
@@ -514,8 +513,7 @@ class MapAdmin:
         rnd = job.round
         try:
             m = build_map_from_rounds([rnd], name=job.map, images=self._paced_images(job),
-                                      params=named_params(job.features, job.width,
-                                                          job.height, job.max_features),
+                                      params=job.params,
                                       source={"name": rnd.name, "uploaded": True, "job": job.id})
             with self._lock:
                 target = self._file_of(job.map)
@@ -557,14 +555,12 @@ def payload_to_file(admin: MapAdmin, data: bytes, kind: str, limit: int) -> Path
     return path
 
 
-def check_build_params(features: str, max_features: int | None, width: int,
-                       height: int) -> None:
-    """A build's SIFT cap (None, or 0 (all) to ``MAX_FEATURES_CAP`` on a type with SIFT) and
-    working size (``WORKING_SIDE``); BadRequest naming what is wrong otherwise."""
-    for key, value in (("max_features", max_features), ("width", width), ("height", height)):
-        if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
-            raise BadRequest(f"{key} must be an integer, got {str(value)[:40]!r}")
+def build_params(features: str, max_features: int | None, width: int | None,
+                 height: int | None) -> FeatureParams:
+    """A build's feature parameters (``named_params``; None: the type's default size or
+    cap), BadRequest naming what is out of range (the transports check the types)."""
+    size = {k: v for k, v in (("width", width), ("height", height)) if v is not None}
     try:
-        named_params(features, width, height, max_features)
+        return named_params(features, max_features=max_features, **size)
     except ValueError as exc:
         raise BadRequest(str(exc)) from None

@@ -205,6 +205,12 @@ def named_params(name: str, width: int = 320, height: int = 240,
     raise ValueError(f"unknown feature type {name!r}; choose one of {list(FEATURE_TYPES)}")
 
 
+def sift_cap(params: FeatureParams) -> int | None:
+    """SIFT's features kept per image under ``params`` (0: all; None: XFeat alone)."""
+    sift = params.sift if isinstance(params, DualParams) else params
+    return sift.n_features if isinstance(sift, SiftParams) else None
+
+
 def extract(image: np.ndarray, params: FeatureParams | None = None) -> Features:
     """Keypoints and descriptor codes of a frame (resized to the working size): CLAHE +
     RootSIFT (uint8 codes), XFeat (int8 codes, service/vision/xfeat.py) or both (the

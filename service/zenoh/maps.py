@@ -91,9 +91,8 @@ def declare_map_queryables(session: zenoh.Session, prefix: str, service: Localiz
             path = payload_to_file(admin, data, "archive", s.max_archive_bytes)
             job = admin.submit_build(name, path, match_, none_match,
                                      opts.get("features") or DEFAULT_FEATURES,
-                                     opts.get("max_features"),
-                                     *(320 if opts.get(k) is None else opts[k]
-                                       for k in ("width", "height")))
+                                     opts.get("max_features"), opts.get("width"),
+                                     opts.get("height"))
             return job.model_dump(mode="json")
         raise BadRequest(f"unknown action '{action}'; use get, put, delete or build")
 
