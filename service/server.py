@@ -134,6 +134,8 @@ def startup_banner(settings: Settings, maps: list[str], load_errors: dict[str, s
         f"none in {settings.maps_dir}/ (GET /readyz answers 503 until one is uploaded)"
     if load_errors:
         loaded += f"; {len(load_errors)} refused: {', '.join(sorted(load_errors))}"
+    if settings.maps_sync == "redis":
+        loaded += "; shared with the other replicas through Redis"
     rows = [
         ("HTTP", url + ("  (all interfaces)" if wildcard else "") + "  API docs: " +
          f"{url}/docs"),

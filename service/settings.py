@@ -31,6 +31,10 @@ class Settings(BaseSettings):
         "frame kept across a crash or kill -9), sqlite:///relative/path or "
         "sqlite:////absolute/path (?synchronous=full: also across power loss), 'memory' "
         "(in-process, lost on a crash) or redis://host:port/db (shared by several replicas)")
+    maps_sync: Literal["directory", "redis"] = Field(
+        "directory", description="how replicas share their maps: 'directory' (one maps "
+        "directory, e.g. one volume) or 'redis' (a maps directory each, on any machine: map "
+        "files travel through the Redis session store)")
     session_snapshot: Path | None = Field(None, description="'memory' store: write the "
                                           "sessions here on SIGTERM, read them at start")
     session_lock_lease_s: float = Field(10.0, gt=0, description="Redis: a robot's lock "
@@ -162,6 +166,15 @@ class Settings(BaseSettings):
     ros2_speed_sigma_mps: float = Field(
         0.3, gt=0, description="speed uncertainty behind the reported yaw variance: "
         "atan(sigma / speed)^2, uniform (pi^2/3) below sigma")
+
+    @model_validator(mode="after")
+    def _maps_through_redis(self) -> Settings:
+        if self.maps_sync == "redis" and \
+                not self.session_store.startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError("maps_sync 'redis' needs the Redis session store "
+                             "(SWARMLOC_SESSION_STORE=redis://host:port/db); one service "
+                             "alone, or replicas on one maps directory, need 'directory'")
+        return self
 
     @model_validator(mode="after")
     def _bind_address(self) -> Settings:

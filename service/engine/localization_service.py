@@ -43,6 +43,7 @@ from service.engine.geometry_warmer import GeometryWarmer
 from service.engine.learning import LEARN_IDLE_S, Learner, LearnGates, path_gate
 from service.engine.localizer import Localizer
 from service.engine.map_admin import MapAdmin
+from service.engine.map_mirror import MapMirror
 from service.engine.metrics import Metrics
 from service.engine.sqlite_store import SqliteStore, sqlite_location
 from service.engine.state_codec import StateError
@@ -86,6 +87,9 @@ class LocalizationService:
         # fleet-wide with Redis): a frame never writes a map
         handover = RedisHandover(self.store.r, self.store.opt.key_prefix) \
             if isinstance(self.store, RedisStore) else None
+        if settings.maps_sync == "redis" and isinstance(self.store, RedisStore):
+            # replicas with a maps directory each: map files travel through Redis
+            self.admin.attach_mirror(MapMirror(self.store.r, self.store.opt.key_prefix))
         self.writer = ExperienceWriter(self._write_batch, handover, lambda: list(self.maps),
                                        waiting=self.metrics.learned_waiting.set)
         self.learner = Learner(LearnGates(settings.learn_accuracy_m, settings.learn_weak_ratio,

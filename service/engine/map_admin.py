@@ -44,6 +44,7 @@ from service.api.errors import (
     PayloadTooLarge,
     PreconditionFailed,
     ServiceError,
+    Unavailable,
 )
 from service.api.models import (
     DEFAULT_FEATURES,
@@ -54,6 +55,7 @@ from service.api.models import (
     MapSummary,
 )
 from service.engine.duty import rest
+from service.engine.map_mirror import MAX_MIRRORED_BYTES, MapMirror
 from service.engine.shared_maps import DirectoryFollower
 from service.maps.experiences import (
     NewImage,
@@ -164,6 +166,7 @@ class MapAdmin:
         self._queue: queue.Queue[Job] = queue.Queue()
         self._worker: threading.Thread | None = None
         self.follower = DirectoryFollower(self)  # maps other services on the directory wrote
+        self.mirror: MapMirror | None = None  # maps through Redis (settings.maps_sync)
         self.remove_stale()
 
     def remove_stale(self, older_than_s: float = STALE_S) -> list[str]:
@@ -205,15 +208,132 @@ class MapAdmin:
         if not _NAME.fullmatch(name or ""):
             return None  # never a path: only a map name names a file
         with self._lock:
-            return self.service.maps.get(name) or self.follower.discover(name)
+            if name in self.service.maps:
+                return self.service.maps[name]
+            self._pull(name)
+            return self.follower.discover(name)
 
     def sync(self) -> list[str]:
         """The names of the maps served, after following the maps directory (maps other
         services added are loaded, those they deleted dropped)."""
         with self._lock:
+            if self.mirror is not None:
+                for name in sorted(set(self._mirrored_names()) | set(self.service.maps)):
+                    self._pull(name)
             self.follower.sync()
             self.service.metrics.maps.set(len(self.service.maps))
             return sorted(self.service.maps)
+
+    # ---- map files through Redis (service/engine/map_mirror.py) ---------------------------
+    def attach_mirror(self, mirror: MapMirror) -> None:
+        """Share the maps through Redis from now on: the maps this service loaded are brought
+        to the versions Redis holds (published first where it holds none; removed where they
+        were deleted through another replica), and those only Redis holds are loaded."""
+        with self._lock:
+            self.mirror = mirror
+            for name in list(self.service.maps):
+                try:
+                    self.refresh(name)
+                except NotFound:
+                    pass
+            self.sync()
+
+    def _mirrored_names(self) -> list[str]:
+        assert self.mirror is not None
+        try:
+            return [n for n in self.mirror.names() if _NAME.fullmatch(n)]
+        except self.mirror.errors as exc:
+            log.warning("maps in Redis not listed (%s: %s); serving this service's copies",
+                        type(exc).__name__, exc)
+            return []
+
+    def _pull(self, name: str) -> None:
+        """Bring this service's file of map ``name`` to the version Redis holds: fetched
+        where it differs, removed after a delete through another replica, published where
+        Redis holds none. Redis unavailable: the file stays as it is (logged). The caller
+        holds the lock, then reloads or drops the map as for a shared directory."""
+        if self.mirror is None or not _NAME.fullmatch(name):
+            return
+        served = self.service.maps.get(name)
+        path = (self.own_file(served) if served is not None else None) or \
+            self.directory / f"{name}{SUFFIX}"
+        failures: tuple[type[Exception], ...] = (*self.mirror.errors, OSError)
+        try:
+            head = self.mirror.head(name)
+            local = file_version(path) if path.is_file() else None
+            if head is None:
+                if local is not None:
+                    self.mirror.publish(name, path, local, None)
+            elif head.deleted:
+                if path.is_file():
+                    path.unlink(missing_ok=True)
+                    _fsync_dir(path.parent)
+                    log.info("map %s: deleted through another replica; %s removed", name,
+                             path.name)
+            elif head.version != local:
+                self._fetch(name, path, head.version)
+        except failures as exc:
+            log.warning("map %s: not compared with the maps in Redis (%s: %s); serving this "
+                        "service's copy", name, type(exc).__name__, exc)
+
+    def _fetch(self, name: str, path: Path, version: str) -> None:
+        """The published file of map ``name`` (``version``) renamed over ``path``."""
+        assert self.mirror is not None
+        self.directory.mkdir(parents=True, exist_ok=True)
+        tmp = self.mirror.fetch(name, self.directory, TEMP_PREFIX)
+        if tmp is None:
+            return
+        try:
+            got = file_version(tmp)
+            if got != version:
+                log.warning("map %s: the file in Redis holds version %s, not %s; not taken",
+                            name, got, version)
+                return
+            os.replace(tmp, path)
+            _fsync_dir(path.parent)
+            log.info("map %s: version %s taken from Redis into %s", name, version[:12],
+                     path.name)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    def _publish(self, name: str, path: Path, version: object, base: str | None) -> None:
+        """Publish a new version of map ``name`` written from version ``base`` (None: none);
+        412 where another replica published another version meanwhile, 503 where Redis is
+        unavailable (then nothing is published: this service's file goes back to the
+        published version at its next look)."""
+        if self.mirror is None:
+            return
+        if not isinstance(version, str):
+            raise MapError(f"map '{name}' has no checksum to publish")
+        size = path.stat().st_size
+        if size > MAX_MIRRORED_BYTES:
+            raise PayloadTooLarge(f"map '{name}' is {size} bytes; maps shared through Redis "
+                                  f"(SWARMLOC_MAPS_SYNC=redis) take at most "
+                                  f"{MAX_MIRRORED_BYTES} bytes (Redis's largest value)")
+        try:
+            ok = self.mirror.publish(name, path, version, base)
+        except self.mirror.errors as exc:
+            raise Unavailable(f"map '{name}' not written: the maps in Redis are unavailable "
+                              f"({type(exc).__name__}: {exc}); retry shortly") from None
+        if not ok:
+            raise PreconditionFailed(
+                f"map '{name}' was changed through another replica meanwhile (no longer at "
+                f"version {base}); fetch GET /maps/{name} and retry with its ETag")
+
+    def _tombstone(self, name: str, base: str | None) -> None:
+        """Publish the delete of map ``name`` at version ``base`` (412 / 503 as
+        ``_publish``)."""
+        if self.mirror is None:
+            return
+        try:
+            ok = self.mirror.delete(name, base)
+        except self.mirror.errors as exc:
+            raise Unavailable(f"map '{name}' not deleted: the maps in Redis are unavailable "
+                              f"({type(exc).__name__}: {exc}); retry shortly") from None
+        if not ok:
+            raise PreconditionFailed(
+                f"map '{name}' was changed through another replica meanwhile (no longer at "
+                f"version {base}); fetch GET /maps/{name} and retry")
 
     @contextlib.contextmanager
     def _file_lock(self, path: Path) -> Iterator[None]:
@@ -229,9 +349,9 @@ class MapAdmin:
 
     # ---- versions -----------------------------------------------------------------------
     def check_preconditions(self, name: str, if_match: str | None,
-                            if_none_match: str | None) -> None:
+                            if_none_match: str | None) -> str | None:
         """Against the newest version on disk (another service on the maps directory may
-        have written it)."""
+        have written it); returns that version (None: no such map)."""
         try:
             current, exists = self.refresh(name).meta.get("checksum"), True
         except NotFound:
@@ -246,6 +366,7 @@ class MapAdmin:
         if avoid is not None and exists and ("*" in avoid or current in avoid):
             raise PreconditionFailed(f"If-None-Match: map '{name}' already exists (version "
                                      f"{current}); replace it with If-Match instead")
+        return current if isinstance(current, str) else None
 
     # ---- uploads ------------------------------------------------------------------------
     def staging_file(self, kind: str) -> Path:
@@ -280,7 +401,8 @@ class MapAdmin:
             with self._lock:
                 final = self._file_of(name)
                 with self._file_lock(final):
-                    self.check_preconditions(name, if_match, if_none_match)
+                    base = self.check_preconditions(name, if_match, if_none_match)
+                    self._publish(name, staged, m.meta.get("checksum"), base)
                     os.replace(staged, final)
                     _fsync_dir(final.parent)
                     m.path = final
@@ -330,12 +452,13 @@ class MapAdmin:
             m = self.service.get_map(name)
             own = self.own_file(m)
             with self._file_lock(own) if own is not None else contextlib.nullcontext():
-                self.check_preconditions(name, if_match, None)
+                base = self.check_preconditions(name, if_match, None)
                 users = self.service.sessions_on_map(name)
                 if users and not force:
                     raise Conflict(f"map '{name}' is used by {len(users)} session(s): "
                                    f"{', '.join(users)}; delete or move them first, or send "
                                    "?force=true to end them")
+                self._tombstone(name, base)
                 for robot_id in users:
                     try:
                         self.service.delete_session(robot_id)
@@ -363,6 +486,7 @@ class MapAdmin:
         file another replica deleted is no longer served (NotFound)."""
         with self._lock:
             m = self.service.get_map(name)
+            self._pull(name)
             own = self.own_file(m)
             if own is None:
                 return m
@@ -406,6 +530,9 @@ class MapAdmin:
                     budget_bytes=budget_bytes(self.settings.experience_budget_mb),
                     usage=self.service.learner.usage(name, clear=True))
                 if new is not m:
+                    assert new.path is not None
+                    self._publish(name, new.path, new.meta.get("checksum"),
+                                  m.meta.get("checksum"))
                     self.register(new, "experience")
         except Exception:
             self.service.metrics.map_loads.labels("experience", "failed").inc()
@@ -423,6 +550,8 @@ class MapAdmin:
                                f"{sorted(experience_layers(m))}")
             new = remove_experience(m, self._writable(m), exp_id,
                                     self.service.learner.usage(name, clear=True))
+            assert new.path is not None
+            self._publish(name, new.path, new.meta.get("checksum"), m.meta.get("checksum"))
             self.register(new, "experience")
         return self.service.map_summary(name)
 
@@ -518,7 +647,7 @@ class MapAdmin:
             with self._lock:
                 target = self._file_of(job.map)
                 with self._file_lock(target):
-                    self.check_preconditions(job.map, job.if_match, job.if_none_match)
+                    base = self.check_preconditions(job.map, job.if_match, job.if_none_match)
                     final = save_map(m, target)
                     try:
                         loaded = load_map(final, verify=True,
@@ -526,6 +655,7 @@ class MapAdmin:
                     except MapError:
                         metrics.map_loads.labels("build", "failed").inc()
                         raise
+                    self._publish(job.map, final, loaded.meta.get("checksum"), base)
                     self.register(loaded, "build")
             job.checksum = loaded.meta.get("checksum")
             job.state = "done"
