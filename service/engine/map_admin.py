@@ -29,7 +29,7 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol, cast
@@ -310,30 +310,31 @@ class MapAdmin:
             raise PayloadTooLarge(f"map '{name}' is {size} bytes; maps shared through Redis "
                                   f"(SWARMLOC_MAPS_SYNC=redis) take at most "
                                   f"{MAX_MIRRORED_BYTES} bytes (Redis's largest value)")
+        mirror = self.mirror
+        self._compare_and_set(name, base, "written",
+                              lambda: mirror.publish(name, path, version, base))
+
+    def _tombstone(self, name: str, base: str | None) -> None:
+        """Publish the delete of map ``name`` at version ``base`` (412 / 503 as
+        ``_publish``)."""
+        if self.mirror is not None:
+            mirror = self.mirror
+            self._compare_and_set(name, base, "deleted", lambda: mirror.delete(name, base))
+
+    def _compare_and_set(self, name: str, base: str | None, what: str,
+                         change: Callable[[], bool]) -> None:
+        """One compare-and-set of what Redis holds of map ``name`` (``change``): 503 where
+        Redis is unavailable, 412 where it no longer holds version ``base``."""
+        assert self.mirror is not None
         try:
-            ok = self.mirror.publish(name, path, version, base)
+            ok = change()
         except self.mirror.errors as exc:
-            raise Unavailable(f"map '{name}' not written: the maps in Redis are unavailable "
+            raise Unavailable(f"map '{name}' not {what}: the maps in Redis are unavailable "
                               f"({type(exc).__name__}: {exc}); retry shortly") from None
         if not ok:
             raise PreconditionFailed(
                 f"map '{name}' was changed through another replica meanwhile (no longer at "
                 f"version {base}); fetch GET /maps/{name} and retry with its ETag")
-
-    def _tombstone(self, name: str, base: str | None) -> None:
-        """Publish the delete of map ``name`` at version ``base`` (412 / 503 as
-        ``_publish``)."""
-        if self.mirror is None:
-            return
-        try:
-            ok = self.mirror.delete(name, base)
-        except self.mirror.errors as exc:
-            raise Unavailable(f"map '{name}' not deleted: the maps in Redis are unavailable "
-                              f"({type(exc).__name__}: {exc}); retry shortly") from None
-        if not ok:
-            raise PreconditionFailed(
-                f"map '{name}' was changed through another replica meanwhile (no longer at "
-                f"version {base}); fetch GET /maps/{name} and retry")
 
     @contextlib.contextmanager
     def _file_lock(self, path: Path) -> Iterator[None]:
