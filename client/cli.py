@@ -128,11 +128,14 @@ def world_render(
     rounds: Annotated[str, typer.Option(
         help="comma-separated subset, e.g. sunny1,cloudy1; also lowsun1-2, dusk1-2, night1-2"
     )] = "",
+    width: Annotated[int, typer.Option(min=32, max=4096, help="image width, pixels")] = 320,
+    height: Annotated[int, typer.Option(min=32, max=4096, help="image height, pixels")] = 240,
 ) -> None:
     """Render rounds (default: sunny1-3, cloudy1-3) in the dataset format."""
     from client.lab.world import DatasetSpec, render_dataset
 
-    spec = DatasetSpec(seed=seed, length_m=length, spacing_m=spacing)
+    spec = DatasetSpec(seed=seed, length_m=length, spacing_m=spacing, width=width,
+                       height=height)
     only = [r for r in rounds.split(",") if r] or None
     try:
         render_dataset(out, spec, progress=True, only=only)

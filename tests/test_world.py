@@ -1,5 +1,8 @@
 from __future__ import annotations
 
+import json
+import math
+
 import numpy as np
 
 from client.lab.world import Pose, World
@@ -62,3 +65,25 @@ def test_rendered_round_is_a_valid_dataset(sunny1) -> None:
     gps_err = np.linalg.norm(sunny1.xy - sunny1.truth_xy, axis=1)
     assert 0.05 < gps_err.mean() < 1.0  # GPS-like noise around the exact positions
     assert sunny1.load_image(0).shape == (240, 320)
+
+
+def test_render_takes_the_image_size(tmp_path) -> None:
+    """`swarmloc world render --width --height`: frames of that size, the camera recorded
+    with it."""
+    from typer.testing import CliRunner
+
+    from client.cli import app
+    from client.dataset import read_round
+
+    out = tmp_path / "w"
+    res = CliRunner().invoke(app, ["world", "render", str(out), "--seed", "3", "--length",
+                                   "12", "--rounds", "sunny1", "--width", "96",
+                                   "--height", "72"])
+    assert res.exit_code == 0, res.output
+    rnd = read_round(out / "sunny1")
+    assert rnd.load_image(0).shape == (72, 96)
+    meta = json.loads((out / "dataset.json").read_text())
+    assert (meta["camera"]["width"], meta["camera"]["height"]) == (96, 72)
+    # the intrinsics are kept in image fractions: the same field of view at any size
+    assert rnd.camera is not None and abs(rnd.camera["fx"] - 0.5 / math.tan(
+        math.radians(meta["camera"]["hfov_deg"]) / 2)) < 1e-9

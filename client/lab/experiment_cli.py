@@ -28,25 +28,29 @@ if TYPE_CHECKING:
     from service.vision.features import Features
 
 
-def map_for(dataset: Path, rounds: str, papers: bool, features: str = "clahe-rootsift"
-            ) -> RouteMap:
+def map_for(dataset: Path, rounds: str, papers: bool, features: str = "clahe-rootsift",
+            size: tuple[int, int] = (320, 240), max_features: int | None = None) -> RouteMap:
     """The map of one round (or rounds joined by '+'), built once and kept in DATASET/.maps;
-    ``features``: the feature type of our maps (the papers' maps are always the papers' SIFT)."""
+    ``features``: the feature type of our maps (the papers' maps are always the papers' SIFT),
+    built at the working size ``size`` with SIFT's cap ``max_features`` (None: the type's)."""
     from client.dataset import read_round
     from service.maps.route_map import build_map_from_rounds, load_map, save_map
     from service.vision.features import SiftParams, named_params
 
     names = [r for r in rounds.split("+") if r]
     kind = "-papers" if papers else ("" if features == "clahe-rootsift" else f"-{features}")
+    if not papers and size != (320, 240):
+        kind += f"-{size[0]}x{size[1]}"
+    if not papers and max_features is not None:
+        kind += f"-cap{max_features}"
     path = dataset / ".maps" / f"{'+'.join(names)}{kind}.swmap"
     rnds = [read_round(dataset / r) for r in names]
     if path.is_file():
         kept = load_map(path)
         if kept.meta.get("camera") == rnds[0].camera:  # else built before the camera was known
             return kept
-    m = build_map_from_rounds(rnds,
-                              params=SiftParams.papers() if papers else named_params(features),
-                              prune_features=papers)
+    params = SiftParams.papers() if papers else named_params(features, *size, max_features)
+    m = build_map_from_rounds(rnds, params=params, prune_features=papers)
     return load_map(save_map(m, path))  # loaded: with its checksum, memory-mapped
 
 
@@ -199,6 +203,11 @@ def experiment(
     param: Annotated[list[str] | None, typer.Option(
         help="NAME=VALUE: an estimator parameter for every chosen method, beside its own "
              "(repeatable), e.g. --param metric_disagree_m=0")] = None,
+    size: Annotated[str, typer.Option(
+        help="working size WxH of our maps and frames (the papers' keep theirs)")] = "320x240",
+    max_features: Annotated[int | None, typer.Option(
+        help="SIFT's features per map image and frame of our maps (0: all; default: the "
+             "type's), as swarmloc map build --max-features")] = None,
 ) -> None:
     """Every estimator's error (mean, median, within 5 m), comparisons, share of frames in
     recovery, accuracy_m calibration (tracked frames within it), honesty (frames with error
@@ -206,7 +215,7 @@ def experiment(
     for 5 frames)."""
     from client.dataset import read_round
     from service.api.models import MATCHERS
-    from service.vision.features import FEATURE_TYPES
+    from service.vision.features import FEATURE_TYPES, named_params
 
     chosen = [x for x in methods.split(",") if x]
     extra = parse_params(param)
@@ -220,7 +229,12 @@ def experiment(
         raise typer.BadParameter(f"unknown matcher {matcher!r}; choose from {list(MATCHERS)}")
     if exact_top and matcher != "words":
         raise typer.BadParameter("--exact-top goes with --matcher words")
-    maps = {papers: map_for(dataset, map_round, papers, features)
+    try:
+        w, h = (int(v) for v in size.lower().split("x"))
+        named_params(features, w, h, max_features)  # checks the size and the cap
+    except ValueError as exc:
+        raise typer.BadParameter(f"--size / --max-features: {exc}") from None
+    maps = {papers: map_for(dataset, map_round, papers, features, (w, h), max_features)
             for papers in {METHODS[c].papers_map for c in chosen}}
     if matcher == "words" and False in maps:
         maps[False] = maps[False].with_words(exact_top=exact_top)

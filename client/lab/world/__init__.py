@@ -112,7 +112,8 @@ class World:
 def render_dataset(out_dir: str | Path, spec: DatasetSpec, progress: bool = False,
                    only: Iterable[str] | None = None) -> Path:
     out_dir = Path(out_dir)
-    world = World(spec.seed, spec.length_m, spec.spacing_m)
+    world = World(spec.seed, spec.length_m, spec.spacing_m,
+                  Camera(width=spec.width, height=spec.height))
     wanted = set(only) if only else None
     known = {r.name for r in spec.rounds + spec.extra_rounds}
     if wanted and wanted - known:

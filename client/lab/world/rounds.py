@@ -170,6 +170,8 @@ class DatasetSpec:
     seed: int = 0
     length_m: float = 260.0
     spacing_m: float = 0.6
+    width: int = 320  # the camera's image size, pixels (the same field of view at any size)
+    height: int = 240
     rounds: list[RoundSpec] = field(default_factory=lambda: [
         RoundSpec(f"{cond}{k}", cond, cond, i)
         for i, (cond, k) in enumerate([(c, k) for c in ("sunny", "cloudy") for k in (1, 2, 3)])
