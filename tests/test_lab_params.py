@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from client.lab.experiment_cli import param_value, parse_params
 from service.estimators.registry import params_for
 
@@ -18,3 +20,20 @@ def test_a_switch_given_as_false_turns_it_off() -> None:
     """The strict DPSO model refuses the string 'false'; the parsed value is a bool."""
     p = params_for("dpso", parse_params(["metric_second=false", "v0=0.05"]))
     assert p.metric_second is False and p.v0 == 0.05  # type: ignore[attr-defined]
+
+
+def test_the_labs_maps_take_a_working_size_and_a_cap(tmp_path, rounds_dir) -> None:
+    """`swarmloc experiment --size WxH --max-features N` builds (and keeps apart) a map at
+    that working size with that SIFT cap; the default keeps its file name."""
+    import shutil
+
+    from client.lab.experiment_cli import map_for
+
+    shutil.copytree(rounds_dir / "sunny1", tmp_path / "sunny1")
+    rich = map_for(tmp_path, "sunny1", False, "clahe-rootsift", (160, 120), 50)
+    plain = map_for(tmp_path, "sunny1", False, "clahe-rootsift")
+    assert rich.path is not None and rich.path.name == "sunny1-160x120-cap50.swmap"
+    assert plain.path is not None and plain.path.name == "sunny1.swmap"
+    p = rich.feature_params
+    assert (p.width, p.height, p.n_features) == (160, 120, 50)  # type: ignore[union-attr]
+    assert np.median(np.diff(rich.offsets)) <= 50 < np.median(np.diff(plain.offsets))
