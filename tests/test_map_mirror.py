@@ -188,3 +188,18 @@ def test_a_publish_from_a_stale_version_is_refused(redis_srv, small_map, tmp_pat
 def test_maps_through_redis_need_the_redis_store(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="needs the Redis session store"):
         Settings(maps_dir=tmp_path, maps_sync="redis")
+
+
+def test_a_damaged_file_in_redis_is_not_taken(mirrored, small_map, tmp_path: Path) -> None:
+    """A published file whose bytes no longer match its checksum (its header intact) never
+    replaces a replica's copy: the replica that lacks it does not serve it."""
+    a, b = mirrored["a"].url, mirrored["b"].url
+    r = _upload(a, "dented", _version(small_map, "dented", "v1", tmp_path))
+    assert r.status_code == 201, r.text
+    key = "swarmloc:mapfile:dented"
+    data = bytearray(mirrored["redis"].hget(key, "data"))
+    data[-100] ^= 0xFF  # in the arrays, after the header
+    mirrored["redis"].hset(key, "data", bytes(data))
+    assert httpx.get(f"{b}/maps/dented", timeout=30).status_code == 404
+    assert not (mirrored["dir_b"] / "dented.swmap").exists()
+    assert "damaged, not taken" in mirrored["b"].log_tail(20000)

@@ -277,7 +277,8 @@ class MapAdmin:
                         "service's copy", name, type(exc).__name__, exc)
 
     def _fetch(self, name: str, path: Path, version: str) -> None:
-        """The published file of map ``name`` (``version``) renamed over ``path``."""
+        """The published file of map ``name`` (``version``), verified, renamed over
+        ``path``."""
         assert self.mirror is not None
         self.directory.mkdir(parents=True, exist_ok=True)
         tmp = self.mirror.fetch(name, self.directory, TEMP_PREFIX)
@@ -288,6 +289,12 @@ class MapAdmin:
             if got != version:
                 log.warning("map %s: the file in Redis holds version %s, not %s; not taken",
                             name, got, version)
+                return
+            try:  # checked whole (its checksum) before it replaces this service's copy
+                load_map(tmp, verify=True, matcher="exact")
+            except MapError as exc:
+                log.warning("map %s: the file in Redis is damaged, not taken: %s", name,
+                            str(exc).replace(str(tmp), "the file in Redis"))
                 return
             os.replace(tmp, path)
             _fsync_dir(path.parent)
