@@ -47,6 +47,9 @@ def serve(
         help="sqlite (default: MAPS_DIR/sessions.sqlite, kept across a kill), "
              "sqlite:////path/file.sqlite, memory, or redis://host:port/db "
              "[SWARMLOC_SESSION_STORE]")] = None,
+    maps_sync: Annotated[str | None, typer.Option(
+        help="directory (replicas share one maps directory) or redis (a maps directory "
+             "each, map files through the Redis session store) [SWARMLOC_MAPS_SYNC]")] = None,
 ) -> None:
     """Run the localization service (HTTP + Zenoh). Flags override SWARMLOC_* variables."""
     from service.server import run  # without the [service] extra: run_cli says so
@@ -57,7 +60,7 @@ def serve(
         "default_estimator": default_estimator, "auth_token": token, "zenoh_enabled": zenoh,
         "zenoh_listen": zenoh_listen, "zenoh_connect": zenoh_connect,
         "ros2_enabled": ros2, "zenoh_config_file": zenoh_config,
-        "session_store": session_store}.items() if v is not None}
+        "session_store": session_store, "maps_sync": maps_sync}.items() if v is not None}
     settings = Settings(**overrides)
     if settings.zenoh_enabled:
         from service.zenoh.config import check_security

@@ -79,6 +79,13 @@ def test_zenoh_refusal_is_one_line_naming_the_ways_out(tmp_path: Path) -> None:
     assert "ZenohSecurityError" in debug.stderr
 
 
+def test_maps_through_redis_without_redis_is_one_line(tmp_path: Path) -> None:
+    """`--maps-sync redis` needs the Redis session store: refused before anything starts."""
+    line = _one_line_error(_swarmloc(["serve", "--maps-dir", str(tmp_path), "--port",
+                                      str(free_port()), "--maps-sync", "redis"]))
+    assert "needs the Redis session store" in line and "SWARMLOC_SESSION_STORE" in line
+
+
 @pytest.mark.parametrize("command", [["world", "render"], ["serve"]])
 def test_a_missing_extra_names_the_command_and_the_install(tmp_path: Path,
                                                            command: list[str]) -> None:
