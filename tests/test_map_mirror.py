@@ -1,8 +1,8 @@
 """Replicas with a maps directory each (``SWARMLOC_MAPS_SYNC=redis``): map files travel
 through a real ``redis-server`` between real ``swarmloc serve`` processes.
 
-The replicas use their own Redis database (1), so the other modules' emptied database 0
-never takes their maps away.
+The replicas use their own Redis database (1; 2 for the in-process pair of the race test),
+so the other modules' emptied database 0 never takes their maps away.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from service.settings import Settings
 SEED = 7
 
 
-def _db1(redis_srv: RedisServer) -> str:
-    return redis_srv.url.rsplit("/", 1)[0] + "/1"
+def _db(redis_srv: RedisServer, n: int) -> str:
+    return redis_srv.url.rsplit("/", 1)[0] + f"/{n}"
 
 
 @pytest.fixture(scope="module")
@@ -34,12 +34,12 @@ def mirrored(tmp_path_factory: pytest.TempPathFactory, redis_srv: RedisServer,
              small_map: RouteMap) -> Iterator[dict[str, Any]]:
     import redis
 
-    r = redis.Redis.from_url(_db1(redis_srv))
+    r = redis.Redis.from_url(_db(redis_srv, 1))
     r.flushdb()
     dir_a, dir_b = tmp_path_factory.mktemp("maps_a"), tmp_path_factory.mktemp("maps_b")
     save_map(small_map, dir_a / "small")  # only A has it on disk
     logs = tmp_path_factory.mktemp("mirror_logs")
-    common = {"SWARMLOC_SESSION_STORE": _db1(redis_srv), "SWARMLOC_MAPS_SYNC": "redis",
+    common = {"SWARMLOC_SESSION_STORE": _db(redis_srv, 1), "SWARMLOC_MAPS_SYNC": "redis",
               "SWARMLOC_ZENOH_ENABLED": "false", "SWARMLOC_WORKERS": "2",
               "SWARMLOC_DEFAULT_MAP": "small",
               "SWARMLOC_LEARN_COMMIT_IMAGES": "3", "SWARMLOC_LEARN_ACCURACY_M": "2.0"}
@@ -155,7 +155,7 @@ def test_a_publish_from_a_stale_version_is_refused(redis_srv, small_map, tmp_pat
                                                    ) -> None:
     """Two replicas that replace one map at once from the same version: the second one's
     publish is refused (412), not written over the first."""
-    url = redis_srv.url.rsplit("/", 1)[0] + "/2"
+    url = _db(redis_srv, 2)
     import redis
 
     redis.Redis.from_url(url).flushdb()
