@@ -21,6 +21,7 @@ from service.api.errors import PreconditionFailed
 from service.engine.localization_service import LocalizationService
 from service.maps.route_map import RouteMap, file_version, save_map
 from service.settings import Settings
+from tests.replicas import upload_served_by_the_other
 
 SEED = 7
 
@@ -81,24 +82,15 @@ def test_upload_replace_and_delete_reach_the_other_replica(
     If-Match, then an upload through A against the old version is refused (412); deleted
     through A, B no longer serves it and its file is gone."""
     a, b = mirrored["a"].url, mirrored["b"].url
-    first = _upload(a, "street", _version(small_map, "street", "v1", tmp_path),
-                    **{"if-none-match": "*"})
-    assert first.status_code == 201, first.text
-    got = httpx.get(f"{b}/maps/street", timeout=30)
-    assert got.status_code == 200 and got.headers["ETag"] == first.headers["ETag"]
-    assert "street" in [m["name"] for m in httpx.get(f"{b}/maps", timeout=30).json()]
-    r = httpx.put(f"{b}/sessions/walker", timeout=30, json={"map": "street", "seed": SEED})
-    assert r.status_code == 201, r.text
-    frame = httpx.post(f"{b}/sessions/walker/frames", params={"t": 0.0, "seq": 0},
-                       content=sunny2.image_path(10).read_bytes(),
-                       headers={"Content-Type": "image/png"}, timeout=60)
-    assert frame.status_code == 200 and frame.json()["frame_id"] == "street", frame.text
+    first = upload_served_by_the_other(a, b, "street",
+                                       _version(small_map, "street", "v1", tmp_path),
+                                       "walker", sunny2.image_path(10).read_bytes(), SEED)
     second = _upload(b, "street", _version(small_map, "street", "v2", tmp_path),
-                     **{"if-match": first.headers["ETag"]})
+                     **{"if-match": first})
     assert second.status_code == 200, second.text
     assert httpx.get(f"{a}/maps/street", timeout=30).headers["ETag"] == second.headers["ETag"]
     stale = _upload(a, "street", _version(small_map, "street", "v3", tmp_path),
-                    **{"if-match": first.headers["ETag"]})
+                    **{"if-match": first})
     assert stale.status_code == 412, stale.text
     gone = httpx.delete(f"{a}/maps/street", params={"force": "true"}, timeout=30)
     assert gone.status_code == 200 and gone.json()["ended_sessions"] == ["walker"], gone.text

@@ -29,6 +29,7 @@ from service.engine.store import RedisOptions, RedisStore, Session
 from service.maps.route_map import RouteMap, save_map
 from service.server import free_ports
 from service.settings import Settings
+from tests.replicas import upload_served_by_the_other
 
 SEED = 7
 LEARN_FRAMES = 16  # cloudy frames each learning robot sends
@@ -345,15 +346,7 @@ def test_a_map_uploaded_or_deleted_through_one_replica_on_the_other(
     a, b = replicas["a"].url, replicas["b"].url
     data = save_map(dataclasses.replace(small_map, name="shared"), tmp_path / "shared"
                     ).read_bytes()
-    r = httpx.put(f"{a}/maps/shared", content=data, timeout=60,
-                  headers={"content-type": "application/octet-stream", "if-none-match": "*"})
-    assert r.status_code == 201, r.text
-    got = httpx.get(f"{b}/maps/shared", timeout=30)
-    assert got.status_code == 200 and got.headers["ETag"] == r.headers["ETag"]
-    assert "shared" in [m["name"] for m in httpx.get(f"{b}/maps", timeout=30).json()]
-    r = httpx.put(f"{b}/sessions/sharer", timeout=30, json={"map": "shared", "seed": SEED})
-    assert r.status_code == 201, r.text
-    assert _est(_post(b, "sharer", frames[0], 0))["frame_id"] == "shared"
+    upload_served_by_the_other(a, b, "shared", data, "sharer", frames[0], SEED)
     r = httpx.delete(f"{a}/maps/shared", params={"force": "true"}, timeout=30)
     assert r.status_code == 200 and r.json()["ended_sessions"] == ["sharer"], r.text
     assert httpx.get(f"{b}/maps/shared", timeout=30).status_code == 404
