@@ -258,16 +258,25 @@ def map_build(
              "the rounds' dataset.json 'camera' or calib.txt do not give it; with a camera "
              "the service locates frames between map images")] = None,
     max_features: MaxFeaturesOpt = None,
+    positions: Annotated[str, typer.Option(
+        help="the images' positions: 'fused' aligns a round's odometry.csv, where it has "
+             "one, to its poses.csv (GPS-like noise averaged out over 15 m of travel); "
+             "'recorded' keeps poses.csv as it is (exact positions, e.g. RTK or SLAM)")]
+    = "fused",
 ) -> None:
     """Build a map from one or more rounds: features, optional pruning, atomic write."""
     from dataclasses import replace
+    from typing import cast
 
     from tqdm import tqdm
 
     from service.api.round_format import camera_from_hfov
+    from service.maps.positions import POSITIONS_RULES, PositionsRule
     from service.maps.route_map import MapError, build_map_from_rounds, save_map
 
     rounds = [_read_round(r) for r in round_dirs]
+    if positions not in POSITIONS_RULES:
+        _fail(f"--positions must be one of {', '.join(POSITIONS_RULES)}, got {positions!r}")
     if hfov is not None:
         h, w = rounds[0].load_image(0).shape[:2]
         try:
@@ -279,7 +288,7 @@ def map_build(
         m = build_map_from_rounds(
             rounds, name=out.name.removesuffix(".swmap"),
             params=feature_params(features, width, height, max_features), delta=delta,
-            prune_features=prune,
+            prune_features=prune, positions=cast(PositionsRule, positions),
             source={"rounds": [{"round": str(r.path), "name": r.name} for r in rounds]},
             wrap=lambda it: tqdm(it, total=sum(len(r) for r in rounds), desc="features",
                                  unit="img"))
@@ -289,7 +298,8 @@ def map_build(
     pr = m.meta["pruning"]
     typer.echo(f"wrote {path}: {m.n_images} images in {m.n_layers} layer(s), "
                f"{pr['features_after']} features ({pr['features_after'] / m.n_images:.0f} per "
-               f"image; pruning removed {100 * pr['removed_fraction']:.1f} %); "
+               f"image; pruning removed {100 * pr['removed_fraction']:.1f} %); positions "
+               f"{', '.join(m.meta['source']['positions'])}; "
                + ("with the camera: frames are located between images" if m.camera else
                   "no camera (dataset.json 'camera', calib.txt or --hfov): frames are placed "
                   "at map images"))
@@ -415,6 +425,10 @@ def map_build_remote(
     width: Annotated[int, typer.Option(help="the map's working width (keep the camera's "
                                             "aspect)")] = 320,
     height: Annotated[int, typer.Option(help="the map's working height")] = 240,
+    positions: Annotated[str, typer.Option(
+        help="'fused': the round's odometry.csv goes along and the service aligns it to "
+             "poses.csv; 'recorded': it stays home and poses.csv is kept as it is")]
+    = "fused",
 ) -> None:
     """Zip a round, build its map on the service, follow the job with a progress bar."""
     import tempfile
@@ -425,10 +439,13 @@ def map_build_remote(
     from client.transports import SwarmlocError
     from service.api.models import JobInfo
 
+    if positions not in ("fused", "recorded"):
+        _fail(f"--positions must be fused or recorded, got {positions!r}")
     _read_round(round_dir)  # validation messages with file and line, before any upload
     client = _remote(to, token)
     with tempfile.TemporaryDirectory() as tmp:
-        archive = zip_round(round_dir, Path(tmp) / "round.zip")
+        archive = zip_round(round_dir, Path(tmp) / "round.zip",
+                            odometry=positions == "fused")
         try:
             job = client.build_map_remote(name or round_dir.name, archive, "*" if new else None,
                                           features, max_features, width, height)
@@ -711,7 +728,8 @@ def eval_split(
     params = feature_params(features, width, height)
     even = list(range(0, len(rnd), 2))
     odd = list(range(1, len(rnd), 2))
-    m = build_map_from_rounds([rnd.subset(even, use_truth=True)], params=params)
+    m = build_map_from_rounds([rnd.subset(even, use_truth=True)], params=params,
+                              positions="recorded")  # the truth: nothing to average out
     feats = [extract(rnd.load_image(i), params) for i in odd]
     adjacent = 0
     for k, f in enumerate(feats):

@@ -7,15 +7,23 @@ import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
-from client.dataset import CALIB_FILE, DATASET_FILE, POSES_FILE, TRUTH_FILE, read_round
+from client.dataset import (
+    CALIB_FILE,
+    DATASET_FILE,
+    ODOMETRY_FILE,
+    POSES_FILE,
+    TRUTH_FILE,
+    read_round,
+)
 from client.transports import HttpClient, SwarmlocError
 from service.api.models import JobInfo
 
 _STORED = (".png", ".jpg", ".jpeg")  # already compressed
 
 
-def zip_round(round_dir: str | Path, out: str | Path) -> Path:
-    """Write ``out`` (a zip): ``ROUND/poses.csv`` (+ truth.csv, calib.txt), the images it
+def zip_round(round_dir: str | Path, out: str | Path, odometry: bool = True) -> Path:
+    """Write ``out`` (a zip): ``ROUND/poses.csv`` (+ truth.csv, calib.txt and, with
+    ``odometry``, odometry.csv: the service fuses the map's positions with it), the images it
     names, and the dataset's ``dataset.json`` (its geodetic origin and camera) at the top.
     The round is validated first."""
     rnd = read_round(round_dir)
@@ -24,7 +32,7 @@ def zip_round(round_dir: str | Path, out: str | Path) -> Path:
         meta = rnd.path.parent / DATASET_FILE
         if meta.is_file():
             zf.write(meta, DATASET_FILE)
-        for extra in (POSES_FILE, TRUTH_FILE, CALIB_FILE):
+        for extra in (POSES_FILE, TRUTH_FILE, CALIB_FILE) + ((ODOMETRY_FILE,) if odometry else ()):
             if (rnd.path / extra).is_file():
                 zf.write(rnd.path / extra, f"{rnd.name}/{extra}")
         for name in rnd.images:

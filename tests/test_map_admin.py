@@ -18,7 +18,7 @@ import pytest
 from typer.testing import CliRunner
 
 from client.cli import app as cli_app
-from client.dataset import write_round
+from client.dataset import write_odometry, write_round
 from client.map_remote import zip_round
 from client.transports import HttpClient, SwarmlocError, ZenohClient
 from service.api.models import JobInfo
@@ -228,6 +228,28 @@ def test_build_job_progress_and_map_appears_complete(srv, small_round, sunny2) -
     assert est.frame_id == "built"
     srv.http.delete_map("built", force=True)
     assert not list(srv.maps.glob(".swarmloc-*"))  # the extracted round is gone
+
+
+def test_a_round_uploaded_with_its_odometry_gets_fused_positions(srv, small_round,
+                                                                  sunny2) -> None:
+    """The service aligns an uploaded round's odometry.csv to its poses (as ``map build``
+    does); ``build-remote --positions recorded`` leaves the file out and keeps the poses."""
+    rnd = small_round.parent / "part-odom"
+    shutil.copytree(small_round, rnd)
+    write_odometry(rnd, sunny2.images[:20], sunny2.odometry[:20])
+    built = {}
+    for rule in ("fused", "recorded"):
+        archive = zip_round(rnd, rnd.parent / f"odom-{rule}.zip", odometry=rule == "fused")
+        assert ("part-odom/odometry.csv" in zipfile.ZipFile(archive).namelist()) is (
+            rule == "fused")
+        job = srv.http.build_map_remote(f"odom-{rule}", archive)
+        assert _finished(srv, job).state == "done"
+        built[rule] = httpx.get(f"{srv.url}/maps/odom-{rule}").json()
+        srv.http.delete_map(f"odom-{rule}", force=True)
+    assert built["fused"]["meta"]["source"]["positions"][0].startswith("fused with odometry")
+    assert not np.allclose(built["fused"]["positions"], sunny2.xy[:20])
+    assert built["recorded"]["meta"]["source"]["positions"] == ["recorded"]
+    assert np.allclose(built["recorded"]["positions"], sunny2.xy[:20])
 
 
 def _finished(srv, job: JobInfo, timeout_s: float = 240) -> JobInfo:

@@ -32,8 +32,11 @@ def map_for(dataset: Path, rounds: str, papers: bool, features: str = "clahe-roo
             size: tuple[int, int] = (320, 240), max_features: int | None = None) -> RouteMap:
     """The map of one round (or rounds joined by '+'), built once and kept in DATASET/.maps;
     ``features``: the feature type of our maps (the papers' maps are always the papers' SIFT),
-    built at the working size ``size`` with SIFT's cap ``max_features`` (None: the type's)."""
+    built at the working size ``size`` with SIFT's cap ``max_features`` (None: the type's);
+    our maps with the default positions (fused with a round's odometry), the papers' with
+    the recorded ones."""
     from client.dataset import read_round
+    from service.maps.positions import PositionsRule, round_positions
     from service.maps.route_map import build_map_from_rounds, load_map, save_map
     from service.vision.features import SiftParams, named_params
 
@@ -45,12 +48,16 @@ def map_for(dataset: Path, rounds: str, papers: bool, features: str = "clahe-roo
         kind += f"-cap{max_features}"
     path = dataset / ".maps" / f"{'+'.join(names)}{kind}.swmap"
     rnds = [read_round(dataset / r) for r in names]
+    rule: PositionsRule = "recorded" if papers else "fused"
     if path.is_file():
         kept = load_map(path)
-        if kept.meta.get("camera") == rnds[0].camera:  # else built before the camera was known
+        placed = [round_positions(r, rule)[1] for r in rnds]
+        # else built before the camera was known, or with other positions
+        if (kept.meta.get("camera") == rnds[0].camera
+                and kept.meta.get("source", {}).get("positions") == placed):
             return kept
     params = SiftParams.papers() if papers else named_params(features, *size, max_features)
-    m = build_map_from_rounds(rnds, params=params, prune_features=papers)
+    m = build_map_from_rounds(rnds, params=params, prune_features=papers, positions=rule)
     return load_map(save_map(m, path))  # loaded: with its checksum, memory-mapped
 
 

@@ -19,7 +19,7 @@ from service.api.params import DPSOParams
 from service.estimators.base import Status, StepResult
 from service.estimators.fitness import ComparisonCache, LocateFn, TypeScores
 from service.estimators.odometry import OdomStep, body_step
-from service.estimators.registry import make_estimator
+from service.estimators.registry import make_estimator, with_map_sigma
 from service.maps.experiences import LayerChoice, base_images, experience_layers
 from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
@@ -42,7 +42,9 @@ class Localizer:
         self.map = route_map
         self.estimator_name = estimator
         self.seed = seed
-        self.estimator = make_estimator(route_map, estimator, params,
+        self.estimator = make_estimator(route_map, estimator,
+                                        with_map_sigma(estimator, params,
+                                                       route_map.position_sigma_m),
                                         np.random.default_rng(seed))
         p = self.estimator.params  # the papers' estimators keep their random placements
         k = p.place_candidates if isinstance(p, DPSOParams) and p.variant == "swarmloc" else 0

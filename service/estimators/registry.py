@@ -70,3 +70,15 @@ def make_estimator(index: MapIndex, estimator: str, params: dict[str, Any] | Non
                    rng: np.random.Generator) -> Estimator:
     """A new estimator of that name on the map, with its parameters and generator."""
     return spec_of(estimator).build(index, params_for(estimator, params), rng)
+
+
+def with_map_sigma(estimator: str, overrides: dict[str, Any] | None,
+                   position_sigma_m: float | None) -> dict[str, Any] | None:
+    """``overrides`` with the map's own position error as the floor of a located frame's
+    radius (``metric_map_sigma_m``) where the map knows it (positions fused with odometry,
+    service/maps/positions.py) and the session did not set it."""
+    fields = getattr(spec_of(estimator).params, "model_fields", {})
+    if (position_sigma_m is None or "metric_map_sigma_m" not in fields
+            or "metric_map_sigma_m" in (overrides or {})):
+        return overrides
+    return {**(overrides or {}), "metric_map_sigma_m": position_sigma_m}

@@ -44,9 +44,11 @@ from service.api.round_format import (
     CALIB_FILE,
     DATASET_FILE,
     IMAGE_SUFFIXES,
+    ODOMETRY_FILE,
     POSES_FILE,
     DatasetError,
     dataset_camera,
+    parse_odometry,
     parse_positions,
     read_meta,
 )
@@ -88,6 +90,7 @@ class UploadedRound:
     origin: tuple[float, float] | None
     max_pixels: int
     camera: dict[str, float] | None = None  # intrinsics as fractions of the image size
+    odometry: np.ndarray | None = None  # (N, 3) x, y (m), yaw (rad) from odometry.csv
 
     def __len__(self) -> int:
         return len(self.images)
@@ -403,6 +406,9 @@ def extract_round(archive: Path, dest: Path, limits: ArchiveLimits) -> UploadedR
             h, w = rnd.load_image(0).shape[:2]
             size = (w, h)
         rnd = dataclasses.replace(rnd, camera=dataset_camera(root, size, root != dest))
+        if (root / ODOMETRY_FILE).is_file():  # the map's positions are fused with it
+            rnd = dataclasses.replace(rnd, odometry=parse_odometry(root / ODOMETRY_FILE,
+                                                                   list(names)))
     except DatasetError as exc:
         raise InvalidParameters(f"invalid round: {_relative(exc, dest)}") from None
     return rnd

@@ -59,6 +59,7 @@ from service.maps.compact import (
     keypoint_scale,
     valid_keypoint_scale,
 )
+from service.maps.positions import FUSED_SIGMA_M, PositionsRule, round_positions
 from service.vision.features import (
     DEFAULT_DELTA,
     DUAL,
@@ -285,6 +286,15 @@ class RouteMap:
             raise MapError(f"{self.path}: image {image_id} ('{self.image_names[image_id]}') "
                            f"{defect}, the file is corrupted; {remedy}")
         checked[image_id] = True
+
+    @property
+    def position_sigma_m(self) -> float | None:
+        """The per-axis error of the map's positions where the map knows it (every round's
+        positions fused with its odometry: ``FUSED_SIGMA_M``); None: as recorded."""
+        how = self.meta.get("source", {}).get("positions")
+        fused = isinstance(how, list) and bool(how) and all(
+            isinstance(h, str) and h.startswith("fused") for h in how)
+        return FUSED_SIGMA_M if fused else None
 
     @property
     def n_layers(self) -> int:
@@ -814,6 +824,7 @@ def build_map_from_rounds(
     images: Iterable[np.ndarray] | None = None,
     wrap: Callable[[Iterator[np.ndarray]], Iterable[np.ndarray]] | None = None,
     camera: Camera | None = None,
+    positions: PositionsRule = "fused",
 ) -> RouteMap:
     """The map of one round, or of several traversals of one route (one layer each).
 
@@ -821,7 +832,10 @@ def build_map_from_rounds(
     ``ROUND/IMAGE`` for several rounds. ``images`` replaces the rounds' own images (e.g. paced
     for a background build); ``wrap`` wraps the image iterator (e.g. a progress bar);
     ``camera``: the intrinsics kept in the map (see ``build_map``); by default the rounds'
-    own (all must have the same).
+    own (all must have the same). ``positions``: ``fused`` (the default) aligns a round's
+    wheel odometry, where it has one, to its recorded positions (service/maps/positions.py);
+    ``recorded`` keeps ``poses.csv`` as it is (exact positions, the papers' protocol). The
+    map's ``source`` says which each round got.
     """
     if not rounds:
         raise MapError("a map needs at least one round")
@@ -842,13 +856,14 @@ def build_map_from_rounds(
     if wrap is not None:
         it = wrap(iter(it))
     multi = len(rounds) > 1
+    placed = [round_positions(r, positions) for r in rounds]
+    source = dict(source) if source is not None else {"rounds": [r.name for r in rounds]}
+    source["positions"] = [how for _, how in placed]
     return build_map(
-        name or "+".join(r.name for r in rounds), it,
-        np.concatenate([np.asarray(r.xy, float) for r in rounds]),
+        name or "+".join(r.name for r in rounds), it, np.concatenate([xy for xy, _ in placed]),
         [f"{r.name}/{n}" if multi else n for r in rounds for n in r.images],
         params=params, delta=delta, origin=origin,
-        source=source if source is not None else {"rounds": [r.name for r in rounds]},
-        prune_features=prune_features,
+        source=source, prune_features=prune_features,
         layers=np.concatenate([np.full(len(r), k) for k, r in enumerate(rounds)]),
         camera=camera,
     )
