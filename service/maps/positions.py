@@ -26,11 +26,23 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Literal, Protocol, get_args
 
 import numpy as np
 
 _log = logging.getLogger(__name__)
+
+
+WINDOW_M = 15.0  # metres of travel on either side of an image that its alignment uses
+MAX_MOVED_M = 2.0  # a median move above this: the odometry does not fit the poses
+SCALE_RANGE = (0.8, 1.25)  # recorded metres per odometry metre (median over the windows)
+# per-axis error of fused positions: their mean distance from the truth on the rendered
+# worlds' 35 rounds, 0.23 m, as a 2-D Gaussian's sigma (mean = 1.25 sigma); the recorded
+# ones' 0.37 m gives the 0.28 m the estimators assume by default (metric_map_sigma_m)
+FUSED_SIGMA_M = 0.18
+_MIN_SPREAD_M = 0.5  # odometry spread (rms) below which a window counts as standing still
+PositionsRule = Literal["fused", "recorded"]
+POSITIONS_RULES: tuple[str, ...] = get_args(PositionsRule)
 
 
 class PlacedRound(Protocol):
@@ -41,17 +53,6 @@ class PlacedRound(Protocol):
     def name(self) -> str: ...
     @property
     def xy(self) -> np.ndarray: ...
-
-WINDOW_M = 15.0  # metres of travel on either side of an image that its alignment uses
-MAX_MOVED_M = 2.0  # a median move above this: the odometry does not fit the poses
-SCALE_RANGE = (0.8, 1.25)  # the odometry's metres per recorded metre (median over windows)
-# per-axis error of fused positions: their mean distance from the truth on the rendered
-# worlds' 35 rounds, 0.23 m, as a 2-D Gaussian's sigma (mean = 1.25 sigma); the recorded
-# ones' 0.37 m gives the 0.28 m the estimators assume by default (metric_map_sigma_m)
-FUSED_SIGMA_M = 0.18
-_MIN_SPREAD_M = 0.5  # odometry spread (rms) below which a window counts as standing still
-PositionsRule = Literal["fused", "recorded"]
-POSITIONS_RULES: tuple[str, ...] = ("fused", "recorded")
 
 
 @dataclass(frozen=True)
@@ -129,6 +130,8 @@ def round_positions(rnd: PlacedRound, rule: PositionsRule = "fused") -> tuple[np
         return xy, "recorded"
     if len(odometry) != len(xy):  # a round cut without its odometry: nothing to align
         return xy, "recorded (the odometry lists other images)"
+    if len(xy) < 3:
+        return xy, "recorded (too few images to align the odometry)"
     fused = fuse_with_odometry(xy, np.asarray(odometry, float)[:, :2])
     if not fused.fits:
         _log.warning("round %s: its odometry does not fit its poses (aligning it moves them "
