@@ -37,3 +37,26 @@ def test_the_labs_maps_take_a_working_size_and_a_cap(tmp_path, rounds_dir) -> No
     p = rich.feature_params
     assert (p.width, p.height, p.n_features) == (160, 120, 50)  # type: ignore[union-attr]
     assert np.median(np.diff(rich.offsets)) <= 50 < np.median(np.diff(plain.offsets))
+
+
+def test_the_labs_maps_keep_their_positions_apart(tmp_path, rounds_dir) -> None:
+    """Our maps take the fused positions by default; the papers' comparison builds (and
+    keeps apart) maps on the recorded ones, for every method alike."""
+    import shutil
+
+    from client.lab.experiment_cli import map_for
+
+    shutil.copytree(rounds_dir / "sunny1", tmp_path / "sunny1")
+    fused = map_for(tmp_path, "sunny1", False, "clahe-rootsift", (160, 120), 50)
+    recorded = map_for(tmp_path, "sunny1", False, "clahe-rootsift", (160, 120), 50,
+                       positions="recorded")
+    assert recorded.path is not None and recorded.path.name == "sunny1-160x120-cap50-recorded.swmap"
+    assert fused.meta["source"]["positions"][0].startswith("fused")
+    assert recorded.meta["source"]["positions"] == ["recorded"]
+    xy = np.loadtxt(tmp_path / "sunny1" / "poses.csv", delimiter=",", skiprows=1,
+                    usecols=(1, 2))
+    assert np.allclose(recorded.positions, xy) and not np.allclose(fused.positions, xy)
+    assert fused.path is not None
+    built = fused.path.stat().st_mtime_ns
+    again = map_for(tmp_path, "sunny1", False, "clahe-rootsift", (160, 120), 50)
+    assert again.path == fused.path and fused.path.stat().st_mtime_ns == built  # kept

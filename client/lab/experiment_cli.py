@@ -24,19 +24,21 @@ if TYPE_CHECKING:
     from client.dataset import Round
     from client.lab.experiments import SimilarityTable
     from client.runs import Run
+    from service.maps.positions import PositionsRule
     from service.maps.route_map import RouteMap
     from service.vision.features import Features
 
 
 def map_for(dataset: Path, rounds: str, papers: bool, features: str = "clahe-rootsift",
-            size: tuple[int, int] = (320, 240), max_features: int | None = None) -> RouteMap:
+            size: tuple[int, int] = (320, 240), max_features: int | None = None,
+            positions: PositionsRule | None = None) -> RouteMap:
     """The map of one round (or rounds joined by '+'), built once and kept in DATASET/.maps;
     ``features``: the feature type of our maps (the papers' maps are always the papers' SIFT),
     built at the working size ``size`` with SIFT's cap ``max_features`` (None: the type's);
-    our maps with the default positions (fused with a round's odometry), the papers' with
-    the recorded ones."""
+    ``positions``: our maps' (None: the default, fused with a round's odometry; the papers'
+    maps always keep the recorded ones)."""
     from client.dataset import read_round
-    from service.maps.positions import PositionsRule, round_positions
+    from service.maps.positions import round_positions
     from service.maps.route_map import build_map_from_rounds, load_map, save_map
     from service.vision.features import SiftParams, named_params
 
@@ -46,9 +48,11 @@ def map_for(dataset: Path, rounds: str, papers: bool, features: str = "clahe-roo
         kind += f"-{size[0]}x{size[1]}"
     if not papers and max_features is not None:
         kind += f"-cap{max_features}"
+    rule: PositionsRule = "recorded" if papers else (positions or "fused")
+    if not papers and rule == "recorded":
+        kind += "-recorded"
     path = dataset / ".maps" / f"{'+'.join(names)}{kind}.swmap"
     rnds = [read_round(dataset / r) for r in names]
-    rule: PositionsRule = "recorded" if papers else "fused"
     if path.is_file():
         kept = load_map(path)
         placed = [round_positions(r, rule)[1] for r in rnds]
