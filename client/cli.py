@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, NoReturn
+from typing import TYPE_CHECKING, Annotated, NoReturn, cast
 
 import typer
 
@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from client.dataset import Round
     from client.transports import Client, HttpClient
     from service.api.models import MapSummary
+    from service.maps.positions import PositionsRule
     from service.vision.features import FeatureParams
 
 # plain click help (rich_markup_mode=None): rich's import alone costs more than the 0.3 s
@@ -105,6 +106,15 @@ MaxFeaturesOpt = Annotated[int | None, typer.Option(
     min=0, max=MAX_FEATURES_CAP, help="SIFT's features kept per map image and frame, the strongest "
     "(default 2,048; 0: all). Above 2,048 the service compares the map through its inverted "
     "file (SWARMLOC_MATCHER=auto); XFeat keeps its 1,024")]
+
+
+def _positions_rule(value: str) -> PositionsRule:
+    """``--positions``, checked: fused or recorded (service/maps/positions.py)."""
+    from service.maps.positions import POSITIONS_RULES
+
+    if value not in POSITIONS_RULES:
+        _fail(f"--positions must be one of {', '.join(POSITIONS_RULES)}, got {value!r}")
+    return cast("PositionsRule", value)
 
 
 def feature_params(name: str, width: int = 320, height: int = 240,
@@ -266,17 +276,14 @@ def map_build(
 ) -> None:
     """Build a map from one or more rounds: features, optional pruning, atomic write."""
     from dataclasses import replace
-    from typing import cast
 
     from tqdm import tqdm
 
     from service.api.round_format import camera_from_hfov
-    from service.maps.positions import POSITIONS_RULES, PositionsRule
     from service.maps.route_map import MapError, build_map_from_rounds, save_map
 
+    rule = _positions_rule(positions)
     rounds = [_read_round(r) for r in round_dirs]
-    if positions not in POSITIONS_RULES:
-        _fail(f"--positions must be one of {', '.join(POSITIONS_RULES)}, got {positions!r}")
     if hfov is not None:
         h, w = rounds[0].load_image(0).shape[:2]
         try:
@@ -288,7 +295,7 @@ def map_build(
         m = build_map_from_rounds(
             rounds, name=out.name.removesuffix(".swmap"),
             params=feature_params(features, width, height, max_features), delta=delta,
-            prune_features=prune, positions=cast(PositionsRule, positions),
+            prune_features=prune, positions=rule,
             source={"rounds": [{"round": str(r.path), "name": r.name} for r in rounds]},
             wrap=lambda it: tqdm(it, total=sum(len(r) for r in rounds), desc="features",
                                  unit="img"))
@@ -439,13 +446,12 @@ def map_build_remote(
     from client.transports import SwarmlocError
     from service.api.models import JobInfo
 
-    if positions not in ("fused", "recorded"):
-        _fail(f"--positions must be fused or recorded, got {positions!r}")
+    rule = _positions_rule(positions)
     _read_round(round_dir)  # validation messages with file and line, before any upload
     client = _remote(to, token)
     with tempfile.TemporaryDirectory() as tmp:
         archive = zip_round(round_dir, Path(tmp) / "round.zip",
-                            odometry=positions == "fused")
+                            odometry=rule == "fused")
         try:
             job = client.build_map_remote(name or round_dir.name, archive, "*" if new else None,
                                           features, max_features, width, height)

@@ -151,3 +151,16 @@ def test_an_uploaded_round_brings_its_odometry_or_a_clear_error(tmp_path: Path,
     assert upload("none", None).odometry is None
     with pytest.raises(InvalidParameters, match=r"odometry.csv, line 3: x, y and yaw"):
         upload("bad", "image,x,y,yaw\n" + rows.replace("0.6,", "north,", 1))
+
+
+@pytest.mark.parametrize("command", ["build", "build-remote"])
+def test_an_unknown_positions_rule_is_one_line(command: str, sunny1: Round) -> None:
+    from typer.testing import CliRunner
+
+    from client.cli import app
+
+    where = ["--out", "/nonexistent/m"] if command == "build" else ["--to", "http://127.0.0.1:9"]
+    res = CliRunner().invoke(app, ["map", command, str(sunny1.path), *where,
+                                   "--positions", "smoothed"])
+    assert res.exit_code == 2
+    assert "--positions must be one of fused, recorded, got 'smoothed'" in res.output
