@@ -17,10 +17,11 @@ import pytest
 
 from client.dataset import Round
 from client.lab.world import World
+from client.runs import odometry_along
 from service.api.errors import NotFound
-from service.api.models import Estimate, MapSummary, PosePrior, SessionConfig
+from service.api.models import Estimate, MapSummary, Odometry, PosePrior, SessionConfig
 from service.api.round_format import camera_from_hfov
-from service.engine.learning import LearnPath, path_gate
+from service.engine.learning import Learner, LearnGates, LearnPath, path_gate
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
 from service.maps.experiences import (
@@ -225,15 +226,19 @@ class LearningRun:
     on_disk: RouteMap
 
 
-@pytest.fixture(scope="module")
-def learning_run(camera_maps: Path, tmp_path_factory: pytest.TempPathFactory,
-                 cloudy1: Round) -> LearningRun:
-    """One learning session over the start of the cloudy round (shared by the tests)."""
-    service = _service(camera_maps, tmp_path_factory.mktemp("learn"))
+def _learn(camera_maps: Path, tmp: Path, cloudy1: Round, odometry: bool,
+           frames: int = LEARN_FRAMES) -> LearningRun:
+    """One learning session over the start of the cloudy round (``frames`` frames), sent with
+    the round's wheel odometry or without."""
+    service = _service(camera_maps, tmp)
     old = str(service.get_map("route").meta["checksum"])
     service.put_session("r1", SessionConfig(map="route", learn=True, condition="cloudy"))
-    for i in range(LEARN_FRAMES):
-        service.process_frame("r1", cloudy1.image_path(i).read_bytes(), t=float(i))
+    assert cloudy1.odometry is not None
+    odom = odometry_along(cloudy1.odometry, np.arange(frames))
+    for i in range(frames):
+        service.process_frame("r1", cloudy1.image_path(i).read_bytes(), t=float(i),
+                              odom=Odometry(x=float(odom[i, 0]), y=float(odom[i, 1]),
+                                            yaw=float(odom[i, 2])) if odometry else None)
     stats = service.learner.stats("r1")
     assert service.writer.wait(120)  # the full collections were handed to the writer
     during = str(service.map_summary("route").checksum)
@@ -247,11 +252,19 @@ def learning_run(camera_maps: Path, tmp_path_factory: pytest.TempPathFactory,
     return LearningRun(old, during, stats, summary, on_disk)
 
 
+@pytest.fixture(scope="module")
+def learning_run(camera_maps: Path, tmp_path_factory: pytest.TempPathFactory,
+                 cloudy1: Round) -> LearningRun:
+    """One learning session over the start of the cloudy round (shared by the tests)."""
+    return _learn(camera_maps, tmp_path_factory.mktemp("learn"), cloudy1, odometry=False)
+
+
 def test_a_learning_session_teaches_its_map_a_new_version(learning_run: LearningRun,
                                                           cloudy1: Round) -> None:
     run = learning_run
     assert run.stats["seen"] == LEARN_FRAMES
     assert run.stats["taught"] > LEARN["learn_commit_images"], run.stats
+    assert run.stats["odometry"] == 0  # sent without: the taught images are smoothed
     assert run.during != run.old  # a full collection is written while the session runs
     # the end of the session writes the images still waiting (a new version), if any
     assert (run.summary.checksum != run.during) == (run.stats["waiting"] > 0)
@@ -262,6 +275,47 @@ def test_a_learning_session_teaches_its_map_a_new_version(learning_run: Learning
     mask = m.layers == e.layer
     assert int(mask.sum()) == e.images
     assert float(np.max(np.abs(m.positions[mask] - _truth(cloudy1, m.image_names, mask)))) < 3.0
+
+
+def test_a_robot_sending_its_odometry_teaches_images_placed_along_it(
+        camera_maps: Path, cloudy1: Round, cloudy_features: list[Features]) -> None:
+    """A learner fed the cloudy stretch at its true places (gates 3 and 4 run for real: the
+    geometry locates each taught frame), once with the round's wheel odometry and once
+    without: the same frames are taught, and with the odometry their positions (its path
+    aligned to the located ones, learning.placed) are closer to the truth than the line
+    through the located positions."""
+    m = load_map(camera_maps / "route.swmap")
+    assert cloudy1.odometry is not None
+    odom = odometry_along(cloudy1.odometry, np.arange(STRETCH))
+    taught: list[list[NewImage]] = []
+    for sent in (False, True):
+        written: list[NewImage] = []
+        learner = Learner(LearnGates(accuracy_m=1.5, weak_ratio=0.4, commit_images=1000),
+                          lambda _m, _e, images, _c, _r, out=written: out.extend(images))
+        for i, f in enumerate(cloudy_features):
+            x, y = (float(v) for v in cloudy1.reference_xy[i])
+            e = Estimate(seq=i + 1, stamp=None, frame_id="m", estimator="dpso", x=x, y=y,
+                         heading=0.0, speed=0.0, status="tracking", lost=False, score=0.5,
+                         comparisons=1, covariance=[[0.1, 0], [0, 0.1]],
+                         pose_covariance=[0.0] * 36, accuracy_m=0.5, nearest_image=0,
+                         nearest_image_name="x", spread_m=0.1)
+            learner.observe("r", 0.0, "cloudy", m, f, e, None, Odometry(
+                x=float(odom[i, 0]), y=float(odom[i, 1]), yaw=float(odom[i, 2]))
+                if sent else None)
+        learner.flush("r", end=True)
+        taught.append(written)
+    assert [f.name for f in taught[0]] == [f.name for f in taught[1]] and len(taught[0]) >= 10
+    seqs = [int(f.name.rsplit("/", 1)[1]) - 1 for f in taught[0]]
+    truth = cloudy1.reference_xy[seqs]
+    line, along = (float(np.linalg.norm(np.array([f.xy for f in t]) - truth, axis=1).mean())
+                   for t in taught)
+    assert along < 0.7 * line, (line, along)
+
+
+def test_the_service_hands_a_learning_robot_s_odometry_to_its_learner(
+        camera_maps: Path, tmp_path: Path, cloudy1: Round) -> None:
+    run = _learn(camera_maps, tmp_path, cloudy1, odometry=True, frames=12)
+    assert run.stats["odometry"] == run.stats["taught"] > 0, run.stats
 
 
 def _truth(rnd: Round, names: list[str], mask: np.ndarray) -> np.ndarray:
@@ -294,7 +348,8 @@ def test_a_session_confidently_wrong_by_construction_learns_nothing(
     old = service.get_map("route").meta["checksum"]
     stats = feed_a_wrong_place(service, "route", sunny1, cloudy1, LEARN_FRAMES)
     assert stats["seen"] == LEARN_FRAMES and stats.get("taught", 0) == 0, stats
-    assert sum(v for k, v in stats.items() if k not in ("seen", "taught", "waiting")) == \
+    assert sum(v for k, v in stats.items()
+               if k not in ("seen", "taught", "odometry", "waiting")) == \
         LEARN_FRAMES  # every frame stopped at a gate
     assert service.get_map("route").meta["checksum"] == old
     assert service.map_summary("route").experiences == []

@@ -1,6 +1,8 @@
 """Map image positions fused with wheel odometry (service/maps/positions.py): closer to the
 truth than GPS-like poses, the recorded ones kept where asked or where the odometry does
-not fit, and the map's own position error as the floor of a located frame's radius."""
+not fit, and the map's own position error as the floor of a located frame's radius. A
+learning robot's taught frames are placed the same way with the odometry it sent
+(service/engine/learning.py)."""
 
 from __future__ import annotations
 
@@ -14,7 +16,9 @@ import numpy as np
 import pytest
 
 from client.dataset import Round
+from service.engine.learning import placed, smoothed
 from service.engine.localizer import Localizer
+from service.maps.experiences import NewImage
 from service.maps.positions import (
     FUSED_SIGMA_M,
     MAX_MOVED_M,
@@ -67,6 +71,43 @@ def test_fused_positions_are_closer_to_the_truth_than_gps_like_ones(seed: int) -
     assert fused.fits and fused.moved_m < MAX_MOVED_M
     # the curve keeps its shape: no image of it is pulled off by the straight parts
     assert np.linalg.norm(fused.xy - truth[:, :2], axis=1)[110:160].max() < 0.8
+
+
+def _taught(seed: int) -> tuple[np.ndarray, list[NewImage], list[int], list[np.ndarray | None]]:
+    """A learning robot's 40 taught frames along the drive (every fourth image, a curve among
+    them): the truth, the images at their located positions (the geometry's error, 0.4 m per
+    axis) and the frame numbers and odometry it sent with them."""
+    rng = np.random.default_rng(seed)
+    truth = _route()
+    odom = _odometry(truth, rng)
+    idx = np.arange(60, 220, 4)
+    located = truth[idx, :2] + rng.normal(0, 0.4, (len(idx), 2))
+    images = [NewImage(np.zeros((2, 4), np.uint8), np.zeros((2, 2), np.float32), xy, f"e/{k}")
+              for k, xy in zip(idx, located, strict=True)]
+    return truth[idx, :2], images, [int(k) for k in idx], [o for o in odom[idx]]
+
+
+def _error(images: list[NewImage], truth: np.ndarray) -> float:
+    return float(np.linalg.norm(np.array([f.xy for f in images]) - truth, axis=1).mean())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_taught_frames_are_placed_along_the_odometry_the_robot_sent(seed: int) -> None:
+    truth, images, seqs, odom = _taught(seed)
+    located, line = _error(images, truth), _error(smoothed(images, seqs), truth)
+    fused = _error(placed(images, seqs, odom), truth)
+    assert fused < 0.6 * located and fused < line, (located, line, fused)
+
+
+def test_taught_frames_without_odometry_or_with_odometry_that_does_not_fit_are_smoothed(
+) -> None:
+    _, images, seqs, odom = _taught(3)
+    line = [f.xy for f in smoothed(images, seqs)]
+    missing = [None, *odom[1:]]  # one frame came without it
+    feet = [o * 3.28 for o in odom]
+    for sent in (missing, feet, [None] * len(odom)):
+        assert np.array_equal([f.xy for f in placed(images, seqs, sent)], line)
+    assert not np.array_equal([f.xy for f in placed(images, seqs, odom)], line)
 
 
 def test_a_robot_standing_still_takes_the_mean_of_its_positions() -> None:

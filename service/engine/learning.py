@@ -17,6 +17,11 @@ only when every gate holds (a kidnapped or lost robot never does):
    type's matches); the located position is the image's position in the experience (the
    estimate where the map has no camera).
 
+The taught frames' positions are then placed together (``placed``): where the robot sent its
+wheel odometry with every one of them, the odometry's path aligned to their located positions
+over a window of travel, as a map's positions are fused with its round's odometry
+(service/maps/positions.py); else a line through the located positions of nearby frames.
+
 Taught frames are kept (one per place) until ``learn_commit_images`` are collected or the
 session ends or is reset; then the map admin writes them into the map as a new version
 (service/maps/experiences.py). The collected frames stay in this process's memory, not in the
@@ -38,7 +43,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from service.api.models import Estimate
+from service.api.models import Estimate, Odometry
 from service.estimators.along_track import path_tangent
 from service.maps.experiences import (
     GAP_SPACINGS,
@@ -48,6 +53,7 @@ from service.maps.experiences import (
     base_layers,
     base_spacing,
 )
+from service.maps.positions import fuse_with_odometry
 from service.maps.route_map import RouteMap
 from service.vision.features import Features
 from service.vision.map_geometry import GeometryParams
@@ -80,9 +86,11 @@ class _Trail:
     last_seen: float = 0.0  # when the robot's last frame here was observed (time.monotonic)
     pending: list[NewImage] = field(default_factory=list)
     taught: int = 0  # frames that passed the gates
+    with_odometry: int = 0  # of them, sent with the robot's odometry
     seen: int = 0
     refused: dict[str, int] = field(default_factory=dict)  # frames stopped, by gate
     seqs: list[int] = field(default_factory=list)  # the frame number of each pending image
+    odometry: list[np.ndarray | None] = field(default_factory=list)  # each one's (x, y), if sent
 
     def refuse(self, gate: str) -> None:
         self.refused[gate] = self.refused.get(gate, 0) + 1
@@ -105,6 +113,22 @@ def smoothed(images: list[NewImage], seqs: list[int], k: int = SMOOTH_FRAMES
         coef, *_ = np.linalg.lstsq(a, xy[near], rcond=None)
         out.append(replace(f, xy=coef[0]))
     return out
+
+
+def placed(images: list[NewImage], seqs: list[int], odometry: list[np.ndarray | None]
+           ) -> list[NewImage]:
+    """The taught images with their positions for the experience. Where the robot sent its
+    odometry with each of them (three or more): its path aligned to their located positions
+    over ``positions.WINDOW_M`` of travel on either side (``fuse_with_odometry``: the wheels
+    keep the shape between frames, the located positions of a whole stretch place it, and
+    each one's error averages out), unless it does not fit them (a reset odometry); else
+    ``smoothed``."""
+    if len(images) >= 3 and all(o is not None for o in odometry):
+        fused = fuse_with_odometry(np.array([f.xy for f in images], float).reshape(-1, 2),
+                                   np.array(odometry, float).reshape(-1, 2))
+        if fused.fits:
+            return [replace(f, xy=fused.xy[i]) for i, f in enumerate(images)]
+    return smoothed(images, seqs)
 
 
 LearnPath = list[tuple[int, float, float]]  # (estimate seq, x, y) of the last two frames
@@ -178,21 +202,24 @@ class Learner:
 
     # ---- learning sessions -----------------------------------------------------------------
     def stats(self, robot_id: str) -> dict[str, int]:
-        """A learning robot's frames seen, taught, images waiting, and frames stopped by each
-        gate (``confident``, ``path``, ``appearance``, ``located``, ``place``)."""
+        """A learning robot's frames seen, taught (``odometry``: of them, sent with the
+        robot's odometry), images waiting, and frames stopped by each gate (``confident``,
+        ``path``, ``appearance``, ``located``, ``place``)."""
         with self._lock:
             t = self._trails.get(robot_id)
             if t is None:
                 return {}
-            return {"seen": t.seen, "taught": t.taught, "waiting": len(t.pending),
-                    **t.refused}
+            return {"seen": t.seen, "taught": t.taught, "odometry": t.with_odometry,
+                    "waiting": len(t.pending), **t.refused}
 
     def observe(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
-                features: Features, est: Estimate, stopped: str | None) -> None:
+                features: Features, est: Estimate, stopped: str | None,
+                odom: Odometry | None = None) -> None:
         """One estimate of a learning session, ``stopped`` by gate 1 or 2 (``path_gate`` on
         the session's path) or not: collect the frame if it passes the other gates, hand the
         collection to the writer when it is full (no map write here). On a map of two
-        feature types the frame's both sets are kept."""
+        feature types the frame's both sets are kept; ``odom``: the odometry pose the robot
+        sent with the frame (``placed`` uses it)."""
         with self._lock:
             t = self._trails.get(robot_id)
             if t is None or t.map_name != m.name:
@@ -227,6 +254,8 @@ class Learner:
                 None if second is None else np.array(second.codes),
                 None if second is None else np.array(second.keypoints, np.float32)))
             t.seqs.append(est.seq)
+            t.odometry.append(None if odom is None else np.array([odom.x, odom.y], float))
+            t.with_odometry += odom is not None
             full = len(t.pending) >= self.gates.commit_images
         if full:
             self.flush(robot_id)
@@ -295,8 +324,10 @@ class Learner:
                 return
             images, t.pending = t.pending, []
             seqs, t.seqs = t.seqs, []
+            odometry, t.odometry = t.odometry, []
         if images:
-            self._commit(t.map_name, t.exp_id, smoothed(images, seqs), t.condition, robot_id)
+            self._commit(t.map_name, t.exp_id, placed(images, seqs, odometry), t.condition,
+                         robot_id)
 
     def flush_idle(self, idle_s: float, now: float | None = None) -> None:
         """Write the collections of robots that sent this replica no frame for ``idle_s``
