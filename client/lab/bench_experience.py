@@ -26,6 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from client.dataset import Round, read_round
+from client.runs import odometry_along
+from service.api.models import Odometry
 from service.engine.learning import LearnPath, path_gate
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
@@ -72,21 +74,31 @@ def _features(rnd: Round, m: RouteMap, frames: int) -> list[Features]:
 
 
 def replay(m: RouteMap, rnd: Round, feats: list[Features], *, seed: int = 0,
-           teach: tuple[LocalizationService, str] | None = None) -> Replay:
+           teach: tuple[LocalizationService, str] | None = None,
+           odometry: bool = True) -> Replay:
     """One run from the round's first image (features extracted once per round and shared by
     its runs). ``teach``: (service, condition), the run is a learning session of the service:
     each estimate goes to its learner, as ``process_frame`` does, and the session's images are
-    written into the map when the run ends."""
+    written into the map when the run ends. ``odometry``: each frame carries the round's
+    odometry (``odometry.csv``), as ``swarmloc replay`` sends it by default."""
     loc = Localizer(m, seed=seed)
     dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and len(rnd) > 1 else 1.0
+    odom = None
+    if odometry:
+        if rnd.odometry is None:
+            raise ValueError(f"round {rnd.name} has no odometry.csv: render it again, or "
+                             "run without odometry")
+        odom = odometry_along(rnd.odometry, np.arange(len(feats)))
     est, comps, on = [], [], []
     path: LearnPath = []
     for i, f in enumerate(feats):
-        e = loc.step(f, t=i * dt)
+        pose = None if odom is None else Odometry(x=float(odom[i, 0]), y=float(odom[i, 1]),
+                                                  yaw=float(odom[i, 2]))
+        e = loc.step(f, t=i * dt, odom=pose)
         if teach is not None:
             svc = teach[0]
             path, stopped = path_gate(path, e, svc.settings.learn_accuracy_m)
-            svc.learner.observe("teacher", 0.0, teach[1], m, f, e, stopped)
+            svc.learner.observe("teacher", 0.0, teach[1], m, f, e, stopped, pose)
         est.append((e.x, e.y))
         comps.append(e.comparisons)
         on.append(e.experience is not None)
@@ -95,10 +107,11 @@ def replay(m: RouteMap, rnd: Round, feats: list[Features], *, seed: int = 0,
                   float(np.mean(on[WARMUP:])) if len(on) > WARMUP else 0.0)
 
 
-def replays(m: RouteMap, rnd: Round, feats: list[Features], n: int) -> Replay:
+def replays(m: RouteMap, rnd: Round, feats: list[Features], n: int,
+            odometry: bool = True) -> Replay:
     """``n`` runs (DPSO seeds 0..n-1) from the round's first image, averaged: one run's
     error swings by tens of per cent where the light is hard."""
-    runs = [replay(m, rnd, feats, seed=k) for k in range(n)]
+    runs = [replay(m, rnd, feats, seed=k, odometry=odometry) for k in range(n)]
     return Replay(float(np.mean([r.mean_error_m for r in runs])),
                   float(np.mean([r.comparisons for r in runs])), runs[0].frames,
                   float(np.mean([r.on_experience for r in runs])))
@@ -134,11 +147,13 @@ def learned_fit(m: RouteMap, first: Round, second: Round, frames: int) -> tuple[
 
 
 def run_case(dataset: Path, seed: int, condition: str, work: Path, budget_mb: float,
-             frames: int, features: str = "clahe-rootsift", runs: int = 1) -> Case:
+             frames: int, features: str = "clahe-rootsift", runs: int = 1,
+             odometry: bool = True) -> Case:
     """One world and condition: the four runs above, ``frames`` images of each round;
     ``features``: the maps' feature type (``clahe-rootsift+xfeat``: both, fused); ``runs``:
     the unlearned, learned and same-light replays each averaged over that many DPSO seeds
-    (the learning session is one run, as a robot's)."""
+    (the learning session is one run, as a robot's); ``odometry``: every run's frames carry
+    their round's odometry."""
     from client.lab.experiment_cli import map_for
 
     sunny = map_for(dataset, "sunny1", papers=False, features=features)
@@ -154,16 +169,17 @@ def run_case(dataset: Path, seed: int, condition: str, work: Path, budget_mb: fl
     base = service.get_map("sunny1")
     before = (maps_dir / "sunny1.swmap").stat().st_size
     test_feats = _features(second, base, frames)
-    unlearned = replays(base, second, test_feats, runs)
-    same_light = replays(same, second, test_feats, runs)
+    unlearned = replays(base, second, test_feats, runs, odometry)
+    same_light = replays(same, second, test_feats, runs, odometry)
     t0 = time.perf_counter()
-    replay(base, first, _features(first, base, frames), teach=(service, condition))
+    replay(base, first, _features(first, base, frames), teach=(service, condition),
+           odometry=odometry)
     stats = service.learner.stats("teacher")
     service.learner.flush("teacher", end=True)  # the session ends: its images are written
     service.writer.wait()
     learn_s = time.perf_counter() - t0
     m = service.get_map("sunny1")
-    learned = replays(m, second, test_feats, runs)
+    learned = replays(m, second, test_feats, runs, odometry)
     images = sum(int(e["images"]) for e in experience_list(m))
     growth = (maps_dir / "sunny1.swmap").stat().st_size - before
     coverage, placed = learned_fit(m, first, second, frames)

@@ -33,6 +33,9 @@ def register(bench_app: typer.Typer) -> None:
         runs: Annotated[int, typer.Option(min=1, help="replays (DPSO seeds) averaged per "
                                                       "unlearned, learned and same-light "
                                                       "case")] = 3,
+        odometry: Annotated[bool, typer.Option(help="every run's frames carry their round's "
+                                                    "odometry.csv, as swarmloc replay sends "
+                                                    "it by default")] = True,
     ) -> None:
         """A sunny map learns one round of another light, then localizes a second round of it:
         errors against the unlearned map and a map in that light, comparisons, file growth."""
@@ -52,7 +55,7 @@ def register(bench_app: typer.Typer) -> None:
                                              f"swarmloc world render {world} --seed {seed} "
                                              "--rounds sunny1,cloudy1,cloudy2,dusk1,dusk2")
                 cases.append(run_case(world, seed, cond, work, budget_mb, frames, features,
-                                      runs))
+                                      runs, odometry))
                 typer.echo(table(cases[-1:]).splitlines()[-1], err=True)
         typer.echo(table(cases))
         typer.echo(gates_table(cases))

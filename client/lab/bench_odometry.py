@@ -60,7 +60,8 @@ def _mean_error(runs: list, warmup: int) -> float:
 
 
 def bench_world(dataset: Path, map_round: str, query: str, same: str | None, method: str,
-                starts: int, warmup: int, length: int | None, seed: int) -> WorldResult:
+                starts: int, warmup: int, length: int | None, seed: int,
+                features: str = "clahe-rootsift") -> WorldResult:
     import numpy as np
 
     from client.dataset import read_round
@@ -70,7 +71,7 @@ def bench_world(dataset: Path, map_round: str, query: str, same: str | None, met
     from client.runs import frames_to_recover
 
     mth = METHODS[method]
-    m = map_for(dataset, map_round, mth.papers_map)
+    m = map_for(dataset, map_round, mth.papers_map, features)
 
     tables: dict[str, tuple] = {}  # round -> (round, its similarity table), extracted once
 
@@ -191,13 +192,22 @@ def register(bench_app: typer.Typer) -> None:
         warmup: Annotated[int, typer.Option(help="frames not scored")] = 20,
         frames: Annotated[int, typer.Option(help="frames per run (0: the whole round)")] = 0,
         seed: int = 0,
+        features: Annotated[str, typer.Option(help="the map's feature type: clahe-rootsift, "
+                                                   "xfeat or clahe-rootsift+xfeat (both, as "
+                                                   "swarmloc map build makes by default)")]
+        = "clahe-rootsift",
     ) -> None:
         """Mean error with the rounds' odometry against without, the cross/same-light ratio,
         kidnap recovery with odometry, and the heading error of located frames."""
+        from service.vision.features import FEATURE_TYPES
+
+        if features not in FEATURE_TYPES:
+            raise typer.BadParameter(f"unknown feature type {features!r}; choose one of "
+                                     f"{', '.join(FEATURE_TYPES)}")
         results = []
         for d in datasets:
             same = same_light if same_light and (d / same_light).is_dir() else None
             results.append(bench_world(d, map_round, query, same, method, starts, warmup,
-                                       frames or None, seed))
+                                       frames or None, seed, features))
             typer.echo(f"{d.name}: done", err=True)
         report(results)
