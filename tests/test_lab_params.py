@@ -60,3 +60,32 @@ def test_the_labs_maps_keep_their_positions_apart(tmp_path, rounds_dir) -> None:
     built = fused.path.stat().st_mtime_ns
     again = map_for(tmp_path, "sunny1", False, "clahe-rootsift", (160, 120), 50)
     assert again.path == fused.path and fused.path.stat().st_mtime_ns == built  # kept
+
+
+def test_the_experiment_replays_with_the_rounds_odometry_where_asked(tmp_path, rounds_dir
+                                                                     ) -> None:
+    """`swarmloc experiment --odometry` sends each frame with its round's odometry (other
+    estimates than without); a round without odometry.csv is one line, before any map is
+    built."""
+    import re
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from client.cli import app
+
+    for name in ("sunny1", "cloudy1"):
+        shutil.copytree(rounds_dir / name, tmp_path / name)
+    args = ["experiment", str(tmp_path), "--query", "cloudy1", "--methods", "DPSO-80",
+            "--starts", "1", "--warmup", "5", "--no-kidnap", "--size", "160x120",
+            "--max-features", "50"]
+    rows = []
+    for extra in ([], ["--odometry"]):
+        out = CliRunner().invoke(app, [*args, *extra])
+        assert out.exit_code == 0, out.output
+        assert ("with odometry" in out.output) == bool(extra)
+        rows.append(re.search(r"^DPSO-80 .*$", out.output, re.M).group(0))  # type: ignore[union-attr]
+    assert rows[0] != rows[1]
+    (tmp_path / "cloudy1" / "odometry.csv").unlink()
+    out = CliRunner().invoke(app, [*args, "--odometry"])
+    assert out.exit_code != 0 and "round cloudy1 has no odometry.csv" in out.output

@@ -160,19 +160,21 @@ def _starts(n: int, count: int) -> list[int]:
 
 
 def _runs(m: RouteMap, table: SimilarityTable, rnd: Round, method: Method,
-          starts: list[int], seed: int, kidnap: bool = False) -> list[Run]:
+          starts: list[int], seed: int, kidnap: bool = False,
+          odometry: bool = False) -> list[Run]:
     from client.lab.experiments import run
 
     return [run(m, table.fresh() if m.exact_top else table, rnd, method.estimator,
-                method.params, seed=seed + k, start=s, kidnap=kidnap)
+                method.params, seed=seed + k, start=s, kidnap=kidnap, odometry=odometry)
             for k, s in enumerate(starts)]
 
 
 def _kidnap(m: RouteMap, table: SimilarityTable, rnd: Round, method: Method,
-            starts: list[int], seed: int) -> list[int | None]:
+            starts: list[int], seed: int, odometry: bool = False) -> list[int | None]:
     from client.runs import frames_to_recover
 
-    return [frames_to_recover(r) for r in _runs(m, table, rnd, method, starts, seed, True)]
+    return [frames_to_recover(r)
+            for r in _runs(m, table, rnd, method, starts, seed, True, odometry)]
 
 
 def _median(values: list[int]) -> float:
@@ -219,6 +221,10 @@ def experiment(
     max_features: Annotated[int | None, typer.Option(
         help="SIFT's features per map image and frame of our maps (0: all; default: the "
              "type's), as swarmloc map build --max-features")] = None,
+    odometry: Annotated[bool, typer.Option(
+        help="every frame carries its round's wheel odometry (odometry.csv), as swarmloc "
+             "replay sends it by default; at the kidnap the wheels see an ordinary step")]
+    = False,
 ) -> None:
     """Every estimator's error (mean, median, within 5 m), comparisons, share of frames in
     recovery, accuracy_m calibration (tracked frames within it), honesty (frames with error
@@ -245,18 +251,24 @@ def experiment(
         named_params(features, w, h, max_features)  # checks the size and the cap
     except ValueError as exc:
         raise typer.BadParameter(f"--size / --max-features: {exc}") from None
+    queries = [x for x in query.split(",") if x]
+    if odometry:  # before any map is built
+        for q in queries:
+            if not (dataset / q / "odometry.csv").is_file():
+                raise typer.BadParameter(f"round {q} has no odometry.csv: run without "
+                                         "--odometry")
     maps = {papers: map_for(dataset, map_round, papers, features, (w, h), max_features)
             for papers in {METHODS[c].papers_map for c in chosen}}
     if matcher == "words" and False in maps:
         maps[False] = maps[False].with_words(exact_top=exact_top)
     elif matcher != "auto" and False in maps:
         maps[False] = maps[False].with_matcher(matcher)
-    for q in [x for x in query.split(",") if x]:
+    for q in queries:
         rnd = read_round(dataset / q)
         tables = {papers: cached_table(dataset, m, rnd) for papers, m in maps.items()}
         start_list = _starts(len(rnd), starts)
         typer.echo(f"\n{map_round} (map) vs {q}: {starts} runs x {len(rnd)} frames, errors "
-                   f"after {warmup} frames")
+                   f"after {warmup} frames{', with odometry' if odometry else ''}")
         typer.echo(f"{'method':14s} {'mean err (m)':>13s} {'median':>7s} {'<=5 m':>7s} "
                    f"{'comp/frame':>10s} {'recov':>6s} {'calib':>6s} {'honest':>7s} "
                    f"{'speed':>6s} {'kidnap: back/runs, median':>26s}")
@@ -266,11 +278,12 @@ def experiment(
             if extra:
                 method = Method(method.estimator, {**method.params, **extra}, method.papers_map)
             m, table = maps[method.papers_map], tables[method.papers_map]
-            r = metrics(_runs(m, table, rnd, method, start_list, seed), warmup)
+            r = metrics(_runs(m, table, rnd, method, start_list, seed, odometry=odometry),
+                        warmup)
             rows[name] = r
             kid = ""
             if kidnap:
-                rec = _kidnap(m, table, rnd, method, start_list, seed)
+                rec = _kidnap(m, table, rnd, method, start_list, seed, odometry)
                 done = [f for f in rec if f is not None]
                 kid = f"{len(done)}/{len(rec)}, {_fmt(_median(done))} {rec}"
             typer.echo(f"{name:14s} {r['error_mean_m']:6.2f} ± {r['error_mean_std_m']:4.2f} "
