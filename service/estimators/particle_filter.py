@@ -11,7 +11,8 @@ odometry's step moves a particle along its own offset, the offsets start uniform
 the odometry's heading noise per step, and resampling keeps the offsets that stay on the
 images. A single heading shared by every particle, fitted from the filter's own estimates,
 moved the whole cloud off the route as soon as it was wrong (PF-l-300 with odometry: 12-64 m
-mean error on a rendered world where it gives 1.0 m without).
+mean error on a rendered world where it gives 1.0 m without). Like AMCL by default, the
+filter injects no random particles: a kidnapped robot is not found again.
 """
 
 from __future__ import annotations
@@ -24,6 +25,12 @@ from service.api.params import PFParams
 from service.estimators.base import Estimator, Status, StepResult, weighted_covariance
 from service.estimators.fitness import FrameFitness, MapIndex
 from service.estimators.odometry import OdomHeading, OdomStep
+
+# position noise per metre travelled, per axis, beside the odometry's own: nav2 AMCL's default
+# translation noise from translation (odom_alpha3 0.2); without it the cloud collapsed onto a
+# place a few metres off and stayed there (PF-l-300 with odometry, data/w23's sunny2 round, six
+# starts: 4.05 m mean error without this noise, 1.46 m with it)
+ODOM_TRANSLATION_NOISE = 0.2
 
 
 def low_variance_resample(rng: np.random.Generator, w: np.ndarray) -> np.ndarray:
@@ -82,9 +89,9 @@ class ParticleFilter(Estimator):
         """The odometry motion model (Thrun et al., Probabilistic Robotics, Sec. 5.4), each
         particle with its own heading offset ``theta`` (the module's docstring): the step,
         taken in the odometry's frame at the previous dead-reckoned yaw, turned into the map
-        by the particle's offset, with the step's noise; the offsets walk by the odometry's
-        heading noise over the step. The velocity that PF-l carries becomes the step per
-        frame interval."""
+        by the particle's offset, with the step's noise and ``ODOM_TRANSLATION_NOISE`` of its
+        length; the offsets walk by the odometry's heading noise over the step. The
+        velocity that PF-l carries becomes the step per frame interval."""
         if self.odometry is None:
             self.odometry = OdomHeading()
         yaw = float(self.odometry.pose[2])  # before the step (drift-corrected)
@@ -99,7 +106,8 @@ class ParticleFilter(Estimator):
         c, s = np.cos(a), np.sin(a)
         d = np.column_stack([c * odom.forward - s * odom.left,
                              s * odom.forward + c * odom.left])
-        noise = rng.normal(0.0, odom.sigma_xy, (n, 2)) if odom.sigma_xy > 0 else 0.0
+        spread = math.hypot(odom.sigma_xy, ODOM_TRANSLATION_NOISE * odom.distance)
+        noise = rng.normal(0.0, spread, (n, 2)) if spread > 0 else 0.0
         self.x = self.x + d + noise
         if self.motion_model == "linear":
             self.v = d / (self._dt_ema or 1.0)
