@@ -123,7 +123,8 @@ def placed(images: list[NewImage], seqs: list[int], odometry: list[np.ndarray | 
     keep the shape between frames, the located positions of a whole stretch place it, and
     each one's error averages out), unless it does not fit them (a reset odometry); else
     ``smoothed``."""
-    if len(images) >= 3 and all(o is not None for o in odometry):
+    if len(images) >= 3 and len(odometry) == len(images) and \
+            all(o is not None for o in odometry):
         fused = fuse_with_odometry(np.array([f.xy for f in images], float).reshape(-1, 2),
                                    np.array(odometry, float).reshape(-1, 2))
         if fused.fits:
