@@ -152,6 +152,26 @@ def test_frames_without_odometry_do_not_pass_the_odometry_gate(
     assert np.array_equal(a.est_xy, b.est_xy) and np.array_equal(a.heading, b.heading)
 
 
+def test_with_odometry_a_located_frame_s_radius_keeps_a_share_of_the_jitter(
+        camera_map: RouteMap, sunny2: Round, sunny2_table: SimilarityTable) -> None:
+    """With the wheels the reported position filters the located ones, so a tracked located
+    frame's radius keeps ``odom_jitter_share`` of the jitter term: the estimates are the same,
+    the radii narrower where frames are located and tracked, the same elsewhere; without
+    odometry the share changes nothing."""
+    runs = {share: run(camera_map, sunny2_table, sunny2, "dpso", {"odom_jitter_share": share},
+                       seed=1, length=80, odometry=True) for share in (1.0, 0.8)}
+    full, kept = runs[1.0], runs[0.8]
+    assert np.array_equal(full.est_xy, kept.est_xy)
+    assert full.located is not None
+    on = full.located & (np.array(full.status) == "tracking")
+    assert on.sum() > 20
+    assert np.all(kept.accuracy_m[on] < full.accuracy_m[on])
+    assert np.array_equal(kept.accuracy_m[~on], full.accuracy_m[~on])
+    plain = [run(camera_map, sunny2_table, sunny2, "dpso", {"odom_jitter_share": share},
+                 seed=1, length=40) for share in (1.0, 0.8)]
+    assert np.array_equal(plain[0].accuracy_m, plain[1].accuracy_m)
+
+
 def test_localizer_replays_bit_identically_with_geometry(
         camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
     a, b = Localizer(camera_map, seed=5), Localizer(camera_map, seed=5)

@@ -393,6 +393,13 @@ class DPSOParams(CommonParams):
         "sqrt(metric_map_sigma_m^2 + (gain * jitter)^2), jitter being the located positions' "
         "frame-to-frame noise measured in the session (no unit); 1.65 puts the median of the "
         "test worlds at 70 % of tracked frames within accuracy_m")
+    odom_jitter_share: float = Field(
+        0.8, ge=0, le=1, description="with wheel odometry, while tracking, the share of the "
+        "located positions' jitter left in the reported position (the odometry predicts and a "
+        "located frame corrects odom_alpha of the difference, which averages part of it out): "
+        "a located frame's radius is sqrt(metric_map_sigma_m^2 + (gain * share * jitter)^2); "
+        "0.8, calibrated on three rendered worlds and checked on three others "
+        "(docs/research/lighting.md); 1: as without odometry")
     metric_jitter_prior_m: float = Field(
         0.15, ge=0, le=1e3, description="the jitter assumed until eight located triples of "
         "consecutive frames were seen (m); 0.15 m, our choice for a session's first frames")

@@ -54,6 +54,8 @@ class LocatedNoise:
             return prior
         return float(np.median(self.diffs)) / _MEDIAN_PER_STD
 
-    def sigma(self, map_sigma_m: float, gain: float, prior: float) -> float:
-        """Std (m) of a located position in each axis."""
-        return math.hypot(map_sigma_m, gain * self.jitter(prior))
+    def sigma(self, map_sigma_m: float, gain: float, prior: float, share: float = 1.0
+              ) -> float:
+        """Std (m) of a located position in each axis; ``share``: of the jitter, what is left
+        in the reported position (1: all)."""
+        return math.hypot(map_sigma_m, gain * share * self.jitter(prior))

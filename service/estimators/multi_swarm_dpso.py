@@ -276,8 +276,11 @@ class MultiSwarmDPSO(DPSO):
         if located is not None:
             pos = located
             self.noise.add(self.frame_count, pos)
+            # with odometry the reported position filters the located ones (_reported)
+            share = p.odom_jitter_share if odom_d is not None and status is Status.TRACKING \
+                else 1.0
             sigma = self.noise.sigma(p.metric_map_sigma_m, p.metric_jitter_gain,
-                                     p.metric_jitter_prior_m)
+                                     p.metric_jitter_prior_m, share)
             cov = np.eye(2) * max(sigma, sigma_for_accuracy(disagree)) ** 2
         geometry = self._geometry_runs(fitness)
         # the images confirm the place: a located frame, or a strong one without geometry
