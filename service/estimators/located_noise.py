@@ -14,6 +14,12 @@ offsets' noise alone, with a per-axis std of sqrt(6) times theirs. Its median le
 the last ``window`` triples (robust to a wrong image now and then) gives that std. The
 radius reported for a located frame is then sqrt(map_sigma_m^2 + (gain * jitter)^2) per
 axis: the same light gets a tighter one than another light, measured rather than assumed.
+
+With wheel odometry the reported position filters the located ones (the odometry predicts, a
+located frame corrects a share of the difference), so only a share of the jitter is left in
+it (``share``, the session's ``odom_jitter_share``): calibrated, because the located
+positions' errors are correlated from frame to frame and an alpha filter's white-noise share,
+sqrt(alpha / (2 - alpha)), left too narrow a radius (docs/research/lighting.md).
 """
 
 from __future__ import annotations
