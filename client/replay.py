@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 
 from client.dataset import Round
-from client.runs import Run, frame_sequence, odometry_along
+from client.runs import Run, frame_sequence, odometry_poses
 from client.transports import Client
-from service.api.models import Estimate, Odometry
+from service.api.models import Estimate
 
 
 @dataclass(frozen=True)
@@ -42,8 +42,7 @@ def replay(client: Client, rnd: Round, cfg: ReplayConfig, *, robot_id: str = "re
     starts = [(cfg.start + k * n // cfg.repeat) % n for k in range(cfg.repeat)]
     for k, start in enumerate(starts):
         seq = frame_sequence(n, start, cfg.speed, cfg.kidnap, cfg.length)
-        odom = odometry_along(rnd.odometry, seq) \
-            if cfg.odometry and rnd.odometry is not None else None
+        poses = odometry_poses(rnd.odometry if cfg.odometry else None, seq)
         seed = cfg.seed + k
         client.create_session(robot_id, cfg.map_name, cfg.estimator, cfg.params, seed,
                               learn=cfg.learn, condition=cfg.condition)
@@ -59,9 +58,7 @@ def replay(client: Client, rnd: Round, cfg: ReplayConfig, *, robot_id: str = "re
             if q not in cache:
                 cache[q] = rnd.image_path(q).read_bytes()
             t0 = time.perf_counter()
-            est = client.localize(robot_id, cache[q], t=i * dt, seq=i, odom=None if odom is None
-                                  else Odometry(x=float(odom[i, 0]), y=float(odom[i, 1]),
-                                                yaw=float(odom[i, 2])))
+            est = client.localize(robot_id, cache[q], t=i * dt, seq=i, odom=poses[i])
             latency.append(1e3 * (time.perf_counter() - t0))
             estimates.append(est)
             if on_frame:

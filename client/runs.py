@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from service.api.models import Estimate
+    from service.api.models import Estimate, Odometry
 
 #: statuses in which an estimator admits it does not know where it is
 BAD_STATUS = ("recovering", "lost")
@@ -66,6 +66,17 @@ def odometry_along(odom: np.ndarray, frames: np.ndarray) -> np.ndarray:
                 a, q = n - 1 - stride, n - 1
         out[k] = _compose(out[k - 1], _relative(odom[a], odom[q]))
     return out
+
+
+def odometry_poses(odom: np.ndarray | None, frames: np.ndarray) -> list[Odometry | None]:
+    """The odometry pose a robot sends with each of a run's ``frames`` (``odometry_along``
+    of a round's odometry poses ``odom``), or None for each where the round has none."""
+    from service.api.models import Odometry
+
+    if odom is None:
+        return [None] * len(frames)
+    along = odometry_along(odom, frames)
+    return [Odometry(x=float(x), y=float(y), yaw=float(a)) for x, y, a in along]
 
 
 def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -17,9 +17,9 @@ import pytest
 
 from client.dataset import Round
 from client.lab.world import World
-from client.runs import odometry_along
+from client.runs import odometry_poses
 from service.api.errors import NotFound
-from service.api.models import Estimate, MapSummary, Odometry, PosePrior, SessionConfig
+from service.api.models import Estimate, MapSummary, PosePrior, SessionConfig
 from service.api.round_format import camera_from_hfov
 from service.engine.learning import Learner, LearnGates, LearnPath, path_gate
 from service.engine.localization_service import LocalizationService
@@ -234,11 +234,10 @@ def _learn(camera_maps: Path, tmp: Path, cloudy1: Round, odometry: bool,
     old = str(service.get_map("route").meta["checksum"])
     service.put_session("r1", SessionConfig(map="route", learn=True, condition="cloudy"))
     assert cloudy1.odometry is not None
-    odom = odometry_along(cloudy1.odometry, np.arange(frames))
+    poses = odometry_poses(cloudy1.odometry if odometry else None, np.arange(frames))
     for i in range(frames):
         service.process_frame("r1", cloudy1.image_path(i).read_bytes(), t=float(i),
-                              odom=Odometry(x=float(odom[i, 0]), y=float(odom[i, 1]),
-                                            yaw=float(odom[i, 2])) if odometry else None)
+                              odom=poses[i])
     stats = service.learner.stats("r1")
     assert service.writer.wait(120)  # the full collections were handed to the writer
     during = str(service.map_summary("route").checksum)
@@ -286,7 +285,7 @@ def test_a_robot_sending_its_odometry_teaches_images_placed_along_it(
     through the located positions."""
     m = load_map(camera_maps / "route.swmap")
     assert cloudy1.odometry is not None
-    odom = odometry_along(cloudy1.odometry, np.arange(STRETCH))
+    poses = odometry_poses(cloudy1.odometry, np.arange(STRETCH))
     taught: list[list[NewImage]] = []
     for sent in (False, True):
         written: list[NewImage] = []
@@ -299,9 +298,7 @@ def test_a_robot_sending_its_odometry_teaches_images_placed_along_it(
                          comparisons=1, covariance=[[0.1, 0], [0, 0.1]],
                          pose_covariance=[0.0] * 36, accuracy_m=0.5, nearest_image=0,
                          nearest_image_name="x", spread_m=0.1)
-            learner.observe("r", 0.0, "cloudy", m, f, e, None, Odometry(
-                x=float(odom[i, 0]), y=float(odom[i, 1]), yaw=float(odom[i, 2]))
-                if sent else None)
+            learner.observe("r", 0.0, "cloudy", m, f, e, None, poses[i] if sent else None)
         learner.flush("r", end=True)
         taught.append(written)
     assert [f.name for f in taught[0]] == [f.name for f in taught[1]] and len(taught[0]) >= 10

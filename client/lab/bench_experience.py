@@ -26,8 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from client.dataset import Round, read_round
-from client.runs import odometry_along
-from service.api.models import Odometry
+from client.runs import odometry_poses
 from service.engine.learning import LearnPath, path_gate
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
@@ -83,22 +82,18 @@ def replay(m: RouteMap, rnd: Round, feats: list[Features], *, seed: int = 0,
     odometry (``odometry.csv``), as ``swarmloc replay`` sends it by default."""
     loc = Localizer(m, seed=seed)
     dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and len(rnd) > 1 else 1.0
-    odom = None
-    if odometry:
-        if rnd.odometry is None:
-            raise ValueError(f"round {rnd.name} has no odometry.csv: render it again, or "
-                             "run without odometry")
-        odom = odometry_along(rnd.odometry, np.arange(len(feats)))
+    if odometry and rnd.odometry is None:
+        raise ValueError(f"round {rnd.name} has no odometry.csv: render it again, or run "
+                         "without odometry")
+    poses = odometry_poses(rnd.odometry if odometry else None, np.arange(len(feats)))
     est, comps, on = [], [], []
     path: LearnPath = []
     for i, f in enumerate(feats):
-        pose = None if odom is None else Odometry(x=float(odom[i, 0]), y=float(odom[i, 1]),
-                                                  yaw=float(odom[i, 2]))
-        e = loc.step(f, t=i * dt, odom=pose)
+        e = loc.step(f, t=i * dt, odom=poses[i])
         if teach is not None:
             svc = teach[0]
             path, stopped = path_gate(path, e, svc.settings.learn_accuracy_m)
-            svc.learner.observe("teacher", 0.0, teach[1], m, f, e, stopped, pose)
+            svc.learner.observe("teacher", 0.0, teach[1], m, f, e, stopped, poses[i])
         est.append((e.x, e.y))
         comps.append(e.comparisons)
         on.append(e.experience is not None)

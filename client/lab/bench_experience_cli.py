@@ -40,11 +40,9 @@ def register(bench_app: typer.Typer) -> None:
         """A sunny map learns one round of another light, then localizes a second round of it:
         errors against the unlearned map and a map in that light, comparisons, file growth."""
         from client.lab.bench_experience import gates_table, run_case, summary, table
-        from service.vision.features import FEATURE_TYPES
+        from client.lab.experiment_cli import check_feature_type
 
-        if features not in FEATURE_TYPES:
-            raise typer.BadParameter(f"unknown feature type {features!r}; choose one of "
-                                     f"{', '.join(FEATURE_TYPES)}")
+        check_feature_type(features)
 
         cases = []
         for seed in [int(s) for s in seeds.split(",") if s.strip()]:

@@ -199,11 +199,9 @@ def register(bench_app: typer.Typer) -> None:
     ) -> None:
         """Mean error with the rounds' odometry against without, the cross/same-light ratio,
         kidnap recovery with odometry, and the heading error of located frames."""
-        from service.vision.features import FEATURE_TYPES
+        from client.lab.experiment_cli import check_feature_type
 
-        if features not in FEATURE_TYPES:
-            raise typer.BadParameter(f"unknown feature type {features!r}; choose one of "
-                                     f"{', '.join(FEATURE_TYPES)}")
+        check_feature_type(features)
         results = []
         for d in datasets:
             same = same_light if same_light and (d / same_light).is_dir() else None

@@ -155,6 +155,16 @@ def parse_params(pairs: list[str] | None) -> dict[str, Any]:
     return out
 
 
+def check_feature_type(features: str) -> None:
+    """A lab command's ``--features``: one of the feature types, else one line that lists
+    them."""
+    from service.vision.features import FEATURE_TYPES
+
+    if features not in FEATURE_TYPES:
+        raise typer.BadParameter(f"unknown feature type {features!r}; choose one of "
+                                 f"{', '.join(FEATURE_TYPES)}")
+
+
 def _starts(n: int, count: int) -> list[int]:
     return [k * n // count for k in range(count)]
 
@@ -230,18 +240,16 @@ def experiment(
     recovery, accuracy_m calibration (tracked frames within it), honesty (frames with error
     > 10 m reported lost or recovering), speed error and kidnap recovery (back within 5 m
     for 5 frames)."""
-    from client.dataset import read_round
+    from client.dataset import ODOMETRY_FILE, read_round
     from service.api.models import MATCHERS
-    from service.vision.features import FEATURE_TYPES, named_params
+    from service.vision.features import named_params
 
     chosen = [x for x in methods.split(",") if x]
     extra = parse_params(param)
     unknown = [x for x in chosen if x not in METHODS]
     if unknown:
         raise typer.BadParameter(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
-    if features not in FEATURE_TYPES:
-        raise typer.BadParameter(f"unknown feature type {features!r}; choose from "
-                                 f"{list(FEATURE_TYPES)}")
+    check_feature_type(features)
     if matcher not in MATCHERS:
         raise typer.BadParameter(f"unknown matcher {matcher!r}; choose from {list(MATCHERS)}")
     if exact_top and matcher != "words":
@@ -254,7 +262,7 @@ def experiment(
     queries = [x for x in query.split(",") if x]
     if odometry:  # before any map is built
         for q in queries:
-            if not (dataset / q / "odometry.csv").is_file():
+            if not (dataset / q / ODOMETRY_FILE).is_file():
                 raise typer.BadParameter(f"round {q} has no odometry.csv: run without "
                                          "--odometry")
     maps = {papers: map_for(dataset, map_round, papers, features, (w, h), max_features)

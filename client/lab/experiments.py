@@ -15,8 +15,7 @@ from typing import Any
 import numpy as np
 
 from client.dataset import Round
-from client.runs import Run, frame_sequence, odometry_along
-from service.api.models import Odometry
+from client.runs import Run, frame_sequence, odometry_poses
 from service.engine.localizer import Localizer
 from service.estimators.fitness import SimilarityFn
 from service.maps.route_map import RouteMap
@@ -81,16 +80,14 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
         odometry: bool = False) -> Run:
     """Replay one run of the protocol in process (``latency_ms``: the estimator's step);
     with ``odometry``, each frame carries the round's odometry (``odometry.csv``, sent as
-    ``client.runs.odometry_along`` gives it)."""
+    ``client.runs.odometry_poses`` gives it)."""
     import time
 
     n = len(rnd)
     seq = frame_sequence(n, start, speed, kidnap, length)
-    odom = None
-    if odometry:
-        if rnd.odometry is None:
-            raise ValueError(f"round {rnd.name} has no odometry.csv")
-        odom = odometry_along(rnd.odometry, seq)
+    if odometry and rnd.odometry is None:
+        raise ValueError(f"round {rnd.name} has no odometry.csv")
+    poses = odometry_poses(rnd.odometry if odometry else None, seq)
     dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and n > 1 else 1.0
     loc = Localizer(route_map, estimator, params, seed)
     est: list[np.ndarray] = []
@@ -98,8 +95,7 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
     comps, spd, head, scores, ms, acc, lost, located, source = ([] for _ in range(9))
     for it, q in enumerate(seq):
         t0 = time.perf_counter()
-        motion = loc.take_odometry(None if odom is None else Odometry(
-            x=float(odom[it, 0]), y=float(odom[it, 1]), yaw=float(odom[it, 2])))
+        motion = loc.take_odometry(poses[it])
         loc.seed_places(table.queries[q].codes)  # the place index, while searching
         e = loc.estimator.step(partial(table.scores, int(q)), it * dt,
                                loc.locator(table.queries[q]), motion,

@@ -235,11 +235,16 @@ class Estimator:
         """The odometry step in the map frame (m) and the std (m, per axis) of where it
         ends, turned by the map heading at the previous frame; advances the dead reckoning."""
         motion_heading = self.motion(1.0)[1] if self.ema_step is not None else None
+        d, sigma = self.dead_reckoning().displacement(odom, motion_heading)
+        self.dead_reckoning().advance(odom)
+        return d, sigma
+
+    def dead_reckoning(self) -> OdomHeading:
+        """The session's integrated odometry and its map heading (started at the first
+        odometry step)."""
         if self.odometry is None:
             self.odometry = OdomHeading()
-        d, sigma = self.odometry.displacement(odom, motion_heading)
-        self.odometry.advance(odom)
-        return d, sigma
+        return self.odometry
 
     def odom_observe(self, odom: OdomStep | None, xy: np.ndarray, trusted: bool,
                      lost: bool) -> None:

@@ -24,7 +24,7 @@ import numpy as np
 from service.api.params import PFParams
 from service.estimators.base import Estimator, Status, StepResult, weighted_covariance
 from service.estimators.fitness import FrameFitness, MapIndex
-from service.estimators.odometry import OdomHeading, OdomStep
+from service.estimators.odometry import OdomStep
 
 # position noise per metre travelled, per axis, beside the odometry's own: nav2 AMCL's default
 # translation noise from translation (odom_alpha3 0.2); without it the cloud collapsed onto a
@@ -92,10 +92,9 @@ class ParticleFilter(Estimator):
         by the particle's offset, with the step's noise and ``ODOM_TRANSLATION_NOISE`` of its
         length; the offsets walk by the odometry's heading noise over the step. The
         velocity that PF-l carries becomes the step per frame interval."""
-        if self.odometry is None:
-            self.odometry = OdomHeading()
-        yaw = float(self.odometry.pose[2])  # before the step (drift-corrected)
-        self.odometry.advance(odom)  # the dead reckoning the heading output fits
+        reckoning = self.dead_reckoning()
+        yaw = float(reckoning.pose[2])  # before the step (drift-corrected)
+        reckoning.advance(odom)  # the dead reckoning the heading output fits
         n, rng = self.params.n_particles, self.rng
         if self.theta is None:
             self.theta = rng.uniform(-math.pi, math.pi, n)
