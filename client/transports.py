@@ -412,12 +412,15 @@ class ZenohClient:
 
 # ---- in process --------------------------------------------------------------------------
 class LocalClient:
-    """No network: the service engine in this process (same decoding and localizer code)."""
+    """No network: the service engine in this process (same decoding and localizer code).
+    ``close()`` closes the engine it started (not one passed in): its background threads stop
+    and what learning sessions collected is written, before the process exits."""
 
     def __init__(self, maps_dir: str | Path | None = None, service: Any = None) -> None:
         from service.engine.localization_service import LocalizationService
         from service.settings import Settings
 
+        self._owns = service is None
         if service is None:
             # in memory: an in-process client is one run's; it must not take the maps
             # directory's session file from a `swarmloc serve` on the same maps
@@ -465,7 +468,9 @@ class LocalClient:
             robot_id, data, t=t, prior=prior, transport="local", input_seq=seq, odom=odom))
 
     def close(self) -> None:
-        pass
+        if self._owns:
+            self._owns = False  # once
+            self.service.close()
 
 
 def connect(via: str, token: str | None = None, maps_dir: str | Path | None = None,

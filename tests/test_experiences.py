@@ -18,6 +18,7 @@ import pytest
 from client.dataset import Round
 from client.lab.world import World
 from client.runs import odometry_poses
+from client.transports import LocalClient
 from service.api.errors import NotFound
 from service.api.models import Estimate, MapSummary, PosePrior, SessionConfig
 from service.api.round_format import camera_from_hfov
@@ -313,6 +314,29 @@ def test_the_service_hands_a_learning_robot_s_odometry_to_its_learner(
         camera_maps: Path, tmp_path: Path, cloudy1: Round) -> None:
     run = _learn(camera_maps, tmp_path, cloudy1, odometry=True, frames=12)
     assert run.stats["odometry"] == run.stats["taught"] > 0, run.stats
+
+
+def test_the_in_process_client_closes_the_engine_it_started(
+        camera_maps: Path, tmp_path: Path, cloudy1: Round,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``swarmloc replay --via local`` runs the engine in its own process: closing the client
+    writes what a learning session left open collected (a run cut short) and stops the
+    engine's background threads before the process exits."""
+    monkeypatch.setenv("SWARMLOC_LEARN_ACCURACY_M", str(LEARN["learn_accuracy_m"]))
+    d = tmp_path / "maps"
+    shutil.copytree(camera_maps, d)
+    client = LocalClient(d)
+    client.create_session("r1", "route", learn=True, condition="cloudy")
+    for i in range(LEARN_FRAMES):
+        client.localize("r1", cloudy1.image_path(i).read_bytes(), t=float(i))
+    taught = client.service.learner.stats("r1")["taught"]
+    assert taught > 0
+    assert experience_list(load_map(d / "route.swmap")) == []  # nothing written yet
+    client.close()
+    assert not client.service.warmer.running
+    (e,) = experience_list(load_map(d / "route.swmap", verify=True))
+    assert e["robot"] == "r1" and 0 < int(e["images"]) <= taught
+    client.close()  # a second close changes nothing
 
 
 def _truth(rnd: Round, names: list[str], mask: np.ndarray) -> np.ndarray:
