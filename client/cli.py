@@ -19,6 +19,7 @@ from client.lab.bench_frame_cli import register as register_frame_bench
 from client.lab.bench_load_cli import register as register_load_bench
 from client.lab.bench_odometry import register as register_odometry_bench
 from client.lab.experiment_cli import experiment, sweep
+from client.lab.night_places_cli import register as register_night_places
 from client.lab.scale_map_cli import register as register_scale_map
 from service.api.models import DEFAULT_FEATURES, MAX_FEATURES_CAP
 from service.cli import DebugOpt, run_cli, serve
@@ -48,6 +49,7 @@ app.add_typer(bench_app, name="bench")
 register_load_bench(bench_app)  # bench load, bench fuzz (client/lab/bench_load_cli.py)
 register_frame_bench(bench_app)  # bench frame (client/lab/bench_frame_cli.py)
 register_experience_bench(bench_app)  # bench experiences (client/lab/bench_experience_cli.py)
+register_night_places(bench_app)  # bench night-places (client/lab/night_places_cli.py)
 register_odometry_bench(bench_app)  # bench odometry (client/lab/bench_odometry.py)
 # bench webcam-night, bench extract (client/lab/bench_features_cli.py)
 register_feature_benches(bench_app)

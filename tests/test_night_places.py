@@ -1,0 +1,80 @@
+"""The night-places study (client/lab/night_places.py): whole-image thumbnails, SeqSLAM's
+sum along the route, and how a round's frames are placed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from client.dataset import Round
+from client.lab.night_places import (
+    along_sequence,
+    chance,
+    differences,
+    placed,
+    thumbnail,
+)
+
+SIZE = (64, 48)
+BLOCK = 8
+
+
+def test_a_thumbnail_does_not_see_the_light_s_gain_and_offset(sunny1: Round) -> None:
+    img = sunny1.load_image(5)
+    grey = img if img.ndim == 2 else img.mean(axis=2)
+    base = thumbnail(grey.astype(np.float32), SIZE, BLOCK)
+    dim = thumbnail(0.1 * grey.astype(np.float32) + 3.0, SIZE, BLOCK)
+    assert base.shape == (SIZE[0] * SIZE[1],)
+    assert float(np.abs(base - dim).mean()) < 0.01  # the same patches, normalised
+    other = thumbnail(sunny1.load_image(len(sunny1) // 2), SIZE, BLOCK)
+    assert float(np.abs(base - other).mean()) > 0.3  # another place is another thumbnail
+    with pytest.raises(ValueError, match="multiple of the block"):
+        thumbnail(img, (60, 48), BLOCK)
+
+
+def test_the_sequence_sums_along_the_route() -> None:
+    rng = np.random.default_rng(3)
+    diff = rng.random((12, 20))
+    seq = along_sequence(diff, 4)
+    assert np.isinf(seq[:3]).all()
+    # frame 7 at image 9: frames 4..7 at images 6..9
+    assert seq[7, 9] == pytest.approx(diff[7, 9] + diff[6, 8] + diff[5, 7] + diff[4, 6])
+    # the map wraps around its loop: frame 5 at image 1 reaches back to image 19
+    assert seq[5, 1] == pytest.approx(diff[5, 1] + diff[4, 0] + diff[3, 19] + diff[2, 18])
+    assert np.array_equal(along_sequence(diff, 1), diff)
+    with pytest.raises(ValueError):
+        along_sequence(diff, 0)
+
+
+def test_a_noisy_route_is_found_along_its_sequence() -> None:
+    """Frame i belongs at image i + 5; each frame alone is mostly lost in noise, the sum
+    over ten frames finds the diagonal."""
+    rng = np.random.default_rng(0)
+    n, m = 60, 80
+    diff = rng.normal(1.0, 0.3, (n, m))
+    diff[np.arange(n), np.arange(n) + 5] -= 0.3
+    image_xy = np.column_stack([np.arange(m) * 1.0, np.zeros(m)])
+    frame_xy = image_xy[np.arange(n) + 5]
+    alone = placed(diff, image_xy, frame_xy)
+    ten = placed(along_sequence(diff, 10), image_xy, frame_xy)
+    assert ten.frames == n - 9
+    assert ten.near > 0.9 > 0.6 > alone.near
+
+
+def test_dark_noisy_frames_are_placed_by_their_thumbnails(sunny1: Round,
+                                                          sunny2: Round) -> None:
+    """A second round of the route, darkened to a tenth and noised (a night of sorts): the
+    thumbnails place most frames within 3 m, far more often than chance."""
+    rng = np.random.default_rng(1)
+    images = np.stack([thumbnail(sunny1.load_image(i), SIZE, BLOCK)
+                       for i in range(len(sunny1))])
+    frames = []
+    for i in range(len(sunny2)):
+        img = sunny2.load_image(i).astype(np.float32)
+        dark = np.clip(0.1 * img + rng.normal(0.0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        frames.append(thumbnail(dark, SIZE, BLOCK))
+    p = placed(differences(np.stack(frames), images), np.asarray(sunny1.reference_xy),
+               np.asarray(sunny2.reference_xy))
+    luck = chance(np.asarray(sunny1.reference_xy), np.asarray(sunny2.reference_xy))
+    assert p.frames == len(sunny2)
+    assert p.near > 0.5 and p.near > 10 * luck, (p, luck)
