@@ -18,6 +18,7 @@ from client.lab.world.geometry import Pose
 from client.runs import frames_to_recover
 from service.api.round_format import DatasetError, camera_from_hfov, dataset_camera
 from service.engine.localizer import Localizer
+from service.estimators.base import StepResult
 from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
 from service.vision.features import Features, extract
 from service.vision.map_geometry import FramePairs, GeometryParams, MapGeometry
@@ -314,8 +315,8 @@ def test_an_uploaded_round_brings_its_camera_or_a_clear_error(tmp_path: Path,
         extract_zip("bad", _round_zip(sunny1, {"dataset.json": b'{"camera": {"hfov_deg": 500}}'}))
 
 
-def _statuses(m: RouteMap, table: SimilarityTable, feats: list[Features], params: dict,
-              locate_frame: int | None) -> list[str]:
+def _results(m: RouteMap, table: SimilarityTable, feats: list[Features], params: dict,
+             locate_frame: int | None) -> list[StepResult]:
     """DPSO over frames 0..79; the geometry locates frame ``locate_frame`` (a frame from
     elsewhere: the geometry refutes every place the images say) or each frame itself."""
     loc = Localizer(m, "dpso", params, seed=1)
@@ -323,10 +324,35 @@ def _statuses(m: RouteMap, table: SimilarityTable, feats: list[Features], params
     out = []
     for k in range(80):
         f = feats[k if locate_frame is None else locate_frame]
-        res = loc.estimator.step(partial(table.scores, k), float(k),
-                                 lambda i, f=f: geo.locate(f, i, GeometryParams()))
-        out.append(res.status.value)
+        out.append(loc.estimator.step(partial(table.scores, k), float(k),
+                                      lambda i, f=f: geo.locate(f, i, GeometryParams())))
     return out
+
+
+def _statuses(m: RouteMap, table: SimilarityTable, feats: list[Features], params: dict,
+              locate_frame: int | None) -> list[str]:
+    return [r.status.value for r in _results(m, table, feats, params, locate_frame)]
+
+
+def test_tracking_is_reported_once_the_geometry_confirms_the_place(
+        camera_map: RouteMap, sunny2_features: list[Features],
+        sunny2_table: SimilarityTable) -> None:
+    """confirm_tracking (on by default): where the geometry locates each frame the swarm
+    reports tracking as soon as it converges; where the geometry refutes every place (it
+    locates a frame from the other side of the loop) the converged swarm is never reported
+    tracking. Report only: the positions are those without the rule, frame for frame."""
+    far = len(sunny2_features) // 2 + 40
+    off = {"confirm_tracking": False}
+    honest = _statuses(camera_map, sunny2_table, sunny2_features, {}, None)
+    assert honest[20:].count("tracking") == 60
+    with_rule = _results(camera_map, sunny2_table, sunny2_features, {}, far)
+    without = _results(camera_map, sunny2_table, sunny2_features, off, far)
+    assert [r.status.value for r in without][20:].count("tracking") == 60
+    assert "tracking" not in [r.status.value for r in with_rule]
+    assert all(r.status.value == "recovering" for r, w in zip(with_rule, without, strict=True)
+               if w.status.value == "tracking")
+    assert np.array_equal(np.array([r.position for r in with_rule]),
+                          np.array([r.position for r in without]))
 
 
 def test_a_place_the_geometry_refutes_is_not_tracked(
@@ -337,7 +363,8 @@ def test_a_place_the_geometry_refutes_is_not_tracked(
     verify = {"verify_frames": 6}
     honest = _statuses(camera_map, table, sunny2_features, verify, None)
     refuted = _statuses(camera_map, table, sunny2_features, verify, far)
-    ignored = _statuses(camera_map, table, sunny2_features, {}, far)  # off by default
+    ignored = _statuses(camera_map, table, sunny2_features, {"confirm_tracking": False},
+                        far)  # off by default (and the tracking report's own confirmation)
     assert honest[20:].count("tracking") == 60  # the true frames verify: tracked throughout
     assert ignored[20:].count("tracking") == 60  # without the rule the images alone decide
     # with it: never tracked for more than verify_frames + lost_frames frames in a row
@@ -425,7 +452,9 @@ def test_a_frame_unlocatable_at_the_best_image_is_located_at_the_next(
     for tries in (1, 4):
         est = Localizer(camera_map, "dpso", {"metric_tries": tries,
                                              "along_track_alpha_unlocated": 0.7,
-                                             "along_track_alpha_weak": 0.7}, seed=3).estimator
+                                             "along_track_alpha_weak": 0.7,
+                                             # the swarm's own status, not the report's
+                                             "confirm_tracking": False}, seed=3).estimator
         errors: list[float] = []
         unverified: list[int] = []
         located: set[int] = set()
@@ -494,7 +523,9 @@ def test_frames_the_geometry_cannot_locate_move_the_position_less_along_the_path
     table = sunny2_table
 
     def track(params: dict, geometry: bool) -> np.ndarray:
-        est = Localizer(camera_map, "dpso", params, seed=4).estimator
+        # the swarm's own status (a geometry that locates nothing never confirms the report)
+        est = Localizer(camera_map, "dpso", {**params, "confirm_tracking": False},
+                        seed=4).estimator
         out = []
         for k in range(10, 70):
             res = est.step(partial(table.scores, k), float(k),

@@ -403,6 +403,13 @@ class DPSOParams(CommonParams):
     metric_jitter_prior_m: float = Field(
         0.15, ge=0, le=1e3, description="the jitter assumed until eight located triples of "
         "consecutive frames were seen (m); 0.15 m, our choice for a session's first frames")
+    confirm_tracking: bool = Field(
+        True, description="where the map has the camera, a swarm that converged (or came back) "
+        "reports 'tracking' only from the first frame located at the held place on (within "
+        "metric_gate_m of its map image); until then 'recovering' (report only: the swarm and "
+        "the position are unchanged). At the true place most tracked frames are located, "
+        "more than 5 m off almost none: a look-alike place the swarm settles on at dusk is "
+        "no longer reported as tracked")
     verify_frames: int = Field(
         0, ge=0, le=10_000, description="while tracking, a frame that could not be located "
         "at the held place for this many tracked frames in a row is not good for the lost "

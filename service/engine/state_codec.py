@@ -59,10 +59,13 @@ REBUILT: dict[str, frozenset[str]] = {
 # the map's own images. The first feature type's lost-detection monitor on maps of two
 # types, issue 28: its background starts again at the next frame. The jump hold, issue 28:
 # empty, so the first frame after loading is judged against no previous position. The
-# particle filters' heading offsets per particle: drawn again at the next odometry step.)
+# particle filters' heading offsets per particle: drawn again at the next odometry step.
+# DPSO's ``confirmed``, issue 28: a session stored before it keeps reporting its place as
+# before.)
 ADDED: dict[str, frozenset[str]] = {
     "localizer": frozenset({"odom_prev", "choice"}),
-    "estimator": frozenset({"odometry", "gate", "first_monitor", "jump", "theta"}),
+    "estimator": frozenset({"odometry", "gate", "first_monitor", "jump", "theta",
+                            "confirmed"}),
 }
 
 # classes an object in a state may be rebuilt as (a blob names its classes: never import

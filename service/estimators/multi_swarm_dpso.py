@@ -138,6 +138,9 @@ class MultiSwarmDPSO(DPSO):
                                                  params.distinct_far_m, params.ema_alpha)
         self.smoother = AlongTrackSmoother()  # the reported position (tracked frames)
         self.unverified = 0  # tracked frames in a row the geometry could not locate
+        # a tracked frame was located at the held place since the swarm converged (False
+        # from the first frame on, _initialize; True here for a session stored before it)
+        self.confirmed = True
         self.noise = LocatedNoise()  # the located positions' noise: their radius
         self.gate = LocatedGate()  # located frames against the odometry's prediction
         self.jump = JumpHold()  # a far jump of the reported place, until confirmed
@@ -159,6 +162,7 @@ class MultiSwarmDPSO(DPSO):
         self.first_monitor.reset()
         self.smoother.reset()
         self.unverified = 0
+        self.confirmed = False
         self.noise.reset()
         self.gate.reset()
         self.jump.reset()
@@ -244,6 +248,7 @@ class MultiSwarmDPSO(DPSO):
                 if self.odometry is not None:  # and the heading fit's pairs may belong to
                     self.odometry.forget()  # the place the robot is not at
         located = camera[0] if camera is not None else None
+        unconfirmed = self._unconfirmed(fitness, status, located, pos)
         # a tracked frame located far from the images' estimate carries two answers that
         # disagree: reported recovering, its radius at least the distance (report only)
         disagree = float(np.linalg.norm(located - pos)) if located is not None else 0.0
@@ -303,8 +308,9 @@ class MultiSwarmDPSO(DPSO):
         if cam is not None and cam.heading is not None:  # the camera's yaw
             heading, source, h_sigma = cam.heading, "camera", cam.heading_sigma
         return StepResult(reported, cov, heading, speed,
-                          Status.RECOVERING if disagree or (jumped and status is Status.TRACKING)
-                          else status, lost or self.recovering,
+                          Status.RECOVERING if disagree or unconfirmed
+                          or (jumped and status is Status.TRACKING) else status,
+                          lost or self.recovering,
                           ev.best_m, fitness.comparisons, spread, hypotheses, source, h_sigma,
                           located is not None)
 
@@ -372,6 +378,23 @@ class MultiSwarmDPSO(DPSO):
                 return (self._map_positions[image] + off.right_m * right
                         + off.ahead_m * tangent, off)
         return None
+
+    def _unconfirmed(self, fitness: FrameFitness, status: Status, located: np.ndarray | None,
+                     pos: np.ndarray) -> bool:
+        """Whether this tracked frame's place is not yet confirmed by the geometry
+        (``confirm_tracking``): since the swarm last converged or came back, no tracked frame
+        was located at the held place, at its best image (``_located`` has just judged this
+        one: ``unverified``) or within ``metric_gate_m`` of the images' estimate ``pos``.
+        Always False where the geometry does not run."""
+        if status is not Status.TRACKING:
+            self.confirmed = False
+            return False
+        if not (self.params.confirm_tracking and self._geometry_runs(fitness)):
+            return False
+        near = located is not None and \
+            float(np.linalg.norm(located - pos)) <= self.params.metric_gate_m
+        self.confirmed = self.confirmed or self.unverified == 0 or near
+        return not self.confirmed
 
     def _verified_alternative(self, fitness: FrameFitness, seeds: np.ndarray,
                               support: np.ndarray, best_s: int) -> int | None:
