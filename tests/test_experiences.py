@@ -316,6 +316,28 @@ def test_the_service_hands_a_learning_robot_s_odometry_to_its_learner(
     assert run.stats["odometry"] == run.stats["taught"] > 0, run.stats
 
 
+def test_confirming_tracking_moves_no_estimate_on_a_learned_map(
+        learning_run: LearningRun, cloudy1: Round) -> None:
+    """``confirm_tracking`` is a report: on a map with an experience (the layer choice and
+    its probes follow the swarm, not the report) the estimates are those without it, frame
+    for frame, and only statuses differ. A gate of 1 cm confirms no place (the frames are
+    the round's images shifted by 3 pixels, so that none is located exactly at the taught
+    image of itself): every frame the swarm tracks is reported recovering."""
+    m = learning_run.on_disk
+    feats = [extract(np.roll(cloudy1.load_image(i), 3, axis=1), m.feature_params)
+             for i in range(LEARN_FRAMES)]
+    runs = {}
+    for confirm in (True, False):
+        loc = Localizer(m, "dpso", {"confirm_tracking": confirm, "metric_gate_m": 0.01},
+                        seed=2)
+        runs[confirm] = [loc.step(f, t=float(i)) for i, f in enumerate(feats)]
+    on, off = runs[True], runs[False]
+    assert [(e.x, e.y, e.experience) for e in on] == [(e.x, e.y, e.experience) for e in off]
+    assert any(e.experience is not None for e in on)  # the experience is used
+    changed = [(a.status, b.status) for a, b in zip(on, off, strict=True) if a.status != b.status]
+    assert len(changed) >= 20 and all(c == ("recovering", "tracking") for c in changed)
+
+
 def test_the_in_process_client_closes_the_engine_it_started(
         camera_maps: Path, tmp_path: Path, cloudy1: Round,
         monkeypatch: pytest.MonkeyPatch) -> None:

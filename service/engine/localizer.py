@@ -130,7 +130,9 @@ class Localizer:
                                       motion,
                                       nearest=self.choice.nearest(self.map, self._at()),
                                       first=first)
-            if res.status is Status.TRACKING:  # the probes score the layers at the true place
+            # the probes score the layers at the true place: where the swarm tracks (its
+            # place reported or still to be confirmed by the geometry)
+            if res.status is Status.TRACKING or res.unconfirmed:
                 self.choice.probe(self.map, similarity, res.position)
             comparisons = similarity.comparisons
         self.seq += 1

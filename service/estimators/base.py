@@ -67,6 +67,9 @@ class StepResult:
     heading_source: str = "motion"
     heading_sigma: float | None = None  # std of the heading, rad (None: not estimated)
     located: bool = False  # the frame was located by two-view geometry (multi-swarm DPSO)
+    # reported recovering only because the geometry has not yet confirmed the place the
+    # swarm tracks (multi-swarm DPSO's confirm_tracking): the swarm itself is tracking
+    unconfirmed: bool = False
 
     @property
     def accuracy_m(self) -> float:

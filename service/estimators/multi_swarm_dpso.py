@@ -312,7 +312,7 @@ class MultiSwarmDPSO(DPSO):
                           or (jumped and status is Status.TRACKING) else status,
                           lost or self.recovering,
                           ev.best_m, fitness.comparisons, spread, hypotheses, source, h_sigma,
-                          located is not None)
+                          located is not None, unconfirmed)
 
     def odometry_prediction(self, odom: OdomStep) -> np.ndarray:
         """Move every particle by the odometry step in the map frame, with its noise
