@@ -238,8 +238,9 @@ class Estimator:
         """The odometry step in the map frame (m) and the std (m, per axis) of where it
         ends, turned by the map heading at the previous frame; advances the dead reckoning."""
         motion_heading = self.motion(1.0)[1] if self.ema_step is not None else None
-        d, sigma = self.dead_reckoning().displacement(odom, motion_heading)
-        self.dead_reckoning().advance(odom)
+        reckoning = self.dead_reckoning()
+        d, sigma = reckoning.displacement(odom, motion_heading)
+        reckoning.advance(odom)
         return d, sigma
 
     def dead_reckoning(self) -> OdomHeading:

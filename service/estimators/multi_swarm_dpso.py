@@ -248,10 +248,12 @@ class MultiSwarmDPSO(DPSO):
                 if self.odometry is not None:  # and the heading fit's pairs may belong to
                     self.odometry.forget()  # the place the robot is not at
         located = camera[0] if camera is not None else None
-        unconfirmed = self._unconfirmed(fitness, status, located, pos)
+        # how far the located camera lies from the images' estimate (inf: not located)
+        apart = float(np.linalg.norm(located - pos)) if located is not None else math.inf
+        unconfirmed = self._unconfirmed(fitness, status, apart)
         # a tracked frame located far from the images' estimate carries two answers that
         # disagree: reported recovering, its radius at least the distance (report only)
-        disagree = float(np.linalg.norm(located - pos)) if located is not None else 0.0
+        disagree = apart if located is not None else 0.0
         if not (status is Status.TRACKING and 0 < p.metric_disagree_m < disagree):
             disagree = 0.0
 
@@ -379,21 +381,20 @@ class MultiSwarmDPSO(DPSO):
                         + off.ahead_m * tangent, off)
         return None
 
-    def _unconfirmed(self, fitness: FrameFitness, status: Status, located: np.ndarray | None,
-                     pos: np.ndarray) -> bool:
+    def _unconfirmed(self, fitness: FrameFitness, status: Status, apart: float) -> bool:
         """Whether this tracked frame's place is not yet confirmed by the geometry
         (``confirm_tracking``): since the swarm last converged or came back, no tracked frame
         was located at the held place, at its best image (``_located`` has just judged this
-        one: ``unverified``) or within ``metric_gate_m`` of the images' estimate ``pos``.
-        Always False where the geometry does not run."""
+        one: ``unverified``) or within ``metric_gate_m`` of the images' estimate (``apart``:
+        the located camera's distance from it, inf where not located). Always False where
+        the geometry does not run."""
         if status is not Status.TRACKING:
             self.confirmed = False
             return False
         if not (self.params.confirm_tracking and self._geometry_runs(fitness)):
             return False
-        near = located is not None and \
-            float(np.linalg.norm(located - pos)) <= self.params.metric_gate_m
-        self.confirmed = self.confirmed or self.unverified == 0 or near
+        self.confirmed = self.confirmed or self.unverified == 0 or \
+            apart <= self.params.metric_gate_m
         return not self.confirmed
 
     def _verified_alternative(self, fitness: FrameFitness, seeds: np.ndarray,
