@@ -89,3 +89,27 @@ def test_the_experiment_replays_with_the_rounds_odometry_where_asked(tmp_path, r
     (tmp_path / "cloudy1" / "odometry.csv").unlink()
     out = CliRunner().invoke(app, [*args, "--odometry"])
     assert out.exit_code != 0 and "round cloudy1 has no odometry.csv" in out.output
+
+
+def test_the_world_benches_refuse_bad_seeds_and_missing_rounds_in_one_line(tmp_path) -> None:
+    """`swarmloc bench night-places` and `bench experiences`: seeds that are not integers,
+    and a world without a round the bench needs, are one line naming the fix, no traceback;
+    a world with the rounds passes the check."""
+    from typer.testing import CliRunner
+
+    from client.cli import app
+    from client.lab.experiment_cli import world_with
+
+    runner = CliRunner()
+    out = runner.invoke(app, ["bench", "night-places", str(tmp_path), "--seeds", "0,x"])
+    assert out.exit_code == 2 and "comma-separated integers" in out.output
+    assert "Traceback" not in out.output
+    out = runner.invoke(app, ["bench", "night-places", str(tmp_path), "--seeds", "4"])
+    assert out.exit_code == 2 and "has no round sunny1" in out.output
+    assert "--seed 4 --rounds sunny1,night1" in out.output
+    out = runner.invoke(app, ["bench", "experiences", str(tmp_path), "--seeds", "4",
+                              "--conditions", "dusk"])
+    assert out.exit_code == 2 and "has no round dusk2" in out.output
+    for r in ("sunny1", "night1"):
+        (tmp_path / "w4" / r).mkdir(parents=True)
+    assert world_with(tmp_path, 4, ["sunny1", "night1"], "sunny1,night1") == tmp_path / "w4"

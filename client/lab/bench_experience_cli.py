@@ -40,18 +40,15 @@ def register(bench_app: typer.Typer) -> None:
         """A sunny map learns one round of another light, then localizes a second round of it:
         errors against the unlearned map and a map in that light, comparisons, file growth."""
         from client.lab.bench_experience import gates_table, run_case, summary, table
-        from client.lab.experiment_cli import check_feature_type
+        from client.lab.experiment_cli import check_feature_type, parse_seeds, world_with
 
         check_feature_type(features)
 
         cases = []
-        for seed in [int(s) for s in seeds.split(",") if s.strip()]:
+        for seed in parse_seeds(seeds):
             for cond in [c.strip() for c in conditions.split(",") if c.strip()]:
-                world = data / f"w{seed}"
-                if not (world / f"{cond}2").is_dir():
-                    raise typer.BadParameter(f"{world} has no round {cond}2; render it with "
-                                             f"swarmloc world render {world} --seed {seed} "
-                                             "--rounds sunny1,cloudy1,cloudy2,dusk1,dusk2")
+                world = world_with(data, seed, [f"{cond}2"],
+                                   "sunny1,cloudy1,cloudy2,dusk1,dusk2")
                 cases.append(run_case(world, seed, cond, work, budget_mb, frames, features,
                                       runs, odometry))
                 typer.echo(table(cases[-1:]).splitlines()[-1], err=True)

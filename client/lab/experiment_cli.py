@@ -165,6 +165,27 @@ def check_feature_type(features: str) -> None:
                                  f"{', '.join(FEATURE_TYPES)}")
 
 
+def parse_seeds(seeds: str) -> list[int]:
+    """A lab command's ``--seeds`` (comma-separated integers), else one line that says so."""
+    try:
+        return [int(x) for x in seeds.split(",") if x.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"--seeds {seeds!r}: comma-separated integers, e.g. 0,7,11"
+                                 ) from None
+
+
+def world_with(data: Path, seed: int, rounds: list[str], render: str) -> Path:
+    """DATA/wSEED, a world of a lab command, if it holds every one of ``rounds``; else one
+    line that names the missing round and the command that renders the world's ``render``
+    rounds."""
+    world = data / f"w{seed}"
+    for r in rounds:
+        if not (world / r).is_dir():
+            raise typer.BadParameter(f"{world} has no round {r}; render it with swarmloc "
+                                     f"world render {world} --seed {seed} --rounds {render}")
+    return world
+
+
 def _starts(n: int, count: int) -> list[int]:
     return [k * n // count for k in range(count)]
 

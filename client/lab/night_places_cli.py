@@ -34,7 +34,7 @@ def register(bench_app: typer.Typer) -> None:
     ) -> None:
         """Whole-image thumbnails (SeqSLAM) against local features: the share of a round's
         frames whose best map image lies within 3 / 10 m of the truth, per world."""
-        from client.lab.experiment_cli import check_feature_type
+        from client.lab.experiment_cli import check_feature_type, parse_seeds, world_with
         from client.lab.night_places import study, table
 
         check_feature_type(features)
@@ -48,13 +48,8 @@ def register(bench_app: typer.Typer) -> None:
         if not lengths or min(lengths) < 1:
             raise typer.BadParameter("sequence lengths must be 1 or more")
         results = []
-        for seed in [int(s) for s in seeds.split(",") if s.strip()]:
-            world = data / f"w{seed}"
-            for r in (map_round, query):
-                if not (world / r).is_dir():
-                    raise typer.BadParameter(f"{world} has no round {r}; render it with "
-                                             f"swarmloc world render {world} --seed {seed} "
-                                             f"--rounds {map_round},{query}")
+        for seed in parse_seeds(seeds):
+            world = world_with(data, seed, [map_round, query], f"{map_round},{query}")
             results.append(study(world, seed, map_round, query, (w, h), block, lengths,
                                  every, features))
             typer.echo(table(results[-1:], lengths, features).splitlines()[-1], err=True)
