@@ -355,6 +355,30 @@ def test_tracking_is_reported_once_the_geometry_confirms_the_place(
                           np.array([r.position for r in without]))
 
 
+def test_no_local_scouts_where_the_geometry_locates_the_held_place(
+        camera_map: RouteMap, sunny2_features: list[Features],
+        sunny2_table: SimilarityTable) -> None:
+    """local_scout_unlocated (on by default): a frame located at the held place draws no
+    local scouts, so the tracked frames compare fewer images; where the geometry never
+    locates the frame there (it locates a frame from the other side of the loop) the scouts
+    run as before and the run is the same frame for frame."""
+    far = len(sunny2_features) // 2 + 40
+    off = {"local_scout_unlocated": False}
+
+    def comparisons(results: list[StepResult]) -> np.ndarray:
+        return np.array([r.comparisons for r in results])[20:]
+
+    located_on = _results(camera_map, sunny2_table, sunny2_features, {}, None)
+    located_off = _results(camera_map, sunny2_table, sunny2_features, off, None)
+    assert [r.status.value for r in located_on][20:].count("tracking") == 60
+    assert comparisons(located_on).mean() < 0.9 * comparisons(located_off).mean()
+    refuted_on = _results(camera_map, sunny2_table, sunny2_features, {}, far)
+    refuted_off = _results(camera_map, sunny2_table, sunny2_features, off, far)
+    assert np.array_equal(comparisons(refuted_on), comparisons(refuted_off))
+    assert np.array_equal(np.array([r.position for r in refuted_on]),
+                          np.array([r.position for r in refuted_off]))
+
+
 def test_a_place_the_geometry_refutes_is_not_tracked(
         camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features],
         sunny2_table: SimilarityTable) -> None:
@@ -493,9 +517,13 @@ def test_a_located_camera_steers_the_swarm(
     for steer, seed in ((s, k) for s in (0.0, 1.0) for k in range(3)):
         # lost_frames: frames that say nothing would otherwise end the tracking after three;
         # metric_disagree_m: the swarm held ahead and the located camera disagree (reported
-        # recovering; the test after this one), here only the steering is measured
+        # recovering; the test after this one), here only the steering is measured;
+        # local_scout_unlocated: the figures above were measured with local scouts on
+        # every second frame (with it, one unsteered run ended 3.9 m off)
         est = Localizer(camera_map, "dpso", {"metric_steer_m": steer, "lost_frames": 100,
-                                             "metric_disagree_m": 0}, seed=seed).estimator
+                                             "metric_disagree_m": 0,
+                                             "local_scout_unlocated": False},
+                        seed=seed).estimator
         n = est.params.n_particles
         for k in range(30, 65):
             def locate(i: int, k: int = k) -> object:

@@ -47,7 +47,9 @@ REBUILT: dict[str, frozenset[str]] = {
     # the estimator is stored on its own; the place seeder derives from the map and params
     "localizer": frozenset({"map", "estimator", "seeder"}),
     "estimator": frozenset({"index", "params", "_map_positions", "_x_order",
-                            "_x_sorted"}),
+                            "_x_sorted",
+                            # DPSO's verdict on the frame being stepped, set before it is read
+                            "held_located"}),
 }
 
 # Attributes added after states were first stored: a state written before one existed lacks

@@ -36,7 +36,10 @@ changes, each measured in docs/research/lighting.md:
 - **Local scouts.** While tracking, every ``local_scout_every``-th frame, a few more are
   redrawn at map images 4-15 m from the estimate: the local search a particle filter's motion
   noise gives. A swarm that stalled (the robot set off after a stop while weak matches kept
-  the estimate still) finds the robot again through them.
+  the estimate still) finds the robot again through them. On a map with the camera a frame
+  the geometry located at the held place draws none (``local_scout_unlocated``): the swarm
+  is where the robot is, and their comparisons (a quarter of a tracked frame's) would buy
+  nothing.
 - **The estimate** is the place the images say: the centre of the map images compared near
   the best species, weighted by m ** ``estimate_image_power``; its covariance is that
   species' spread, scaled to a calibrated 68 % radius. While tracking, the reported position
@@ -138,6 +141,7 @@ class MultiSwarmDPSO(DPSO):
                                                  params.distinct_far_m, params.ema_alpha)
         self.smoother = AlongTrackSmoother()  # the reported position (tracked frames)
         self.unverified = 0  # tracked frames in a row the geometry could not locate
+        self.held_located = False  # this frame was located at the held place (_located)
         # a tracked frame was located at the held place since the swarm converged (False
         # from the first frame on, _initialize; True here for a session stored before it)
         self.confirmed = True
@@ -353,6 +357,7 @@ class MultiSwarmDPSO(DPSO):
         ``metric_search_m``, ``metric_tries`` images in all, with the offset that placed it
         (its heading); None where none locates it."""
         p = self.params
+        self.held_located = False
         if not self._geometry_runs(fitness) or status is not Status.TRACKING:
             self.unverified = 0  # counted while tracking only
             return None
@@ -374,7 +379,8 @@ class MultiSwarmDPSO(DPSO):
             off = locate(image) if tangent is not None else None
             reach = math.hypot(off.right_m, off.ahead_m) if off is not None else math.inf
             if k == 0:  # the held place is confirmed where the camera stands near its image
-                self.unverified = 0 if reach <= p.metric_gate_m else self.unverified + 1
+                self.held_located = reach <= p.metric_gate_m
+                self.unverified = 0 if self.held_located else self.unverified + 1
             if off is not None and tangent is not None and reach <= p.metric_reach_m:
                 right = np.array([tangent[1], -tangent[0]])
                 return (self._map_positions[image] + off.right_m * right
@@ -557,7 +563,8 @@ class MultiSwarmDPSO(DPSO):
         # while tracking, every local_scout_every-th frame, local scouts around the estimate
         n_scouts = round((p.scout_ratio_recovery if self.recovering else p.scout_ratio) * n)
         self._redraw_least_evidence(x, v, fresh, n_scouts, self.sample_map_positions)
-        if not self.recovering and self.frame_count % p.local_scout_every == 0:
+        if not self.recovering and self.frame_count % p.local_scout_every == 0 \
+                and not (p.local_scout_unlocated and self.held_located):
             self._redraw_least_evidence(
                 x, v, fresh, round(p.local_scout_ratio * n),
                 lambda k: self.sample_map_positions_near(
