@@ -379,6 +379,29 @@ def test_no_local_scouts_where_the_geometry_locates_the_held_place(
                           np.array([r.position for r in refuted_off]))
 
 
+def test_a_located_position_the_odometry_refuses_keeps_the_local_scouts(
+        camera_map: RouteMap, sunny2: Round, sunny2_table: SimilarityTable) -> None:
+    """With odometry and a gate of 1 cm most located positions are refused (until a second
+    located frame confirms them): such a frame counts as not located at the held place,
+    so it draws local scouts like an unlocated one."""
+    from client.runs import odometry_poses
+
+    loc = Localizer(camera_map, "dpso", {"odom_locate_gate_m": 0.01}, seed=1)
+    est = loc.estimator
+    poses = odometry_poses(sunny2.odometry, np.arange(60))
+    refused = held = 0
+    for q in range(60):
+        motion = loc.take_odometry(poses[q])
+        r = est.step(partial(sunny2_table.scores, q), float(q),
+                     loc.locator(sunny2_table.queries[q]), motion,
+                     first=sunny2_table.first_of(q))
+        at_held_place = r.status.value == "tracking" and est.unverified == 0
+        refused += at_held_place and not r.located
+        held += est.held_located
+        assert not est.held_located or r.located
+    assert refused >= 5 and held >= 5
+
+
 def test_a_place_the_geometry_refutes_is_not_tracked(
         camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features],
         sunny2_table: SimilarityTable) -> None:

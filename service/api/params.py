@@ -285,8 +285,8 @@ class DPSOParams(CommonParams):
     local_scout_unlocated: bool = Field(
         True, description="on a map with the camera, no local scouts on a frame the "
         "geometry located at the held place (at its best image near the estimate, within "
-        "metric_gate_m): the swarm is where the robot is, and the scouts' comparisons "
-        "would only cost")
+        "metric_gate_m; with odometry, a located position the odometry does not contradict): "
+        "the swarm is where the robot is, and the scouts' comparisons would only cost")
     along_track_alpha: float = Field(
         0.7, gt=0, le=1, description="share of the along-path correction the reported "
         "position takes each tracked frame, all of it across the path "

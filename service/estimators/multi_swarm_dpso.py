@@ -247,6 +247,7 @@ class MultiSwarmDPSO(DPSO):
                                    self.smoother.predicted(odom_d), odom.distance,
                                    p.odom_locate_gate_m):
                 camera = None  # contradicted, not yet confirmed by a second located frame
+                self.held_located = False  # the local scouts search on
             elif self.gate.moved:  # two located frames agree, against the odometry: the
                 self.smoother.reset()  # reported position restarts at the located one,
                 if self.odometry is not None:  # and the heading fit's pairs may belong to
