@@ -388,6 +388,14 @@ def test_a_located_position_the_odometry_refuses_keeps_the_local_scouts(
 
     loc = Localizer(camera_map, "dpso", {"odom_locate_gate_m": 0.01}, seed=1)
     est = loc.estimator
+    scouts: list[bool] = []  # the estimator's own call, recorded: does this frame scout?
+    move = est._move_species  # type: ignore[attr-defined]
+
+    def recorded(*args: object, local_scouts: bool = True) -> None:
+        scouts.append(local_scouts)
+        move(*args, local_scouts=local_scouts)
+
+    est._move_species = recorded  # type: ignore[attr-defined]
     poses = odometry_poses(sunny2.odometry, np.arange(60))
     refused = held = 0
     for q in range(60):
@@ -397,9 +405,9 @@ def test_a_located_position_the_odometry_refuses_keeps_the_local_scouts(
                      first=sunny2_table.first_of(q))
         at_held_place = r.status.value == "tracking" and est.unverified == 0
         refused += at_held_place and not r.located
-        held += est.held_located
-        assert not est.held_located or r.located
-    assert refused >= 5 and held >= 5
+        held += not scouts[-1]
+        assert scouts[-1] or r.located
+    assert len(scouts) == 60 and refused >= 5 and held >= 5
 
 
 def test_a_place_the_geometry_refutes_is_not_tracked(

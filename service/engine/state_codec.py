@@ -47,9 +47,7 @@ REBUILT: dict[str, frozenset[str]] = {
     # the estimator is stored on its own; the place seeder derives from the map and params
     "localizer": frozenset({"map", "estimator", "seeder"}),
     "estimator": frozenset({"index", "params", "_map_positions", "_x_order",
-                            "_x_sorted",
-                            # DPSO's verdict on the frame being stepped, set before it is read
-                            "held_located"}),
+                            "_x_sorted"}),
 }
 
 # Attributes added after states were first stored: a state written before one existed lacks

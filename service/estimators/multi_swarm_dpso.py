@@ -141,7 +141,6 @@ class MultiSwarmDPSO(DPSO):
                                                  params.distinct_far_m, params.ema_alpha)
         self.smoother = AlongTrackSmoother()  # the reported position (tracked frames)
         self.unverified = 0  # tracked frames in a row the geometry could not locate
-        self.held_located = False  # this frame was located at the held place (_located)
         # a tracked frame was located at the held place since the swarm converged (False
         # from the first frame on, _initialize; True here for a session stored before it)
         self.confirmed = True
@@ -241,13 +240,16 @@ class MultiSwarmDPSO(DPSO):
         if self.recovery_phase(lost):
             status = Status.RECOVERING
         camera = self._located(fitness, status, pos, ids, scores, compared_xy)
+        # this frame was located at the held place (_located has just counted it)
+        held = status is Status.TRACKING and self._geometry_runs(fitness) \
+            and self.unverified == 0
         if odom is not None and odom_d is not None:  # the located position against the
             # odometry's prediction
             if not self.gate.admit(None if camera is None else camera[0],
                                    self.smoother.predicted(odom_d), odom.distance,
                                    p.odom_locate_gate_m):
                 camera = None  # contradicted, not yet confirmed by a second located frame
-                self.held_located = False  # the local scouts search on
+                held = False  # the local scouts search on
             elif self.gate.moved:  # two located frames agree, against the odometry: the
                 self.smoother.reset()  # reported position restarts at the located one,
                 if self.odometry is not None:  # and the heading fit's pairs may belong to
@@ -283,7 +285,8 @@ class MultiSwarmDPSO(DPSO):
             # its quantum particles and local scouts are drawn around it
             p_n = around = located + lead
             attractor = np.where((label == best_s)[:, None], p_n, attractor)
-        self._move_species(attractor, p_n, dissolve, around)
+        self._move_species(attractor, p_n, dissolve, around,
+                           local_scouts=not (p.local_scout_unlocated and held))
         speed, heading = self.motion(dt)
         if located is not None:
             pos = located
@@ -358,7 +361,6 @@ class MultiSwarmDPSO(DPSO):
         ``metric_search_m``, ``metric_tries`` images in all, with the offset that placed it
         (its heading); None where none locates it."""
         p = self.params
-        self.held_located = False
         if not self._geometry_runs(fitness) or status is not Status.TRACKING:
             self.unverified = 0  # counted while tracking only
             return None
@@ -380,8 +382,7 @@ class MultiSwarmDPSO(DPSO):
             off = locate(image) if tangent is not None else None
             reach = math.hypot(off.right_m, off.ahead_m) if off is not None else math.inf
             if k == 0:  # the held place is confirmed where the camera stands near its image
-                self.held_located = reach <= p.metric_gate_m
-                self.unverified = 0 if self.held_located else self.unverified + 1
+                self.unverified = 0 if reach <= p.metric_gate_m else self.unverified + 1
             if off is not None and tangent is not None and reach <= p.metric_reach_m:
                 right = np.array([tangent[1], -tangent[0]])
                 return (self._map_positions[image] + off.right_m * right
@@ -533,9 +534,11 @@ class MultiSwarmDPSO(DPSO):
         return tuple(out)
 
     def _move_species(self, attractor: np.ndarray, p_n: np.ndarray, weak: np.ndarray,
-                      around: np.ndarray) -> None:
+                      around: np.ndarray, local_scouts: bool = True) -> None:
         """Eqs. 4-5 towards each particle's species seed; Eq. 6 quantum particles around the
-        best seed; scouts (weak species and the least evidence) redrawn at map images."""
+        best seed; scouts (weak species and the least evidence) redrawn at map images, and
+        (``local_scouts``, every ``local_scout_every``-th frame while tracking) around
+        ``around``."""
         p, rng, n = self.params, self.rng, self.params.n_particles
         r0 = rng.uniform(-1.0, 1.0, (n, 2))
         r2 = rng.uniform(0.0, 1.0, (n, 2))
@@ -565,7 +568,7 @@ class MultiSwarmDPSO(DPSO):
         n_scouts = round((p.scout_ratio_recovery if self.recovering else p.scout_ratio) * n)
         self._redraw_least_evidence(x, v, fresh, n_scouts, self.sample_map_positions)
         if not self.recovering and self.frame_count % p.local_scout_every == 0 \
-                and not (p.local_scout_unlocated and self.held_located):
+                and local_scouts:
             self._redraw_least_evidence(
                 x, v, fresh, round(p.local_scout_ratio * n),
                 lambda k: self.sample_map_positions_near(
