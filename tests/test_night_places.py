@@ -8,11 +8,13 @@ import pytest
 
 from client.dataset import Round
 from client.lab.night_places import (
+    along_odometry,
     along_sequence,
     chance,
     differences,
     placed,
     thumbnail,
+    tracked,
 )
 
 SIZE = (64, 48)
@@ -78,3 +80,31 @@ def test_dark_noisy_frames_are_placed_by_their_thumbnails(sunny1: Round,
     luck = chance(np.asarray(sunny1.reference_xy), np.asarray(sunny2.reference_xy))
     assert p.frames == len(sunny2)
     assert p.near > 0.5 and p.near > 10 * luck, (p, luck)
+
+
+def test_the_wheels_carry_the_belief_to_where_the_frames_agree() -> None:
+    """Frame i belongs at image (2 i + 7) mod M: the robot drives two map spacings a frame.
+    Each frame alone is mostly lost in noise; the forward filter, moved by the odometry's
+    travel (with a 3 % scale error), finds and keeps the place. Moved by nothing (the wheels
+    ignored) it is lost again."""
+    rng = np.random.default_rng(4)
+    n, m, spacing = 150, 120, 0.6
+    truth = (2 * np.arange(n) + 7) % m
+    diff = rng.normal(1.0, 0.3, (n, m))
+    diff[np.arange(n), truth] -= 0.5
+    image_xy = np.column_stack([np.arange(m) * spacing, np.zeros(m)])
+    travel = np.full(n - 1, 2 * spacing * 1.03)
+    def near(best: np.ndarray) -> float:  # the share of frames 40 on within one image
+        off = np.abs(best - truth) % m
+        return float(np.mean(np.minimum(off, m - off)[40:] <= 1))
+
+    best = along_odometry(diff, travel, spacing, tau=0.3)
+    assert near(best) > 0.85
+    assert near(diff.argmin(axis=1)) < 0.4  # each frame alone
+    assert near(along_odometry(diff, np.zeros(n - 1), spacing, tau=0.3)) < 0.3
+    result = tracked(best, image_xy, image_xy[truth])
+    assert result.within_5m > 0.7 and result.mean_m < 10
+    with pytest.raises(ValueError, match="odometry steps"):
+        along_odometry(diff, travel[:-1], spacing, tau=0.3)
+    with pytest.raises(ValueError, match="positive"):
+        along_odometry(diff, travel, spacing, tau=0.0)

@@ -14,6 +14,13 @@ the map advance one image per frame on the rendered rounds, which share their sp
 beside it the product's own similarity (the default map, both feature types) on every
 ``every``-th frame. It prints the share of frames whose best image lies within 3 and 10 m of
 the truth, and what chance gives (the share of map images within 3 m of a frame's place).
+
+Where the night round carries the robot's odometry, ``along_odometry`` goes one step further
+than SeqSLAM's fixed-speed sum: a forward filter over the map's images in route order (an
+HMM on the loop) moves its belief by the wheels' travel between frames and weighs it by each
+frame's thumbnail differences, so that evidence adds up along the whole route driven so far.
+It gives the whole-image approach every advantage the product's estimators lack (the route
+known as a line of images, no kidnap): a bound on what thumbnails and wheels can do at night.
 """
 
 from __future__ import annotations
@@ -64,6 +71,53 @@ def along_sequence(diff: np.ndarray, length: int) -> np.ndarray:
     return out
 
 
+def along_odometry(diff: np.ndarray, travel: np.ndarray, spacing: float, tau: float,
+                   spread: float = 0.15, floor: float = 0.5, uniform: float = 0.02
+                   ) -> np.ndarray:
+    """(F,) each frame's most probable map image under a forward filter along the route.
+
+    The belief over the map's ``M`` images (in route order; the loop wraps around) starts
+    uniform; before frame ``i`` it moves by ``travel[i - 1]`` (m, the odometry's distance
+    from frame ``i - 1`` to ``i``) over ``spacing`` (m between map images) images, blurred by
+    a Gaussian of ``spread`` x that many images plus ``floor`` images, and mixed with
+    ``uniform`` of a uniform belief (a wrong lock can be left); each frame then weighs image
+    ``j`` by ``exp(-(diff[i, j] - min_j diff[i]) / tau)``."""
+    if tau <= 0 or spacing <= 0:
+        raise ValueError(f"tau and spacing must be positive, got {tau} and {spacing}")
+    if len(travel) != max(len(diff) - 1, 0):
+        raise ValueError(f"{len(travel)} odometry steps for {len(diff)} frames")
+    m = diff.shape[1]
+    belief = np.full(m, 1.0 / m)
+    best = np.empty(len(diff), dtype=int)
+    for i, d in enumerate(diff):
+        if i:
+            mu = float(travel[i - 1]) / spacing
+            sigma = spread * mu + floor
+            shifts = np.arange(int(np.floor(mu - 4 * sigma)), int(np.ceil(mu + 4 * sigma)) + 1)
+            weights = np.exp(-0.5 * ((shifts - mu) / sigma) ** 2)
+            weights /= weights.sum()
+            moved = weights @ belief[(np.arange(m)[None, :] - shifts[:, None]) % m]
+            belief = (1 - uniform) * moved + uniform / m
+        belief = belief * np.exp(-(d - d.min()) / tau)
+        belief /= belief.sum()
+        best[i] = int(belief.argmax())
+    return best
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """A filter's placement of a round's frames: mean error (m), the share within 5 m."""
+
+    mean_m: float
+    within_5m: float
+
+
+def tracked(best: np.ndarray, image_xy: np.ndarray, frame_xy: np.ndarray) -> Tracked:
+    """How far each frame's chosen image (``best``, indices) lies from its true place."""
+    err = np.linalg.norm(image_xy[best] - frame_xy, axis=1)
+    return Tracked(float(err.mean()), float(np.mean(err < 5.0)))
+
+
 @dataclass(frozen=True)
 class Placed:
     """Shares of frames whose best image lies within ``NEAR_M`` and ``FAR_M`` of the truth."""
@@ -97,11 +151,14 @@ class WorldResult:
     chance: float
     thumbnails: dict[int, Placed]  # sequence length -> placed
     local: Placed | None  # the map's own similarity (every ``every``-th frame)
+    odometry: Tracked | None = None  # thumbnails along the wheels (``along_odometry``)
 
 
 def study(world: Path, seed: int, map_round: str, query: str, size: tuple[int, int],
-          block: int, sequences: list[int], every: int, features: str) -> WorldResult:
-    """One world: the map round's images against the query round's frames."""
+          block: int, sequences: list[int], every: int, features: str,
+          tau: float = 1.0) -> WorldResult:
+    """One world: the map round's images against the query round's frames (and, where the
+    query round has ``odometry.csv``, the thumbnails along the wheels with ``tau``)."""
     from client.dataset import read_round
     from client.lab.experiment_cli import map_for
     from service.vision.features import extract
@@ -114,6 +171,11 @@ def study(world: Path, seed: int, map_round: str, query: str, size: tuple[int, i
                        for i in range(len(night))])
     diff = differences(frames, images)
     thumbs = {n: placed(along_sequence(diff, n), image_xy, frame_xy) for n in sequences}
+    wheels = None
+    if night.odometry is not None:
+        spacing = float(np.median(np.linalg.norm(np.diff(image_xy, axis=0), axis=1)))
+        travel = np.linalg.norm(np.diff(night.odometry[:, :2], axis=0), axis=1)
+        wheels = tracked(along_odometry(diff, travel, spacing, tau), image_xy, frame_xy)
     local = None
     if every > 0:
         m = map_for(world, map_round, papers=False, features=features)
@@ -123,20 +185,23 @@ def study(world: Path, seed: int, map_round: str, query: str, size: tuple[int, i
                          for i in picked])
         local = placed(sims, np.asarray(m.positions, float), frame_xy[picked],
                        lower_is_better=False)
-    return WorldResult(seed, chance(image_xy, frame_xy), thumbs, local)
+    return WorldResult(seed, chance(image_xy, frame_xy), thumbs, local, wheels)
 
 
 def table(results: list[WorldResult], sequences: list[int], features: str) -> str:
     """Per world: best image within 3 m / 10 m of the truth."""
     head = ("| world | chance (3 m) | " + " | ".join(
         f"thumbnails, {'one frame' if n == 1 else f'{n} frames'}" for n in sequences)
-        + f" | local features ({features}) |\n|" + "---|" * (3 + len(sequences)))
+        + f" | local features ({features}) | thumbnails along the odometry: mean / within "
+        "5 m |\n|" + "---|" * (4 + len(sequences)))
     rows = []
     for r in results:
         cells = [f"{100 * r.thumbnails[n].near:.0f} / {100 * r.thumbnails[n].far:.0f} %"
                  for n in sequences]
         loc = ("not measured" if r.local is None else
                f"{100 * r.local.near:.0f} / {100 * r.local.far:.0f} % ({r.local.frames} frames)")
+        wheels = ("no odometry" if r.odometry is None else
+                  f"{r.odometry.mean_m:.1f} m / {100 * r.odometry.within_5m:.0f} %")
         rows.append(f"| seed {r.seed} | {100 * r.chance:.1f} % | " + " | ".join(cells)
-                    + f" | {loc} |")
+                    + f" | {loc} | {wheels} |")
     return "\n".join([head, *rows])

@@ -31,9 +31,15 @@ def register(bench_app: typer.Typer) -> None:
         features: Annotated[str, typer.Option(help="the map's feature type for the local "
                                                    "features' column")]
         = "clahe-rootsift+xfeat",
+        tau: Annotated[float, typer.Option(min=1e-6, help="the filter along the odometry: a "
+                                                          "frame weighs an image by exp(-(its "
+                                                          "difference - the least) / tau)")]
+        = 1.0,
     ) -> None:
         """Whole-image thumbnails (SeqSLAM) against local features: the share of a round's
-        frames whose best map image lies within 3 / 10 m of the truth, per world."""
+        frames whose best map image lies within 3 / 10 m of the truth, per world; where the
+        round has odometry.csv, the thumbnails along the wheels (a forward filter over the
+        map's images in route order): mean error and share within 5 m."""
         from client.lab.experiment_cli import check_feature_type, parse_seeds, world_with
         from client.lab.night_places import study, table
 
@@ -51,6 +57,6 @@ def register(bench_app: typer.Typer) -> None:
         for seed in parse_seeds(seeds):
             world = world_with(data, seed, [map_round, query], f"{map_round},{query}")
             results.append(study(world, seed, map_round, query, (w, h), block, lengths,
-                                 every, features))
+                                 every, features, tau))
             typer.echo(table(results[-1:], lengths, features).splitlines()[-1], err=True)
         typer.echo(table(results, lengths, features))
