@@ -3,6 +3,8 @@ sum along the route, and how a round's frames are placed."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,7 @@ from client.lab.night_places import (
     chance,
     differences,
     placed,
+    study,
     thumbnail,
     tracked,
 )
@@ -108,3 +111,15 @@ def test_the_wheels_carry_the_belief_to_where_the_frames_agree() -> None:
         along_odometry(diff, travel[:-1], spacing, tau=0.3)
     with pytest.raises(ValueError, match="positive"):
         along_odometry(diff, travel, spacing, tau=0.0)
+
+
+def test_a_map_of_layers_takes_each_place_s_closest_layer(rounds_dir: Path) -> None:
+    """A map of two rounds ('+') in which one is the query round itself: its own images win
+    at every place, so every frame is placed within 3 m, where the other round alone places
+    fewer; the round's odometry drives the filter column."""
+    one = study(rounds_dir, 3, "cloudy1", "sunny2", SIZE, BLOCK, [1], 0, "clahe-rootsift")
+    both = study(rounds_dir, 3, "cloudy1+sunny2", "sunny2", SIZE, BLOCK, [1], 0,
+                 "clahe-rootsift")
+    assert both.thumbnails[1].near == 1.0 > one.thumbnails[1].near
+    assert both.odometry is not None and both.odometry.within_5m > 0.9
+    assert one.local is None  # every=0: the local features not measured

@@ -106,16 +106,25 @@ def along_odometry(diff: np.ndarray, travel: np.ndarray, spacing: float, tau: fl
 
 @dataclass(frozen=True)
 class Tracked:
-    """A filter's placement of a round's frames: mean error (m), the share within 5 m."""
+    """A filter's placement of a round's frames: mean error (m) and the share within 5 m,
+    over all frames and from frame ``SETTLED`` on (once the filter has had time to find
+    the place)."""
 
     mean_m: float
     within_5m: float
+    settled_mean_m: float
+    settled_within_5m: float
+
+
+SETTLED = 100  # frames
 
 
 def tracked(best: np.ndarray, image_xy: np.ndarray, frame_xy: np.ndarray) -> Tracked:
     """How far each frame's chosen image (``best``, indices) lies from its true place."""
     err = np.linalg.norm(image_xy[best] - frame_xy, axis=1)
-    return Tracked(float(err.mean()), float(np.mean(err < 5.0)))
+    late = err[SETTLED:] if len(err) > SETTLED else err[-1:]
+    return Tracked(float(err.mean()), float(np.mean(err < 5.0)), float(late.mean()),
+                   float(np.mean(late < 5.0)))
 
 
 @dataclass(frozen=True)
@@ -158,18 +167,26 @@ def study(world: Path, seed: int, map_round: str, query: str, size: tuple[int, i
           block: int, sequences: list[int], every: int, features: str,
           tau: float = 1.0) -> WorldResult:
     """One world: the map round's images against the query round's frames (and, where the
-    query round has ``odometry.csv``, the thumbnails along the wheels with ``tau``)."""
+    query round has ``odometry.csv``, the thumbnails along the wheels with ``tau``). A map of
+    rounds joined by '+' keeps the first round's places; each place's difference is the
+    least over the rounds' images nearest to it."""
     from client.dataset import read_round
     from client.lab.experiment_cli import map_for
     from service.vision.features import extract
 
-    day, night = read_round(world / map_round), read_round(world / query)
-    image_xy, frame_xy = np.asarray(day.reference_xy, float), np.asarray(night.reference_xy,
-                                                                           float)
-    images = np.stack([thumbnail(day.load_image(i), size, block) for i in range(len(day))])
+    layers = [read_round(world / r) for r in map_round.split("+") if r]
+    night = read_round(world / query)
+    image_xy, frame_xy = (np.asarray(layers[0].reference_xy, float),
+                          np.asarray(night.reference_xy, float))
     frames = np.stack([thumbnail(night.load_image(i), size, block)
                        for i in range(len(night))])
-    diff = differences(frames, images)
+    diff = np.full((len(night), len(image_xy)), np.inf)
+    for layer in layers:  # a map of several rounds: each place's least difference
+        images = np.stack([thumbnail(layer.load_image(i), size, block)
+                           for i in range(len(layer))])
+        xy = np.asarray(layer.reference_xy, float)
+        nearest = np.linalg.norm(image_xy[:, None, :] - xy[None, :, :], axis=2).argmin(axis=1)
+        diff = np.minimum(diff, differences(frames, images)[:, nearest])
     thumbs = {n: placed(along_sequence(diff, n), image_xy, frame_xy) for n in sequences}
     wheels = None
     if night.odometry is not None:
@@ -193,7 +210,7 @@ def table(results: list[WorldResult], sequences: list[int], features: str) -> st
     head = ("| world | chance (3 m) | " + " | ".join(
         f"thumbnails, {'one frame' if n == 1 else f'{n} frames'}" for n in sequences)
         + f" | local features ({features}) | thumbnails along the odometry: mean / within "
-        "5 m |\n|" + "---|" * (4 + len(sequences)))
+        f"5 m, from frame {SETTLED} on |\n|" + "---|" * (4 + len(sequences)))
     rows = []
     for r in results:
         cells = [f"{100 * r.thumbnails[n].near:.0f} / {100 * r.thumbnails[n].far:.0f} %"
@@ -201,7 +218,9 @@ def table(results: list[WorldResult], sequences: list[int], features: str) -> st
         loc = ("not measured" if r.local is None else
                f"{100 * r.local.near:.0f} / {100 * r.local.far:.0f} % ({r.local.frames} frames)")
         wheels = ("no odometry" if r.odometry is None else
-                  f"{r.odometry.mean_m:.1f} m / {100 * r.odometry.within_5m:.0f} %")
+                  f"{r.odometry.mean_m:.1f} m / {100 * r.odometry.within_5m:.0f} %, "
+                  f"{r.odometry.settled_mean_m:.1f} m / "
+                  f"{100 * r.odometry.settled_within_5m:.0f} %")
         rows.append(f"| seed {r.seed} | {100 * r.chance:.1f} % | " + " | ".join(cells)
                     + f" | {loc} | {wheels} |")
     return "\n".join([head, *rows])

@@ -19,7 +19,9 @@ def register(bench_app: typer.Typer) -> None:
                                                   "SEED --rounds sunny1,night1)")],
         seeds: Annotated[str, typer.Option(help="worlds, comma-separated")]
         = "0,7,11,23,37,58",
-        map_round: Annotated[str, typer.Option("--map", help="the map's round")] = "sunny1",
+        map_round: Annotated[str, typer.Option("--map", help="the map's round, or rounds "
+                                                              "joined by '+' (layers)")]
+        = "sunny1",
         query: Annotated[str, typer.Option(help="the round placed")] = "night1",
         size: Annotated[str, typer.Option(help="thumbnail WIDTHxHEIGHT")] = "64x48",
         block: Annotated[int, typer.Option(min=1, help="patch normalised (pixels of the "
@@ -55,7 +57,8 @@ def register(bench_app: typer.Typer) -> None:
             raise typer.BadParameter("sequence lengths must be 1 or more")
         results = []
         for seed in parse_seeds(seeds):
-            world = world_with(data, seed, [map_round, query], f"{map_round},{query}")
+            rounds = [*map_round.split("+"), query]
+            world = world_with(data, seed, rounds, ",".join(rounds))
             results.append(study(world, seed, map_round, query, (w, h), block, lengths,
                                  every, features, tau))
             typer.echo(table(results[-1:], lengths, features).splitlines()[-1], err=True)
