@@ -328,7 +328,8 @@ def test_confirming_tracking_moves_no_estimate_on_a_learned_map(
              for i in range(LEARN_FRAMES)]
     runs = {}
     for confirm in (True, False):
-        loc = Localizer(m, "dpso", {"confirm_tracking": confirm, "metric_gate_m": 0.01},
+        loc = Localizer(m, "dpso", {"confirm_tracking": confirm, "metric_gate_m": 0.01,
+                                     "scout_unconfirmed": False},
                         seed=2)
         runs[confirm] = [loc.step(f, t=float(i)) for i, f in enumerate(feats)]
     on, off = runs[True], runs[False]

@@ -342,10 +342,11 @@ def test_tracking_is_reported_once_the_geometry_confirms_the_place(
     locates a frame from the other side of the loop) the converged swarm is never reported
     tracking. Report only: the positions are those without the rule, frame for frame."""
     far = len(sunny2_features) // 2 + 40
+    report = {"scout_unconfirmed": False}  # the swarm's own search is the next test's
     off = {"confirm_tracking": False}
     honest = _statuses(camera_map, sunny2_table, sunny2_features, {}, None)
     assert honest[20:].count("tracking") == 60
-    with_rule = _results(camera_map, sunny2_table, sunny2_features, {}, far)
+    with_rule = _results(camera_map, sunny2_table, sunny2_features, report, far)
     without = _results(camera_map, sunny2_table, sunny2_features, off, far)
     assert [r.status.value for r in without][20:].count("tracking") == 60
     assert "tracking" not in [r.status.value for r in with_rule]
@@ -353,6 +354,29 @@ def test_tracking_is_reported_once_the_geometry_confirms_the_place(
                if w.status.value == "tracking")
     assert np.array_equal(np.array([r.position for r in with_rule]),
                           np.array([r.position for r in without]))
+
+
+def test_an_unconfirmed_place_is_searched_as_if_recovering(
+        camera_map: RouteMap, sunny2_features: list[Features],
+        sunny2_table: SimilarityTable) -> None:
+    """scout_unconfirmed (on by default): while no frame confirms the held place (the
+    geometry locates a frame from the other side of the loop) the swarm draws the recovery
+    share of scouts, so it compares more images; where the geometry confirms the place as
+    the swarm converges nothing changes, frame for frame."""
+    far = len(sunny2_features) // 2 + 40
+    off = {"scout_unconfirmed": False}
+
+    def comparisons(results: list[StepResult]) -> np.ndarray:
+        return np.array([r.comparisons for r in results])[20:]
+
+    confirmed_on = _results(camera_map, sunny2_table, sunny2_features, {}, None)
+    confirmed_off = _results(camera_map, sunny2_table, sunny2_features, off, None)
+    assert np.array_equal(np.array([r.position for r in confirmed_on]),
+                          np.array([r.position for r in confirmed_off]))
+    refuted_on = _results(camera_map, sunny2_table, sunny2_features, {}, far)
+    refuted_off = _results(camera_map, sunny2_table, sunny2_features, off, far)
+    assert all(r.unconfirmed for r in refuted_on[20:] if r.status.value == "recovering")
+    assert comparisons(refuted_on).mean() > comparisons(refuted_off).mean() + 2
 
 
 def test_no_local_scouts_where_the_geometry_locates_the_held_place(
@@ -391,9 +415,9 @@ def test_a_located_position_the_odometry_refuses_keeps_the_local_scouts(
     scouts: list[bool] = []  # the estimator's own call, recorded: does this frame scout?
     move = est._move_species  # type: ignore[attr-defined]
 
-    def recorded(*args: object, local_scouts: bool = True) -> None:
+    def recorded(*args: object, local_scouts: bool = True, searching: bool = False) -> None:
         scouts.append(local_scouts)
-        move(*args, local_scouts=local_scouts)
+        move(*args, local_scouts=local_scouts, searching=searching)
 
     est._move_species = recorded  # type: ignore[attr-defined]
     poses = odometry_poses(sunny2.odometry, np.arange(60))

@@ -209,6 +209,12 @@ class DPSOParams(CommonParams):
                                "finds a kidnapped robot")
     scout_ratio_recovery: float = Field(0.1, ge=0, le=1, description="... the same share "
                                         "while recovering (no unit): 10 % searches faster")
+    scout_unconfirmed: bool = Field(
+        True, description="on a map with the camera, the scouts are drawn at "
+        "scout_ratio_recovery also while tracking is not yet confirmed (confirm_tracking: "
+        "the swarm converged or came back, and no frame was located at the held place "
+        "since): a swarm that settled on a look-alike before its first fix searches as "
+        "if recovering")
     quantum_track_sigma_m: float = Field(2.0, ge=0, le=1e4, description="spread of Eq. 6's "
                                          "quantum particles while tracking (m; the papers' "
                                          "q_d otherwise); 2 m stays near the held place")
@@ -411,10 +417,10 @@ class DPSOParams(CommonParams):
     confirm_tracking: bool = Field(
         True, description="where the map has the camera, a swarm that converged (or came back) "
         "reports 'tracking' only from the first frame located at the held place on (within "
-        "metric_gate_m of its map image); until then 'recovering' (report only: the swarm and "
-        "the position are unchanged). At the true place most tracked frames are located, "
-        "more than 5 m off almost none: a look-alike place the swarm settles on at dusk is "
-        "no longer reported as tracked")
+        "metric_gate_m of its map image); until then 'recovering' (the report alone moves no "
+        "estimate; scout_unconfirmed searches meanwhile). At the true place most tracked "
+        "frames are located, more than 5 m off almost none: a look-alike place the swarm "
+        "settles on at dusk is no longer reported as tracked")
     verify_frames: int = Field(
         0, ge=0, le=10_000, description="while tracking, a frame that could not be located "
         "at the held place for this many tracked frames in a row is not good for the lost "

@@ -31,8 +31,9 @@ changes, each measured in docs/research/lighting.md:
   quantum particles are redrawn there: a motion prior for a robot that moves about an image
   spacing per frame.
 - **Scouts.** A few particles with the least evidence are redrawn at random map images every
-  frame (more while recovering). They are the background the lost detection measures
-  against, and the way the swarm discovers a place it is not searching.
+  frame (more while recovering, and on a map with the camera while tracking is not yet
+  confirmed by a located frame, ``scout_unconfirmed``). They are the background the lost
+  detection measures against, and the way the swarm discovers a place it is not searching.
 - **Local scouts.** While tracking, every ``local_scout_every``-th frame, a few more are
   redrawn at map images 4-15 m from the estimate: the local search a particle filter's motion
   noise gives. A swarm that stalled (the robot set off after a stop while weak matches kept
@@ -286,7 +287,8 @@ class MultiSwarmDPSO(DPSO):
             p_n = around = located + lead
             attractor = np.where((label == best_s)[:, None], p_n, attractor)
         self._move_species(attractor, p_n, dissolve, around,
-                           local_scouts=not (p.local_scout_unlocated and held))
+                           local_scouts=not (p.local_scout_unlocated and held),
+                           searching=p.scout_unconfirmed and unconfirmed)
         speed, heading = self.motion(dt)
         if located is not None:
             pos = located
@@ -534,11 +536,12 @@ class MultiSwarmDPSO(DPSO):
         return tuple(out)
 
     def _move_species(self, attractor: np.ndarray, p_n: np.ndarray, weak: np.ndarray,
-                      around: np.ndarray, local_scouts: bool = True) -> None:
+                      around: np.ndarray, local_scouts: bool = True,
+                      searching: bool = False) -> None:
         """Eqs. 4-5 towards each particle's species seed; Eq. 6 quantum particles around the
-        best seed; scouts (weak species and the least evidence) redrawn at map images, and
-        (``local_scouts``, every ``local_scout_every``-th frame while tracking) around
-        ``around``."""
+        best seed; scouts (weak species and the least evidence) redrawn at map images, as
+        many as while recovering where ``searching``, and (``local_scouts``, every
+        ``local_scout_every``-th frame while tracking) around ``around``."""
         p, rng, n = self.params, self.rng, self.params.n_particles
         r0 = rng.uniform(-1.0, 1.0, (n, 2))
         r2 = rng.uniform(0.0, 1.0, (n, 2))
@@ -565,7 +568,8 @@ class MultiSwarmDPSO(DPSO):
         fresh |= joiners
         # scouts: the particles with the least evidence, redrawn at random map images; and
         # while tracking, every local_scout_every-th frame, local scouts around the estimate
-        n_scouts = round((p.scout_ratio_recovery if self.recovering else p.scout_ratio) * n)
+        n_scouts = round((p.scout_ratio_recovery if self.recovering or searching
+                          else p.scout_ratio) * n)
         self._redraw_least_evidence(x, v, fresh, n_scouts, self.sample_map_positions)
         if not self.recovering and self.frame_count % p.local_scout_every == 0 \
                 and local_scouts:
