@@ -329,6 +329,11 @@ def _results(m: RouteMap, table: SimilarityTable, feats: list[Features], params:
     return out
 
 
+def _comparisons(results: list[StepResult]) -> np.ndarray:
+    """Images compared per frame, from frame 20 on (the swarm converged)."""
+    return np.array([r.comparisons for r in results])[20:]
+
+
 def _statuses(m: RouteMap, table: SimilarityTable, feats: list[Features], params: dict,
               locate_frame: int | None) -> list[str]:
     return [r.status.value for r in _results(m, table, feats, params, locate_frame)]
@@ -366,9 +371,6 @@ def test_an_unconfirmed_place_is_searched_as_if_recovering(
     far = len(sunny2_features) // 2 + 40
     off = {"scout_unconfirmed": False}
 
-    def comparisons(results: list[StepResult]) -> np.ndarray:
-        return np.array([r.comparisons for r in results])[20:]
-
     confirmed_on = _results(camera_map, sunny2_table, sunny2_features, {}, None)
     confirmed_off = _results(camera_map, sunny2_table, sunny2_features, off, None)
     assert np.array_equal(np.array([r.position for r in confirmed_on]),
@@ -376,7 +378,7 @@ def test_an_unconfirmed_place_is_searched_as_if_recovering(
     refuted_on = _results(camera_map, sunny2_table, sunny2_features, {}, far)
     refuted_off = _results(camera_map, sunny2_table, sunny2_features, off, far)
     assert all(r.unconfirmed for r in refuted_on[20:] if r.status.value == "recovering")
-    assert comparisons(refuted_on).mean() > comparisons(refuted_off).mean() + 2
+    assert _comparisons(refuted_on).mean() > _comparisons(refuted_off).mean() + 2
 
 
 def test_no_local_scouts_where_the_geometry_locates_the_held_place(
@@ -389,16 +391,13 @@ def test_no_local_scouts_where_the_geometry_locates_the_held_place(
     far = len(sunny2_features) // 2 + 40
     off = {"local_scout_unlocated": False}
 
-    def comparisons(results: list[StepResult]) -> np.ndarray:
-        return np.array([r.comparisons for r in results])[20:]
-
     located_on = _results(camera_map, sunny2_table, sunny2_features, {}, None)
     located_off = _results(camera_map, sunny2_table, sunny2_features, off, None)
     assert [r.status.value for r in located_on][20:].count("tracking") == 60
-    assert comparisons(located_on).mean() < 0.9 * comparisons(located_off).mean()
+    assert _comparisons(located_on).mean() < 0.9 * _comparisons(located_off).mean()
     refuted_on = _results(camera_map, sunny2_table, sunny2_features, {}, far)
     refuted_off = _results(camera_map, sunny2_table, sunny2_features, off, far)
-    assert np.array_equal(comparisons(refuted_on), comparisons(refuted_off))
+    assert np.array_equal(_comparisons(refuted_on), _comparisons(refuted_off))
     assert np.array_equal(np.array([r.position for r in refuted_on]),
                           np.array([r.position for r in refuted_off]))
 
