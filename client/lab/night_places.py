@@ -120,9 +120,10 @@ SETTLED = 100  # frames
 
 
 def tracked(best: np.ndarray, image_xy: np.ndarray, frame_xy: np.ndarray) -> Tracked:
-    """How far each frame's chosen image (``best``, indices) lies from its true place."""
+    """How far each frame's chosen image (``best``, indices) lies from its true place; a
+    round of ``SETTLED`` frames or fewer has its last frame as the settled part."""
     err = np.linalg.norm(image_xy[best] - frame_xy, axis=1)
-    late = err[SETTLED:] if len(err) > SETTLED else err[-1:]
+    late = err[min(SETTLED, len(err) - 1):]
     return Tracked(float(err.mean()), float(np.mean(err < 5.0)), float(late.mean()),
                    float(np.mean(late < 5.0)))
 

@@ -57,7 +57,7 @@ def register(bench_app: typer.Typer) -> None:
             raise typer.BadParameter("sequence lengths must be 1 or more")
         results = []
         for seed in parse_seeds(seeds):
-            rounds = [*map_round.split("+"), query]
+            rounds = [*(r for r in map_round.split("+") if r), query]  # as study() reads it
             world = world_with(data, seed, rounds, ",".join(rounds))
             results.append(study(world, seed, map_round, query, (w, h), block, lengths,
                                  every, features, tau))
