@@ -49,16 +49,11 @@ def own_nearest(self: ex.LayerChoice, m: RouteMap, at: np.ndarray | None = None
     """``LayerChoice.nearest`` with each particle's own nearest experience image (within the
     gap) instead of the one nearest to its base image; the gap rule as the product's."""
     base = ex.base_layers(m)
-    layer = ex.experience_layers(m).get(self.active)
+    layer = self.layer_at(m, at)
     gap = ex.GAP_SPACINGS * ex.base_spacing(m)
-    if layer is not None and (at is None or float(
-            m.nearest_in_layer(np.asarray(at, float)[None, :], layer)[1][0]) > gap):
-        layer = None
 
     def nearest(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        cols = [m.nearest_in_layer(positions, k) for k in base]
-        ids = np.column_stack([c[0] for c in cols])
-        dist = np.column_stack([c[1] for c in cols])
+        ids, dist = ex.nearest_base(m, positions, base)
         if layer is None:
             return ids, dist
         e_ids, e_dist = m.nearest_in_layer(positions, layer)

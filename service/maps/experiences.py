@@ -291,6 +291,14 @@ def compatible(m: RouteMap, checksum: str | None) -> bool:
 SimilarityFn = Callable[[np.ndarray], np.ndarray]
 
 
+def nearest_base(m: RouteMap, positions: np.ndarray, base: list[int]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(ids, distances) of each position's nearest image in every base layer ``base`` (one
+    column per layer)."""
+    cols = [m.nearest_in_layer(positions, k) for k in base]
+    return np.column_stack([c[0] for c in cols]), np.column_stack([c[1] for c in cols])
+
+
 @dataclass
 class LayerChoice:
     """A session's choice of layer (kept with its state): the score of each layer (``BASE``
@@ -313,16 +321,11 @@ class LayerChoice:
         (today's light, higher similarity to any frame), and the swarm would leave the gap, or
         a global search would settle, on the part of the route the experience covers."""
         base = base_layers(m)
-        layer = experience_layers(m).get(self.active)
+        layer = self.layer_at(m, at)
         gap = GAP_SPACINGS * base_spacing(m)
-        if layer is not None and (at is None or float(
-                m.nearest_in_layer(np.asarray(at, float)[None, :], layer)[1][0]) > gap):
-            layer = None
 
         def nearest(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            cols = [m.nearest_in_layer(positions, k) for k in base]
-            ids = np.column_stack([c[0] for c in cols])
-            dist = np.column_stack([c[1] for c in cols])
+            ids, dist = nearest_base(m, positions, base)
             if layer is None:
                 return ids, dist
             # each particle's first base image stands in for its place: the experience image
@@ -337,6 +340,17 @@ class LayerChoice:
                     np.where(near[:, None], e_dist[:, None], dist))
 
         return nearest
+
+    def layer_at(self, m: RouteMap, at: np.ndarray | None) -> int | None:
+        """The active experience's layer, None where the particles use the base images: no
+        experience active, the swarm searching (``at`` None) or ``at`` in a gap of it (no
+        image of it within ``GAP_SPACINGS``)."""
+        layer = experience_layers(m).get(self.active)
+        gap = GAP_SPACINGS * base_spacing(m)
+        if layer is not None and (at is None or float(
+                m.nearest_in_layer(np.asarray(at, float)[None, :], layer)[1][0]) > gap):
+            return None
+        return layer
 
     def scaled(self, m: RouteMap, similarity: SimilarityFn) -> SimilarityFn:
         """``similarity`` with each experience image's m put on the base layer's scale: times
