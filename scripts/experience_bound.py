@@ -36,7 +36,13 @@ from pathlib import Path
 import numpy as np
 
 from client.dataset import read_round
-from client.lab.bench_experience import Replay, _features, learned_images, replays
+from client.lab.bench_experience import (
+    Replay,
+    _features,
+    learned_images,
+    replays,
+    source_frames,
+)
 from client.lab.experiment_cli import map_for
 from service.maps import experiences as ex
 from service.maps.experiences import NewImage, add_experience
@@ -49,8 +55,8 @@ def own_nearest(self: ex.LayerChoice, m: RouteMap, at: np.ndarray | None = None
     """``LayerChoice.nearest`` with each particle's own nearest experience image (within the
     gap) instead of the one nearest to its base image; the gap rule as the product's."""
     base = ex.base_layers(m)
-    layer = self.layer_at(m, at)
     gap = ex.GAP_SPACINGS * ex.base_spacing(m)
+    layer = self.layer_at(m, at, gap)
 
     def nearest(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ids, dist = ex.nearest_base(m, positions, base)
@@ -75,12 +81,11 @@ def own_rule() -> Iterator[None]:
 
 
 def at_truth(learned: RouteMap, truth: np.ndarray, path: Path) -> RouteMap:
-    """The learned map with its learned images at the true places of their round-1 frames
-    (named ``EXPERIENCE/SEQ``, SEQ counted from 1), written to ``path`` and loaded."""
+    """The learned map with its learned images at the true places of their round-1 frames,
+    written to ``path`` and loaded."""
     ids = learned_images(learned)
-    seqs = np.array([int(learned.image_names[int(i)].rsplit("/", 1)[1]) - 1 for i in ids])
     pos = np.array(learned.positions, float)
-    pos[ids] = truth[seqs]
+    pos[ids] = truth[source_frames(learned, ids)]
     return load_map(save_map(dataclasses.replace(learned, positions=pos), path))
 
 
@@ -92,10 +97,7 @@ def every_frame(sunny: RouteMap, feats: list[Features], truth: np.ndarray, light
     path = work / "sunny1.swmap"
     shutil.copy(sunny.path, path)
     base = load_map(path)
-    images = [NewImage(np.array(f.codes), np.array(f.keypoints, np.float32),
-                       np.asarray(truth[i], float), f"bound/{i + 1:06d}",
-                       None if f.second is None else np.array(f.second.codes),
-                       None if f.second is None else np.array(f.second.keypoints, np.float32))
+    images = [NewImage.of(f, truth[i], f"bound/{i + 1:06d}", second=base.second is not None)
               for i, f in enumerate(feats)]
     add_experience(base, path, "bound", images, condition=light, robot=None,
                    now=time.time(), budget_bytes=1 << 40)

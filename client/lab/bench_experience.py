@@ -127,17 +127,22 @@ def covered(m: RouteMap, truth: np.ndarray) -> np.ndarray:
     return d <= GAP_SPACINGS * base_spacing(m)
 
 
+def source_frames(m: RouteMap, ids: np.ndarray) -> np.ndarray:
+    """The round-1 frame (index) each learned image ``ids`` came from: a learned image is named
+    ``EXPERIENCE/SEQ``, SEQ the session's frame counted from 1."""
+    return np.array([int(m.image_names[int(i)].rsplit("/", 1)[1]) - 1 for i in ids], int)
+
+
 def learned_fit(m: RouteMap, first: Round, second: Round, frames: int) -> tuple[float, float]:
     """(coverage, placed): the share of round 2's first ``frames`` frames whose true place lies
     within ``GAP_SPACINGS`` map spacings of a learned image, and the mean distance of the
-    learned images from the true place of the round-1 frames they came from (named
-    ``EXPERIENCE/SEQ``, SEQ counted from 1)."""
+    learned images from the true place of the round-1 frames they came from."""
     ids = learned_images(m)
     if not len(ids):
         return 0.0, float("nan")
     coverage = float(np.mean(covered(m, second.reference_xy[:frames])))
-    seqs = np.array([int(m.image_names[int(i)].rsplit("/", 1)[1]) - 1 for i in ids])
-    placed = float(np.mean(np.linalg.norm(m.positions[ids] - first.reference_xy[seqs], axis=1)))
+    truth = first.reference_xy[source_frames(m, ids)]
+    placed = float(np.mean(np.linalg.norm(m.positions[ids] - truth, axis=1)))
     return coverage, placed
 
 

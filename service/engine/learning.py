@@ -248,12 +248,8 @@ class Learner:
                 t.refuse(gate or "located")
                 return
             t.taught += 1
-            second = features.second if m.second is not None else None
-            t.pending.append(NewImage(
-                np.array(features.codes), np.array(features.keypoints, np.float32), at,
-                f"{t.exp_id}/{est.seq:06d}",
-                None if second is None else np.array(second.codes),
-                None if second is None else np.array(second.keypoints, np.float32)))
+            t.pending.append(NewImage.of(features, at, f"{t.exp_id}/{est.seq:06d}",
+                                         second=m.second is not None))
             t.seqs.append(est.seq)
             t.odometry.append(None if odom is None else np.array([odom.x, odom.y], float))
             t.with_odometry += odom is not None

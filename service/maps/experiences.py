@@ -30,12 +30,16 @@ import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from service.maps.compact import KEYPOINT_DTYPE, Keypoints
 from service.maps.route_map import Chunk, MapError, RouteMap, load_map, write_map
 from service.vision.place_index import PlaceIndex
+
+if TYPE_CHECKING:
+    from service.vision.features import Features
 
 KEY = "experiences"
 COMPATIBLE = "compatible_versions"
@@ -124,6 +128,16 @@ class NewImage:
     name: str
     codes2: np.ndarray | None = None
     keypoints2: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, features: Features, xy: np.ndarray, name: str, second: bool) -> NewImage:
+        """A frame's features as an image to learn at ``xy`` (copies: the frame's buffers are
+        not kept); ``second``: with its second set (a map of two feature types)."""
+        two = features.second if second else None
+        return cls(np.array(features.codes), np.array(features.keypoints, np.float32),
+                   np.asarray(xy, float), name,
+                   None if two is None else np.array(two.codes),
+                   None if two is None else np.array(two.keypoints, np.float32))
 
 
 def _rewrite(m: RouteMap, path: Path, keep: np.ndarray, new: Sequence[NewImage],
@@ -321,8 +335,8 @@ class LayerChoice:
         (today's light, higher similarity to any frame), and the swarm would leave the gap, or
         a global search would settle, on the part of the route the experience covers."""
         base = base_layers(m)
-        layer = self.layer_at(m, at)
         gap = GAP_SPACINGS * base_spacing(m)
+        layer = self.layer_at(m, at, gap)
 
         def nearest(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             ids, dist = nearest_base(m, positions, base)
@@ -341,12 +355,11 @@ class LayerChoice:
 
         return nearest
 
-    def layer_at(self, m: RouteMap, at: np.ndarray | None) -> int | None:
+    def layer_at(self, m: RouteMap, at: np.ndarray | None, gap: float) -> int | None:
         """The active experience's layer, None where the particles use the base images: no
         experience active, the swarm searching (``at`` None) or ``at`` in a gap of it (no
-        image of it within ``GAP_SPACINGS``)."""
+        image of it within ``gap``, ``GAP_SPACINGS`` map spacings)."""
         layer = experience_layers(m).get(self.active)
-        gap = GAP_SPACINGS * base_spacing(m)
         if layer is not None and (at is None or float(
                 m.nearest_in_layer(np.asarray(at, float)[None, :], layer)[1][0]) > gap):
             return None
