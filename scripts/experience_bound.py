@@ -11,6 +11,12 @@ first image, with the round's odometry, errors after WARMUP frames) on:
   ``--frames`` frames at their true places, one image per place (what the teaching run's
   coverage costs besides);
 
+- with ``--fix`` instead, only *learned, placed by the fix*: the learned map with every
+  learned image where a learning robot with a GNSS-grade fix would place it (the round's
+  ``poses.csv`` positions of the taught frames fused with their odometry, as the learner fuses
+  located positions), under the product's rules (what a better position source on the
+  learning robot would give);
+
 each under the product's layer rules (``LayerChoice``: a particle's base image stands in for
 its place, experiences on the base layer's scale) and, with ``--own``, under the rule of
 each particle comparing with the experience image nearest to itself, unscaled (the rule
@@ -35,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from client.dataset import read_round
+from client.dataset import Round, read_round
 from client.lab.bench_experience import (
     Replay,
     _features,
@@ -46,6 +52,7 @@ from client.lab.bench_experience import (
 from client.lab.experiment_cli import map_for
 from service.maps import experiences as ex
 from service.maps.experiences import NewImage, add_experience
+from service.maps.positions import fuse_with_odometry
 from service.maps.route_map import RouteMap, load_map, save_map
 from service.vision.features import Features
 
@@ -89,6 +96,22 @@ def at_truth(learned: RouteMap, truth: np.ndarray, path: Path) -> RouteMap:
     return load_map(save_map(dataclasses.replace(learned, positions=pos), path))
 
 
+def at_fix(learned: RouteMap, first: Round, path: Path) -> RouteMap:
+    """The learned map with its learned images where a learning robot with a GNSS-grade fix
+    would place them: the round's ``poses.csv`` positions of the taught frames, fused with
+    their odometry as the learner fuses located positions (``learning.placed``), written to
+    ``path`` and loaded."""
+    ids = learned_images(learned)
+    src = source_frames(learned, ids)
+    order = np.argsort(src)
+    if first.odometry is None:
+        raise ValueError(f"round {first.name} has no odometry.csv")
+    fused = fuse_with_odometry(first.xy[src[order]], first.odometry[src[order], :2])
+    pos = np.array(learned.positions, float)
+    pos[ids[order]] = fused.xy
+    return load_map(save_map(dataclasses.replace(learned, positions=pos), path))
+
+
 def every_frame(sunny: RouteMap, feats: list[Features], truth: np.ndarray, light: str,
                 work: Path) -> RouteMap:
     """The sunny map with an experience of every frame of ``feats`` at its true place (one
@@ -113,6 +136,9 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--own", action="store_true", help="also each particle's own nearest "
                     "experience image, unscaled")
+    ap.add_argument("--fix", action="store_true", help="only the learned map with its images "
+                    "placed by the round's poses.csv and odometry (a robot with a GNSS-grade "
+                    "fix), under the product's rules")
     ap.add_argument("--features", default="clahe-rootsift+xfeat",
                     help="the sunny map's feature type (the learned map's)")
     a = ap.parse_args()
@@ -122,6 +148,16 @@ def main() -> None:
     test = _features(second, learned, a.frames)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
+        if a.fix:
+            m = at_fix(learned, first, work / "fix.swmap")
+            ids = learned_images(m)
+            truth = first.reference_xy[source_frames(m, ids)]
+            off = float(np.mean(np.linalg.norm(m.positions[ids] - truth, axis=1)))
+            r = replays(m, second, test, a.runs)
+            print(f"{a.world.name} {a.light} learned, placed by the fix ({off:.2f} m from the "
+                  f"truth), product rules: {r.mean_error_m:.2f} m, comparisons "
+                  f"{r.comparisons:.1f}", flush=True)
+            return
         maps = {"learned": learned,
                 "learned at the truth": at_truth(learned, first.reference_xy,
                                                  work / "truth.swmap"),
