@@ -50,8 +50,8 @@ from service.maps.experiences import (
     PLACE_SPACINGS,
     NewImage,
     Usage,
-    base_layers,
     base_spacing,
+    same_light_level,
 )
 from service.maps.positions import fuse_with_odometry
 from service.maps.route_map import RouteMap
@@ -60,7 +60,6 @@ from service.vision.map_geometry import GeometryParams
 
 PATH_TOLERANCE_M = 1.0  # the estimate lies this close to the path's constant-velocity prediction
 LOCATED_TOLERANCE_M = 1.0  # and this close to where the geometry locates the frame
-LEVEL_SAMPLE = 40  # consecutive image pairs of a map whose median similarity is its level
 GEOMETRY_TRIES = 3  # images near the estimate the geometry tries, best match first
 SMOOTH_FRAMES = 4  # learned positions: a line through the taught frames this many frames away
 LEARN_IDLE_S = 30.0  # a replica writes what it collected of a robot that sent it nothing so long
@@ -150,23 +149,6 @@ def path_gate(path: LearnPath, est: Estimate, accuracy_m: float) -> tuple[LearnP
     if float(np.linalg.norm(predicted - np.array([est.x, est.y]))) > PATH_TOLERANCE_M:
         return new, "path"
     return new, ("accuracy" if est.accuracy_m > accuracy_m else None)
-
-
-def same_light_level(m: RouteMap) -> float:
-    """How well a frame in the map's own light matches it: the median similarity of up to
-    ``LEVEL_SAMPLE`` map images with their successor in the same traversal (within two
-    spacings)."""
-    layers = np.asarray(m.layers)
-    base = np.flatnonzero(np.isin(layers, base_layers(m)))[:-1]
-    spacing = base_spacing(m)
-    ok = base[(layers[base] == layers[base + 1]) &
-              (np.linalg.norm(m.positions[base + 1] - m.positions[base], axis=1)
-               <= 2 * spacing)]
-    if not len(ok):
-        return 1.0
-    pick = ok[np.linspace(0, len(ok) - 1, min(LEVEL_SAMPLE, len(ok))).astype(int)]
-    return float(np.median([m.similarity(m.image_features(int(i)), [int(i) + 1])[0]
-                            for i in pick]))
 
 
 def experience_id(robot_id: str, created: float) -> str:

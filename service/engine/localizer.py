@@ -20,12 +20,18 @@ from service.estimators.base import Status, StepResult
 from service.estimators.fitness import ComparisonCache, LocateFn, TypeScores
 from service.estimators.odometry import OdomStep, body_step
 from service.estimators.registry import make_estimator, with_map_sigma
-from service.maps.experiences import LayerChoice, base_images, experience_layers
+from service.maps.experiences import (
+    SEED_SHARE,
+    LayerChoice,
+    base_images,
+    experience_layers,
+    same_light_level,
+)
 from service.maps.route_map import RouteMap
 from service.vision.features import Features, extract
 from service.vision.map_geometry import FramePairs, GeometryParams
 from service.vision.metric_pose import Offset
-from service.vision.place_index import PlaceSeeder
+from service.vision.place_index import PlaceSeeder, Verify
 
 _UNKNOWN_VAR = 1e6
 _FOUND = (Status.TRACKING.value, Status.RECOVERING.value)  # an estimate the gap rule may use
@@ -48,11 +54,17 @@ class Localizer:
                                         np.random.default_rng(seed))
         p = self.estimator.params  # the papers' estimators keep their random placements
         k = p.place_candidates if isinstance(p, DPSOParams) and p.variant == "swarmloc" else 0
-        # a map with experiences proposes its own images: a learned image of today's light
-        # looks more like any frame of that light than the map's images at the true place
+        # a map with experiences ranks its own images and the learned ones apart, and a
+        # searching swarm is given a learned image only where the frame matches it as a frame
+        # of its light would (``_verify``): a learned image of today's light looks more like
+        # any frame of that light than the map's images at the true place
         own = base_images(route_map) if experience_layers(route_map) else None
-        self.seeder = (PlaceSeeder(route_map.place_index, route_map.positions, k, among=own)
+        learned = None if own is None else \
+            np.setdiff1d(np.arange(len(route_map.positions)), own)
+        self.seeder = (PlaceSeeder(route_map.place_index, route_map.positions, k, among=own,
+                                   learned=learned)
                        if route_map.place_index is not None and k > 0 else None)
+        self._level: float | None = None  # the map's same-light level, once a search needs it
         self.seq = 0
         self.last: Estimate | None = None
         self.choice = LayerChoice()  # the layer frames are matched with (maps with experiences)
@@ -106,8 +118,10 @@ class Localizer:
         if prior is not None:
             self.estimator.constrain((prior[0], prior[1]), prior[2])
         codes = features.codes
-        self.seed_places(codes)
         learned = bool(experience_layers(self.map))
+        verified = ComparisonCache(lambda ids: self.map.similarity(features, ids)) \
+            if learned else None
+        self.seed_places(codes, None if verified is None else self._verify(verified))
         # the similarity keeps the frame's matches for the geometry (no second matching),
         # XFeat's too where its geometry may be tried (``locator``)
         kept = FramePairs(GeometryParams().delta) if self.map.geometry is not None else None
@@ -135,6 +149,8 @@ class Localizer:
             if res.status is Status.TRACKING or res.unconfirmed:
                 self.choice.probe(self.map, similarity, res.position)
             comparisons = similarity.comparisons
+        if verified is not None:  # learned candidates compared for the search
+            comparisons += verified.comparisons
         self.seq += 1
         self.last = self._estimate(res, t, comparisons, learned)
         return self.last
@@ -172,13 +188,23 @@ class Localizer:
             return off if off is not None else second.locate(frame2, image_id, params, kept2)
         return locate
 
-    def seed_places(self, codes: np.ndarray) -> None:
+    def _verify(self, similarity: ComparisonCache) -> Verify:
+        """Which learned images proposed to a searching swarm it is given: those the frame
+        matches at ``SEED_SHARE`` of the map's same-light level or more (at a dusk start of a
+        rendered world, 0.06-0.12 at the true place, 0.02-0.05 elsewhere, level 0.30)."""
+        def verify(ids: np.ndarray) -> np.ndarray:
+            if self._level is None:
+                self._level = same_light_level(self.map)
+            return np.asarray(similarity(ids) >= SEED_SHARE * self._level)
+        return verify
+
+    def seed_places(self, codes: np.ndarray, verify: Verify | None = None) -> None:
         """Candidate places of this frame for a searching estimator (service/vision/place_index.py);
-        a no-op without a place index."""
+        a no-op without a place index. ``verify``: the learned candidates it may be given."""
         if self.seeder is not None:
             last = self.last
             self.seeder.before_step(self.estimator, codes, None if last is None
-                                    else np.array([last.x, last.y]))
+                                    else np.array([last.x, last.y]), verify)
 
     def _estimate(self, res: StepResult, t: float | None, comparisons: int,
                   learned: bool) -> Estimate:

@@ -44,8 +44,9 @@ _HEADER = struct.Struct("<4sBI")
 # positions) or from the session configuration (the validated parameter object), and the
 # Localizer's constructor makes it again from (map, estimator name, params, seed).
 REBUILT: dict[str, frozenset[str]] = {
-    # the estimator is stored on its own; the place seeder derives from the map and params
-    "localizer": frozenset({"map", "estimator", "seeder"}),
+    # the estimator is stored on its own; the place seeder derives from the map and params,
+    # and so does the map's same-light level (computed again when a search needs it)
+    "localizer": frozenset({"map", "estimator", "seeder", "_level"}),
     "estimator": frozenset({"index", "params", "_map_positions", "_x_order",
                             "_x_sorted"}),
 }

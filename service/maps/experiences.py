@@ -51,6 +51,10 @@ GAP_SPACINGS = 2.0  # a particle farther than this many spacings from an experie
 #                     the base images there
 PLACE_SPACINGS = 0.5  # one image per place and experience: this many spacings apart at least
 
+LEVEL_SAMPLE = 40  # consecutive image pairs of a map whose median similarity is its level
+SEED_SHARE = 0.2  # a learned image proposed to a searching swarm matches the frame at least
+#                   this share of the map's same-light level
+
 Usage = dict[str, tuple[int, float]]  # experience id -> (frames matched, last use, unix s)
 
 
@@ -89,6 +93,23 @@ def base_spacing(m: RouteMap) -> float:
     if len(pos) < 2:
         return 1.0
     return float(np.median(np.linalg.norm(np.diff(pos, axis=0), axis=1)))
+
+
+def same_light_level(m: RouteMap) -> float:
+    """How well a frame in the map's own light matches it: the median similarity of up to
+    ``LEVEL_SAMPLE`` map images with their successor in the same traversal (within two
+    spacings)."""
+    layers = np.asarray(m.layers)
+    base = np.flatnonzero(np.isin(layers, base_layers(m)))[:-1]
+    spacing = base_spacing(m)
+    ok = base[(layers[base] == layers[base + 1]) &
+              (np.linalg.norm(m.positions[base + 1] - m.positions[base], axis=1)
+               <= 2 * spacing)]
+    if not len(ok):
+        return 1.0
+    pick = ok[np.linspace(0, len(ok) - 1, min(LEVEL_SAMPLE, len(ok))).astype(int)]
+    return float(np.median([m.similarity(m.image_features(int(i)), [int(i) + 1])[0]
+                            for i in pick]))
 
 
 def image_bytes(m: RouteMap, ids: np.ndarray) -> int:

@@ -20,6 +20,7 @@ never runs the m(A, B) matcher) and is not counted as one; its time is reported 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -209,6 +210,18 @@ class Seedable(Protocol):
     def wants_places(self) -> bool: ...
 
 
+Verify = Callable[[np.ndarray], np.ndarray]  # learned candidate ids -> mask of those kept
+
+
+def interleaved(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a[0], b[0], a[1], b[1], ..., then the rest of the longer one."""
+    n = min(len(a), len(b))
+    out = np.empty(len(a) + len(b), np.int64)
+    out[0:2 * n:2], out[1:2 * n:2] = a[:n], b[:n]
+    out[2 * n:] = np.concatenate([a[n:], b[n:]])
+    return out
+
+
 class PlaceSeeder:
     """Per frame: the top-k candidate places for an estimator that is searching, else none.
 
@@ -222,13 +235,19 @@ class PlaceSeeder:
     over. ``last_query_s`` is the time of this frame's index query (0 when none ran) and
     ``queries`` counts them, for the benchmarks' honest accounting. ``among``: the image ids
     it may propose (None: all; a map with experiences: its own images, service/engine/localizer.py).
+    ``learned``: the experiences' images, ranked apart: the best half of the ``k`` candidates
+    come from ``among``, the other half from ``learned`` (interleaved, best first), and a
+    searching estimator gets only the learned ones ``verify`` accepts (the frame matches them
+    as a frame of their light would; a learned image of today's light at a wrong place does
+    not). ``verify``: per frame, given to ``before_step``.
     """
 
     def __init__(self, index: PlaceIndex, positions: np.ndarray, k: int, check_every: int = 3,
                  check_top: int = 3, far_m: float = 10.0, disagree_checks: int = 2,
-                 among: np.ndarray | None = None) -> None:
+                 among: np.ndarray | None = None, learned: np.ndarray | None = None) -> None:
         self.index = index
         self.among = among
+        self.learned = learned if learned is not None and len(learned) else None
         self.positions = np.asarray(positions, float)
         self.k = k
         self.check_every = check_every
@@ -239,25 +258,33 @@ class PlaceSeeder:
         self.queries = 0
         self.last_ids = np.zeros(0, np.int64)
 
-    def _query(self, codes: np.ndarray) -> np.ndarray:
+    def _query(self, codes: np.ndarray, verify: Verify | None = None) -> np.ndarray:
         t0 = time.perf_counter()
-        ids, _ = self.index.query(codes, self.k, self.among)
+        if self.learned is None:
+            ids, _ = self.index.query(codes, self.k, self.among)
+        else:
+            own, _ = self.index.query(codes, self.k - self.k // 2, self.among)
+            learned, _ = self.index.query(codes, self.k // 2, self.learned)
+            if verify is not None and len(learned):
+                learned = learned[verify(learned)]
+            ids = interleaved(own, learned)
         self.last_query_s = time.perf_counter() - t0
         self.queries += 1
         self.last_ids = ids
         return ids
 
     def before_step(self, estimator: Seedable, codes: np.ndarray,
-                    estimate: np.ndarray | None = None) -> None:
+                    estimate: np.ndarray | None = None, verify: Verify | None = None) -> None:
         """Set ``estimator.place_candidates`` for this frame; ``estimate``: the position
-        reported for the previous frame."""
+        reported for the previous frame; ``verify``: which learned candidates a searching
+        estimator may be given (a mask over their ids; None: all)."""
         self.last_query_s = 0.0
         estimator.place_candidates = None
         if self.k <= 0:
             return
         if estimator.wants_places():
             estimator.place_disagree = 0
-            ids = self._query(codes)
+            ids = self._query(codes, verify)
             estimator.place_candidates = self.positions[ids] if len(ids) else None
             return
         estimator.place_frames += 1
