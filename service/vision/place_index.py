@@ -239,7 +239,11 @@ class PlaceSeeder:
     come from ``among``, the other half from ``learned`` (interleaved, best first), and a
     searching estimator gets only the learned ones ``verify`` accepts (the frame matches them
     as a frame of their light would; a learned image of today's light at a wrong place does
-    not). ``verify``: per frame, given to ``before_step``.
+    not). ``verify``: per frame, given to ``before_step``; its comparisons count in
+    ``last_query_s``. The tracking check ranks both pools without it (no comparisons while
+    the swarm tracks): a learned image of today's light near the tracked place agrees with
+    it, and the candidates handed over after checks that disagree include learned ones
+    unchecked, as scouts' places only.
     """
 
     def __init__(self, index: PlaceIndex, positions: np.ndarray, k: int, check_every: int = 3,
