@@ -55,9 +55,9 @@ class Localizer:
         p = self.estimator.params  # the papers' estimators keep their random placements
         k = p.place_candidates if isinstance(p, DPSOParams) and p.variant == "swarmloc" else 0
         # a map with experiences ranks its own images and the learned ones apart, and a
-        # searching swarm is given a learned image only where the frame matches it as a frame
-        # of its light would (``_verify``): a learned image of today's light looks more like
-        # any frame of that light than the map's images at the true place
+        # searching swarm is given a learned image only where the frame clearly matches it
+        # (``_verify``): a learned image of today's light looks more like any frame of that
+        # light than the map's images at the true place
         own = base_images(route_map) if experience_layers(route_map) else None
         learned = None if own is None else \
             np.setdiff1d(np.arange(len(route_map.positions)), own)

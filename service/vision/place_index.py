@@ -237,9 +237,9 @@ class PlaceSeeder:
     it may propose (None: all; a map with experiences: its own images, service/engine/localizer.py).
     ``learned``: the experiences' images, ranked apart: the best half of the ``k`` candidates
     come from ``among``, the other half from ``learned`` (interleaved, best first), and a
-    searching estimator gets only the learned ones ``verify`` accepts (the frame matches them
-    as a frame of their light would; a learned image of today's light at a wrong place does
-    not). ``verify``: per frame, given to ``before_step``; its comparisons count in
+    searching estimator gets only the learned ones ``verify`` accepts (the frame clearly
+    matches them; a learned image of today's light at a wrong place looks only a little like
+    it). ``verify``: per frame, given to ``before_step``; its comparisons count in
     ``last_query_s``. The tracking check ranks both pools without it (no comparisons while
     the swarm tracks): a learned image of today's light near the tracked place agrees with
     it, and the candidates handed over after checks that disagree include learned ones
