@@ -50,9 +50,9 @@ from client.lab.bench_experience import (
     source_frames,
 )
 from client.lab.experiment_cli import map_for
+from service.engine.learning import placed
 from service.maps import experiences as ex
 from service.maps.experiences import NewImage, add_experience
-from service.maps.positions import fuse_with_odometry
 from service.maps.route_map import RouteMap, load_map, save_map
 from service.vision.features import Features
 
@@ -106,9 +106,11 @@ def at_fix(learned: RouteMap, first: Round, path: Path) -> RouteMap:
     order = np.argsort(src)
     if first.odometry is None:
         raise ValueError(f"round {first.name} has no odometry.csv")
-    fused = fuse_with_odometry(first.xy[src[order]], first.odometry[src[order], :2])
+    none = np.zeros((0, 2), np.float32)  # only the positions matter to ``placed``
+    fixes = [NewImage(none, none, first.xy[k], str(k)) for k in src[order]]
+    taught = placed(fixes, list(src[order]), list(first.odometry[src[order], :2]))
     pos = np.array(learned.positions, float)
-    pos[ids[order]] = fused.xy
+    pos[ids[order]] = [f.xy for f in taught]
     return load_map(save_map(dataclasses.replace(learned, positions=pos), path))
 
 
