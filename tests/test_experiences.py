@@ -27,10 +27,12 @@ from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
 from service.maps.experiences import (
     BASE,
+    GAP_SPACINGS,
     SEED_SHARE,
     LayerChoice,
     NewImage,
     add_experience,
+    base_spacing,
     compatible,
     experience_layers,
     experience_list,
@@ -204,6 +206,48 @@ def test_a_frame_compares_no_more_images_on_an_experience_than_on_the_map_alone(
     after = [taught.step(f, t=float(i)) for i, f in enumerate(frames)]
     assert after[-1].experience == "cloudy"
     assert np.mean([e.comparisons for e in after]) <= 1.2 * np.mean(base)
+
+
+def test_an_experience_on_a_lane_beside_the_maps_is_used_there(
+        map_copy: RouteMap, cloudy_images: list[NewImage]) -> None:
+    """Issue #34 (seed 23: the sunny map was recorded 1.2-2.1 m beside the lane the cloudy
+    rounds drive, farther than the gap of two map spacings): an experience learned on today's
+    lane covers the places of the map's images beside it. Particles on that lane are compared
+    with its images (the rule before: only where the map's image itself lay within the gap of
+    one, so an experience of every frame at its true place was not used there: 0.58 m, now
+    0.14 m), and the frame still compares no more distinct images than on the map alone."""
+    assert map_copy.path is not None
+    # each cloudy frame placed 1.5 gaps beside the map's image of its place
+    place, _ = map_copy.nearest_in_layer(np.array([f.xy for f in cloudy_images], float), 0)
+    tangent = np.gradient(map_copy.positions, axis=0)[place]
+    normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    gap = GAP_SPACINGS * base_spacing(map_copy)
+    beside = [dataclasses.replace(f, xy=map_copy.positions[i] + 1.5 * gap * n)
+              for f, i, n in zip(cloudy_images, place, normal, strict=True)]
+    learned, _ = add_experience(map_copy, map_copy.path, "cloudy", beside,
+                                condition="cloudy", robot=None, now=1.0, budget_bytes=1 << 30)
+    layers = learned.layers
+    assert layers is not None
+    exp_layer = experience_layers(learned)["cloudy"]
+    exp_xy = learned.positions[layers == exp_layer]
+    # the experience's images lie farther than the gap from every image of the map's own
+    assert float(np.min(learned.nearest_in_layer(exp_xy, 0)[1])) > gap
+    rng = np.random.default_rng(0)
+    for i in range(5, len(beside) - 5, 5):
+        at = beside[i].xy
+        cloud = at + rng.normal(0, 0.3, (80, 2))  # a swarm on today's lane
+        ids, dist = LayerChoice(active="cloudy").nearest(learned, at)(cloud)
+        base_ids, _ = LayerChoice().nearest(learned, at)(cloud)
+        mine = layers[ids[:, 0]] == exp_layer
+        assert mine.mean() > 0.9, i
+        assert len(np.unique(ids)) <= len(np.unique(base_ids)), i
+        np.testing.assert_allclose(
+            dist[:, 0], np.linalg.norm(cloud - learned.positions[ids[:, 0]], axis=1))
+        # particles on the map's own lane, far from today's, keep the map's images
+        far = learned.positions[base_ids[:, 0]]
+        far_ids, _ = LayerChoice(active="cloudy").nearest(learned, at)(far[:5])
+        assert not np.any(layers[far_ids[:, 0]] == exp_layer), i
 
 
 @pytest.fixture(scope="module")

@@ -37,6 +37,16 @@ def path_tangent(positions: np.ndarray, nearest: int, spacing: float) -> np.ndar
     return d / norm if norm > 0 else None
 
 
+def path_tangents(positions: np.ndarray, ids: np.ndarray, spacing: float) -> np.ndarray:
+    """``path_tangent`` at each image ``ids`` (n, 2): a zero row where it has none."""
+    out = np.zeros((len(ids), 2))
+    for k, i in enumerate(np.asarray(ids, np.int64)):
+        d = path_tangent(positions, int(i), spacing)
+        if d is not None:
+            out[k] = d
+    return out
+
+
 class AlongTrackSmoother:
     """State of the filter: the smoothed position and its velocity (m per frame)."""
 

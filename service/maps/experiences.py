@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from service.estimators.along_track import path_tangents
 from service.maps.compact import KEYPOINT_DTYPE, Keypoints
 from service.maps.route_map import Chunk, MapError, RouteMap, load_map, write_map
 from service.vision.place_index import PlaceIndex
@@ -346,7 +347,10 @@ class LayerChoice:
     def nearest(self, m: RouteMap, at: np.ndarray | None = None
                 ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """For the fitness: each particle's base images (one column per base layer), replaced
-        by the active experience's image where it has one within ``GAP_SPACINGS``.
+        by the active experience's image of the same place where it has one: the experience
+        image nearest to the particle's first base image, within ``GAP_SPACINGS`` of that
+        image or, where it lies beside it (a lane beside the map's: ``_beside``), of a
+        particle sharing it.
 
         ``at`` (the previous estimate while the session tracks; None while the swarm searches:
         no estimate yet, or it was not ``tracking``): where the active experience has no image
@@ -356,7 +360,8 @@ class LayerChoice:
         (today's light, higher similarity to any frame), and the swarm would leave the gap, or
         a global search would settle, on the part of the route the experience covers."""
         base = base_layers(m)
-        gap = GAP_SPACINGS * base_spacing(m)
+        spacing = base_spacing(m)
+        gap = GAP_SPACINGS * spacing
         layer = self.layer_at(m, at, gap)
 
         def nearest(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -364,17 +369,36 @@ class LayerChoice:
             if layer is None:
                 return ids, dist
             # each particle's first base image stands in for its place: the experience image
-            # nearest to that image replaces it (within the gap), so a frame compares no more
-            # distinct images than it would on the base layer alone
+            # nearest to that image replaces it, so a frame compares no more distinct images
+            # than it would on the base layer alone
             own, inverse = np.unique(ids[:, 0], return_inverse=True)
             e_own, e_gap = m.nearest_in_layer(m.positions[own], layer)
-            e_ids, near = e_own[inverse], (e_gap <= gap)[inverse]
+            e_ids = e_own[inverse]
             e_dist = np.linalg.norm(np.asarray(positions, float).reshape(-1, 2)
                                     - m.positions[e_ids], axis=1)
+            near = e_gap <= gap
+            reached = np.zeros(len(own), bool)  # a particle sharing the base image is near
+            np.logical_or.at(reached, inverse, e_dist <= gap)  # its experience image
+            check = ~near & reached
+            if check.any():
+                near[check] = self._beside(m, own[check], e_own[check], spacing, gap)
+            near = near[inverse]
             return (np.where(near[:, None], e_ids[:, None], ids),
                     np.where(near[:, None], e_dist[:, None], dist))
 
         return nearest
+
+    @staticmethod
+    def _beside(m: RouteMap, own: np.ndarray, e_own: np.ndarray, spacing: float, gap: float
+                ) -> np.ndarray:
+        """Whether each experience image ``e_own`` shows the place of base image ``own`` from
+        beside it: less than ``gap`` ahead or behind it along the map's path, at any distance
+        across (not a place beyond a gap of the experience). A robot driving a lane beside
+        the one the map was recorded in learns images on its own lane, farther than the gap
+        from the map's images of the same place."""
+        tangent = path_tangents(m.positions, own, spacing)
+        along = np.abs(np.sum((m.positions[e_own] - m.positions[own]) * tangent, axis=1))
+        return np.any(tangent != 0, axis=1) & (along <= gap)
 
     def layer_at(self, m: RouteMap, at: np.ndarray | None, gap: float) -> int | None:
         """The active experience's layer, None where the particles use the base images: no
