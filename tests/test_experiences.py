@@ -248,6 +248,18 @@ def test_an_experience_on_a_lane_beside_the_maps_is_used_there(
         far = learned.positions[base_ids[:, 0]]
         far_ids, _ = LayerChoice(active="cloudy").nearest(learned, at)(far[:5])
         assert not np.any(layers[far_ids[:, 0]] == exp_layer), i
+    # beside, not beyond: an image across the path from a map image shows its place, one
+    # farther than the gap along the path (past the end of a gap of the experience) does not
+    b = np.array([100])
+    t = np.gradient(map_copy.positions, axis=0)[100]
+    t = t / np.linalg.norm(t)
+    across, along = np.array([-t[1], t[0]]) * 3 * gap, t * 1.5 * gap
+    probe = np.concatenate([learned.positions, map_copy.positions[b] + [across, along]])
+    extra = dataclasses.replace(learned, positions=probe)
+    n = len(learned.positions)
+    spacing = base_spacing(map_copy)
+    assert LayerChoice._beside(extra, b, np.array([n]), spacing, gap).tolist() == [True]
+    assert LayerChoice._beside(extra, b, np.array([n + 1]), spacing, gap).tolist() == [False]
 
 
 @pytest.fixture(scope="module")
