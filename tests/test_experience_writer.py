@@ -78,7 +78,8 @@ def test_a_full_collection_is_handed_over_not_written_in_the_frame(
     learner = service.learner
     for robot, exp in (("r1", "e1"), ("r2", "e2")):
         learner._trails[robot] = _Trail(exp, "small", "cloudy", pending=_images(3),
-                                        seqs=[1, 2, 3])
+                                        seqs=[1, 2, 3], odometry=[None] * 3,
+                                        known=[True] * 3)
     learner.flush("r1")  # what observe() does when a collection is full
     assert started.wait(10) and not release.is_set()
     learner.flush("r2")  # while the first write is in progress: queued

@@ -20,7 +20,7 @@ from client.lab.world import World
 from client.runs import odometry_poses
 from client.transports import LocalClient
 from service.api.errors import NotFound
-from service.api.models import Estimate, MapSummary, PosePrior, SessionConfig
+from service.api.models import Estimate, MapSummary, Odometry, PosePrior, SessionConfig
 from service.api.round_format import camera_from_hfov
 from service.engine.learning import Learner, LearnGates, LearnPath, path_gate
 from service.engine.localization_service import LocalizationService
@@ -342,37 +342,81 @@ def test_a_learning_session_teaches_its_map_a_new_version(learning_run: Learning
     assert float(np.max(np.abs(m.positions[mask] - _truth(cloudy1, m.image_names, mask)))) < 3.0
 
 
+def _teach_with_gaps(m: RouteMap, cloudy1: Round, feats: list[Features], gaps: list[range],
+                     odometry: list[Odometry | None]) -> tuple[list[NewImage], dict[str, int]]:
+    """A learner fed the cloudy stretch at its true places, the frames of ``gaps`` stopped at
+    gate 1 (the session not tracking there), each frame sent with ``odometry``."""
+    written: list[NewImage] = []
+    learner = Learner(LearnGates(accuracy_m=1.5, weak_ratio=0.4, commit_images=1000),
+                      lambda _m, _e, images, _c, _r, out=written: out.extend(images))
+    for i, f in enumerate(feats):
+        x, y = (float(v) for v in cloudy1.reference_xy[i])
+        e = Estimate(seq=i + 1, stamp=None, frame_id="m", estimator="dpso", x=x, y=y,
+                     heading=0.0, speed=0.0, status="tracking", lost=False, score=0.5,
+                     comparisons=1, covariance=[[0.1, 0], [0, 0.1]],
+                     pose_covariance=[0.0] * 36, accuracy_m=0.5, nearest_image=0,
+                     nearest_image_name="x", spread_m=0.1)
+        stopped = "confident" if any(i in g for g in gaps) else None
+        learner.observe("r", 0.0, "cloudy", m, f, e, stopped, odometry[i])
+    stats = learner.stats("r")
+    learner.flush("r", end=True)
+    return written, stats
+
+
 def test_a_robot_sending_its_odometry_teaches_images_placed_along_it(
         camera_maps: Path, cloudy1: Round, cloudy_features: list[Features]) -> None:
     """A learner fed the cloudy stretch at its true places (gates 3 and 4 run for real: the
     geometry locates each taught frame), once with the round's wheel odometry and once
-    without: the same frames are taught, and with the odometry their positions (its path
-    aligned to the located ones, learning.placed) are closer to the truth than the line
-    through the located positions."""
+    without: the frames located are taught both times (with the odometry also frames the
+    wheels bridge), and with the odometry their positions (its path aligned to the located
+    ones, learning.placed) are closer to the truth than the line through the located
+    positions."""
     m = load_map(camera_maps / "route.swmap")
     assert cloudy1.odometry is not None
     poses = odometry_poses(cloudy1.odometry, np.arange(STRETCH))
-    taught: list[list[NewImage]] = []
-    for sent in (False, True):
-        written: list[NewImage] = []
-        learner = Learner(LearnGates(accuracy_m=1.5, weak_ratio=0.4, commit_images=1000),
-                          lambda _m, _e, images, _c, _r, out=written: out.extend(images))
-        for i, f in enumerate(cloudy_features):
-            x, y = (float(v) for v in cloudy1.reference_xy[i])
-            e = Estimate(seq=i + 1, stamp=None, frame_id="m", estimator="dpso", x=x, y=y,
-                         heading=0.0, speed=0.0, status="tracking", lost=False, score=0.5,
-                         comparisons=1, covariance=[[0.1, 0], [0, 0.1]],
-                         pose_covariance=[0.0] * 36, accuracy_m=0.5, nearest_image=0,
-                         nearest_image_name="x", spread_m=0.1)
-            learner.observe("r", 0.0, "cloudy", m, f, e, None, poses[i] if sent else None)
-        learner.flush("r", end=True)
-        taught.append(written)
-    assert [f.name for f in taught[0]] == [f.name for f in taught[1]] and len(taught[0]) >= 10
-    seqs = [int(f.name.rsplit("/", 1)[1]) - 1 for f in taught[0]]
+    line_fit, _ = _teach_with_gaps(m, cloudy1, cloudy_features, [], [None] * STRETCH)
+    names = {f.name for f in line_fit}
+    along_fit = [f for f in _teach_with_gaps(m, cloudy1, cloudy_features, [], list(poses))[0]
+                 if f.name in names]
+    assert [f.name for f in line_fit] == [f.name for f in along_fit] and len(line_fit) >= 10
+    seqs = [int(f.name.rsplit("/", 1)[1]) - 1 for f in line_fit]
     truth = cloudy1.reference_xy[seqs]
     line, along = (float(np.linalg.norm(np.array([f.xy for f in t]) - truth, axis=1).mean())
-                   for t in taught)
+                   for t in (line_fit, along_fit))
     assert along < 0.7 * line, (line, along)
+
+
+def test_frames_between_taught_ones_are_taught_by_the_wheels(
+        camera_maps: Path, cloudy1: Round, cloudy_features: list[Features]) -> None:
+    """Two stretches the session did not track (gate 1): with the robot's odometry their
+    frames join the experience, placed by the wheels between the taught frames on either
+    side (as close to the truth as those); without it none do, nor where the wheels disagree
+    with the taught frames on either side (the robot was carried off between them)."""
+    m = load_map(camera_maps / "route.swmap")
+    assert cloudy1.odometry is not None
+    poses = odometry_poses(cloudy1.odometry, np.arange(STRETCH))
+    gaps = [range(20, 28), range(40, 46)]
+    in_gap = [i for g in gaps for i in g]
+
+    def seqs(images: list[NewImage]) -> list[int]:
+        return [int(f.name.rsplit("/", 1)[1]) - 1 for f in images]
+
+    taught, stats = _teach_with_gaps(m, cloudy1, cloudy_features, gaps, list(poses))
+    bridged = [f for f, i in zip(taught, seqs(taught), strict=True) if i in in_gap]
+    assert stats["bridged"] >= len(bridged) >= 8, stats  # most of the 14 (one per place)
+    assert {i for i in seqs(bridged)} & set(gaps[0]) and {i for i in seqs(bridged)} & set(gaps[1])
+    err = np.linalg.norm(np.array([f.xy for f in taught])
+                         - cloudy1.reference_xy[seqs(taught)], axis=1)
+    on_wheels = np.isin(seqs(taught), in_gap)
+    assert float(err[on_wheels].mean()) < max(0.6, 1.5 * float(err[~on_wheels].mean())), err
+
+    without, stats = _teach_with_gaps(m, cloudy1, cloudy_features, gaps, [None] * STRETCH)
+    assert stats["bridged"] == 0 and not set(seqs(without)) & set(in_gap)
+
+    carried = [p if p is None or i < 24 else p.model_copy(update={"x": p.x + 15, "y": p.y + 15})
+               for i, p in enumerate(poses)]  # carried 21 m off unseen by the wheels at frame 24
+    kidnapped, stats = _teach_with_gaps(m, cloudy1, cloudy_features, gaps, carried)
+    assert not set(seqs(kidnapped)) & set(gaps[0]), stats
 
 
 def test_the_service_hands_a_learning_robot_s_odometry_to_its_learner(
@@ -458,7 +502,7 @@ def test_a_session_confidently_wrong_by_construction_learns_nothing(
     stats = feed_a_wrong_place(service, "route", sunny1, cloudy1, LEARN_FRAMES)
     assert stats["seen"] == LEARN_FRAMES and stats.get("taught", 0) == 0, stats
     assert sum(v for k, v in stats.items()
-               if k not in ("seen", "taught", "odometry", "waiting")) == \
+               if k not in ("seen", "taught", "bridged", "odometry", "waiting")) == \
         LEARN_FRAMES  # every frame stopped at a gate
     assert service.get_map("route").meta["checksum"] == old
     assert service.map_summary("route").experiences == []

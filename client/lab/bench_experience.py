@@ -214,14 +214,16 @@ GATES = ("confident", "path", "appearance", "located", "place")
 
 
 def gates_table(cases: list[Case]) -> str:
-    """The teaching session's frames: stopped by each gate (learning.py), taught; the learned
-    images' coverage of round 2 and distance from the truth; round 2's frames matched with an
-    experience."""
-    head = ("| world | light | frames | " + " | ".join(GATES) + " | taught | coverage | "
-            "learned images from the truth | frames on the experience |\n|" + "---|" * 12)
+    """The teaching session's frames: stopped by each gate (learning.py), taught, bridged by
+    the wheels (of the stopped ones); the learned images' coverage of round 2 and distance
+    from the truth; round 2's frames matched with an experience."""
+    head = ("| world | light | frames | " + " | ".join(GATES) + " | taught | bridged | "
+            "coverage | learned images from the truth | frames on the experience |\n|"
+            + "---|" * 13)
     rows = [f"| seed {c.seed} | {c.condition} | {c.gates.get('seen', 0)} | "
             + " | ".join(str(c.gates.get(g, 0)) for g in GATES)
-            + f" | {c.gates.get('taught', 0)} | {100 * c.coverage:.0f} % | {c.placed_m:.2f} m | "
+            + f" | {c.gates.get('taught', 0)} | {c.gates.get('bridged', 0)} | "
+            f"{100 * c.coverage:.0f} % | {c.placed_m:.2f} m | "
             f"{100 * c.learned.on_experience:.0f} % |" for c in cases]
     return "\n".join([head, *rows])
 

@@ -20,7 +20,17 @@ only when every gate holds (a kidnapped or lost robot never does):
 The taught frames' positions are then placed together (``placed``): where the robot sent its
 wheel odometry with every one of them, the odometry's path aligned to their located positions
 over a window of travel, as a map's positions are fused with its round's odometry
-(service/maps/positions.py); else a line through the located positions of nearby frames.
+(service/maps/positions.py; the previous batch's taught frames join the alignment); else a
+line through the located positions of nearby frames.
+
+Frames between two taught ones are *bridged by the wheels*: where the robot sends its
+odometry, a frame stopped by gate 1, 2 or 4 after a taught frame is held, and when the next
+frame is taught within ``BRIDGE_M`` of travel, and the wheels agree with the two taught
+frames' located distance (within ``BRIDGE_TOLERANCE_M``: a robot carried off between them is
+not bridged), the held frames join the collection if they pass gates 3 and 5 at the place the
+wheels give them; ``placed`` then places them by the odometry alone, aligned to the taught
+frames around them. A session that never tracks confidently teaches no frame, so it bridges
+none either.
 
 Taught frames are kept (one per place) until ``learn_commit_images`` are collected or the
 session ends or is reset; then the map admin writes them into the map as a new version
@@ -62,8 +72,13 @@ PATH_TOLERANCE_M = 1.0  # the estimate lies this close to the path's constant-ve
 LOCATED_TOLERANCE_M = 1.0  # and this close to where the geometry locates the frame
 GEOMETRY_TRIES = 3  # images near the estimate the geometry tries, best match first
 SMOOTH_FRAMES = 4  # learned positions: a line through the taught frames this many frames away
+CONTEXT_FRAMES = 48  # the last batch's taught frames that place the next one's first frames
+BRIDGE_M = 15.0  # a stretch between two taught frames this long (odometry) is taught by the wheels
+BRIDGE_FRAMES = 64  # and holds at most this many frames
+BRIDGE_TOLERANCE_M = 3.0  # the two taught frames' located distance agrees with the wheels' so
 LEARN_IDLE_S = 30.0  # a replica writes what it collected of a robot that sent it nothing so long
 
+Context = list[tuple[int, np.ndarray, np.ndarray]]  # a batch's taught frames (seq, xy, odometry)
 Commit = Callable[[str, str, list[NewImage], str | None, str], None]
 # (map name, experience id, images, condition, robot id) -> written (the map admin's)
 
@@ -90,6 +105,12 @@ class _Trail:
     refused: dict[str, int] = field(default_factory=dict)  # frames stopped, by gate
     seqs: list[int] = field(default_factory=list)  # the frame number of each pending image
     odometry: list[np.ndarray | None] = field(default_factory=list)  # each one's (x, y), if sent
+    known: list[bool] = field(default_factory=list)  # each one located (False: bridged)
+    anchor: tuple[int, np.ndarray, np.ndarray] | None = None  # last taught (seq, xy, odometry)
+    gap: list[tuple[NewImage, int, np.ndarray]] = field(default_factory=list)  # since it
+    gap_m: float = 0.0  # the wheels' travel since it
+    bridged: int = 0
+    context: Context = field(default_factory=list)  # the last batch's taught frames
 
     def refuse(self, gate: str) -> None:
         self.refused[gate] = self.refused.get(gate, 0) + 1
@@ -114,21 +135,36 @@ def smoothed(images: list[NewImage], seqs: list[int], k: int = SMOOTH_FRAMES
     return out
 
 
-def placed(images: list[NewImage], seqs: list[int], odometry: list[np.ndarray | None]
+def placed(images: list[NewImage], seqs: list[int], odometry: list[np.ndarray | None],
+           known: list[bool] | None = None, context: Context | None = None
            ) -> list[NewImage]:
     """The taught images with their positions for the experience. Where the robot sent its
     odometry with each of them (three or more): its path aligned to their located positions
     over ``positions.WINDOW_M`` of travel on either side (``fuse_with_odometry``: the wheels
     keep the shape between frames, the located positions of a whole stretch place it, and
     each one's error averages out), unless it does not fit them (a reset odometry); else
-    ``smoothed``."""
-    if len(images) >= 3 and len(odometry) == len(images) and \
+    ``smoothed``. ``known``: which images were located (False: bridged by the wheels, placed
+    by the alignment alone, and left out where there is no odometry to place them);
+    ``context``: the previous batch's taught frames, which join the alignment (not the
+    output)."""
+    k = np.ones(len(images), bool) if known is None else np.asarray(known, bool)
+    order = np.argsort(np.asarray(seqs), kind="stable")  # bridged frames join after the next
+    images, seqs, k = [images[i] for i in order], [seqs[i] for i in order], k[order]
+    if k.sum() >= 3 and len(odometry) == len(images) and \
             all(o is not None for o in odometry):
-        fused = fuse_with_odometry(np.array([f.xy for f in images], float).reshape(-1, 2),
-                                   np.array(odometry, float).reshape(-1, 2))
+        odometry = [odometry[i] for i in order]
+        ctx = [c for c in (context or []) if c[0] < seqs[0]]
+        n = len(ctx)
+        xy = np.array([c[1] for c in ctx] + [f.xy for f in images], float).reshape(-1, 2)
+        odo = np.array([c[2] for c in ctx] + odometry, float).reshape(-1, 2)
+        k = np.concatenate([np.ones(n, bool), k])
+        fused = fuse_with_odometry(xy, odo, known=k)
         if fused.fits:
-            return [replace(f, xy=fused.xy[i]) for i, f in enumerate(images)]
-    return smoothed(images, seqs)
+            return [replace(f, xy=fused.xy[n + i]) for i, f in enumerate(images)
+                    if np.isfinite(fused.xy[n + i]).all()]
+        k = k[n:]
+    return smoothed([f for f, ok in zip(images, k, strict=True) if ok],
+                    [q for q, ok in zip(seqs, k, strict=True) if ok])
 
 
 LearnPath = list[tuple[int, float, float]]  # (estimate seq, x, y) of the last two frames
@@ -192,7 +228,8 @@ class Learner:
             t = self._trails.get(robot_id)
             if t is None:
                 return {}
-            return {"seen": t.seen, "taught": t.taught, "odometry": t.with_odometry,
+            return {"seen": t.seen, "taught": t.taught, "bridged": t.bridged,
+                    "odometry": t.with_odometry,
                     "waiting": len(t.pending), **t.refused}
 
     def observe(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
@@ -213,6 +250,7 @@ class Learner:
             xy = np.array([est.x, est.y])
             if stopped not in (None, "accuracy"):
                 t.refuse(str(stopped))
+                self._hold(t, m, features, est.seq, odom)
                 return
         at: np.ndarray | None = None
         gate: str | None = "appearance"
@@ -228,16 +266,85 @@ class Learner:
                 gate = "place"  # one image per place and experience
             if gate is not None or at is None:
                 t.refuse(gate or "located")
+                if gate in ("located", "confident"):
+                    self._hold(t, m, features, est.seq, odom)
                 return
             t.taught += 1
+            here = None if odom is None else np.array([odom.x, odom.y], float)
+            held = self._bridge(t, at, est.seq, here)
             t.pending.append(NewImage.of(features, at, f"{t.exp_id}/{est.seq:06d}",
                                          second=m.second is not None))
             t.seqs.append(est.seq)
-            t.odometry.append(None if odom is None else np.array([odom.x, odom.y], float))
+            t.odometry.append(here)
+            t.known.append(True)
             t.with_odometry += odom is not None
+        if held:
+            self._bridged(t, m, held)
+        with self._lock:
             full = len(t.pending) >= self.gates.commit_images
         if full:
             self.flush(robot_id)
+
+    @staticmethod
+    def _hold(t: _Trail, m: RouteMap, features: Features, seq: int,
+              odom: Odometry | None) -> None:
+        """Keep a refused frame of a learning robot that sends its odometry, after a taught
+        one: the wheels may bridge it to the next taught frame (``_bridge``). Under the lock."""
+        if odom is None or t.anchor is None:
+            t.anchor, t.gap, t.gap_m = None, [], 0.0
+            return
+        here = np.array([odom.x, odom.y], float)
+        t.gap_m += float(np.linalg.norm(here - (t.gap[-1][2] if t.gap else t.anchor[2])))
+        if t.gap_m > BRIDGE_M or len(t.gap) >= BRIDGE_FRAMES:
+            t.anchor, t.gap, t.gap_m = None, [], 0.0
+            return
+        t.gap.append((NewImage.of(features, np.full(2, np.nan), f"{t.exp_id}/{seq:06d}",
+                                  second=m.second is not None), seq, here))
+
+    @staticmethod
+    def _bridge(t: _Trail, at: np.ndarray, seq: int, here: np.ndarray | None
+                ) -> list[tuple[NewImage, int, np.ndarray]]:
+        """A taught frame at ``at`` (odometry ``here``): the frames held since the last taught
+        one, placed by the wheels between the two, where the wheels agree with both (their
+        distance within ``BRIDGE_TOLERANCE_M``). Under the lock."""
+        gap, anchor = t.gap, t.anchor
+        t.gap, t.gap_m = [], 0.0
+        t.anchor = None if here is None else (seq, at, here)
+        if here is None or anchor is None or not gap:
+            return []
+        _, a_xy, a_odom = anchor
+        chord_map, chord_odom = at - a_xy, here - a_odom
+        d_map, d_odom = float(np.linalg.norm(chord_map)), float(np.linalg.norm(chord_odom))
+        if abs(d_map - d_odom) > BRIDGE_TOLERANCE_M or d_odom < 1e-6:
+            return []
+        # the similarity that maps the two odometry positions onto the two located ones
+        factor = complex(*chord_map) / complex(*chord_odom)
+        out = []
+        for img, gseq, odom in gap:
+            z = factor * complex(*(odom - a_odom))
+            out.append((replace(img, xy=a_xy + np.array([z.real, z.imag])), gseq, odom))
+        return out
+
+    def _bridged(self, t: _Trail, m: RouteMap, held: list[tuple[NewImage, int, np.ndarray]]
+                 ) -> None:
+        """Held frames bridged by the wheels join the collection where they add a new
+        appearance (gate 3 at their bridged place) and a new place (gate 5)."""
+        new = []
+        for img, seq, odom in held:
+            second = None if img.codes2 is None or img.keypoints2 is None else \
+                Features(img.keypoints2, img.codes2)
+            if self._new_appearance(m, Features(img.keypoints, img.codes, second), img.xy):
+                new.append((img, seq, odom))
+        radius = PLACE_SPACINGS * base_spacing(m)
+        with self._lock:
+            for img, seq, odom in new:
+                if any(float(np.linalg.norm(f.xy - img.xy)) < radius for f in t.pending):
+                    continue
+                t.pending.append(img)
+                t.seqs.append(seq)
+                t.odometry.append(odom)
+                t.known.append(False)
+                t.bridged += 1
 
     def level(self, m: RouteMap) -> float:
         """The map's same-light level, kept per version."""
@@ -304,9 +411,14 @@ class Learner:
             images, t.pending = t.pending, []
             seqs, t.seqs = t.seqs, []
             odometry, t.odometry = t.odometry, []
+            known, t.known = t.known, []
+            context = t.context
+            t.context = [(q, f.xy, o) for f, q, o, ok in zip(images, seqs, odometry, known,
+                                                             strict=True)
+                         if ok and o is not None][-CONTEXT_FRAMES:]
         if images:
-            self._commit(t.map_name, t.exp_id, placed(images, seqs, odometry), t.condition,
-                         robot_id)
+            self._commit(t.map_name, t.exp_id, placed(images, seqs, odometry, known, context),
+                         t.condition, robot_id)
 
     def flush_idle(self, idle_s: float, now: float | None = None) -> None:
         """Write the collections of robots that sent this replica no frame for ``idle_s``

@@ -79,30 +79,40 @@ def _window_sums(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarr
 
 
 def fuse_with_odometry(recorded_xy: np.ndarray, odometry_xy: np.ndarray,
-                       window_m: float = WINDOW_M) -> FusedPositions:
+                       window_m: float = WINDOW_M, known: np.ndarray | None = None
+                       ) -> FusedPositions:
     """Each image's odometry position aligned to the recorded positions of the images within
     ``window_m`` of travel (see the module's docstring). Both arrays are (N, 2) in the same
-    image order; the odometry in any frame of its own."""
+    image order; the odometry in any frame of its own. ``known`` (N, bool): only these images
+    have a recorded position (the others' rows are ignored, and they are placed by their
+    odometry alone); an image with no known one within its window gets NaN."""
     g = np.asarray(recorded_xy, np.float64)
     o = np.asarray(odometry_xy, np.float64)
     if g.shape != o.shape or g.ndim != 2 or g.shape[1] != 2:
         raise ValueError(f"positions {g.shape} and odometry {o.shape} must both be (N, 2)")
     if not window_m > 0:
         raise ValueError(f"the window must be positive, got {window_m}")
-    if len(g) < 3:
+    w = np.ones(len(g)) if known is None else np.asarray(known, bool).astype(np.float64)
+    if w.shape != (len(g),):
+        raise ValueError(f"known {w.shape} must be ({len(g)},)")
+    if w.sum() < 3:
         return FusedPositions(g.copy(), 0.0)
-    g0, o0 = g.mean(axis=0), o.mean(axis=0)  # centred: the window sums stay well conditioned
+    g = np.where(w[:, None] > 0, g, 0.0)
+    g0 = (g * w[:, None]).sum(axis=0) / w.sum()  # centred: the window sums stay well conditioned
+    o0 = o.mean(axis=0)
     g, o = g - g0, o - o0
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(o, axis=0), axis=1))])
     lo = np.searchsorted(arc, arc - window_m, "left")
     hi = np.searchsorted(arc, arc + window_m, "right")
-    n = (hi - lo).astype(np.float64)[:, None]
-    mo = _window_sums(o, lo, hi) / n
-    mg = _window_sums(g, lo, hi) / n
+    counts = _window_sums(w, lo, hi)
+    n = np.maximum(counts, 1.0)[:, None]
+    wo, wg = o * w[:, None], g * w[:, None]
+    mo = _window_sums(wo, lo, hi) / n
+    mg = _window_sums(wg, lo, hi) / n
     # cross-covariance of the window, recorded x odometry: (N, 2, 2)
-    cov = (_window_sums(g[:, :, None] * o[:, None, :], lo, hi) / n[:, :, None]
+    cov = (_window_sums(wg[:, :, None] * o[:, None, :], lo, hi) / n[:, :, None]
            - mg[:, :, None] * mo[:, None, :])
-    var_o = _window_sums((o * o).sum(axis=1), lo, hi) / n[:, 0] - (mo * mo).sum(axis=1)
+    var_o = _window_sums((wo * o).sum(axis=1), lo, hi) / n[:, 0] - (mo * mo).sum(axis=1)
     u, s, vt = np.linalg.svd(cov)
     d = np.sign(np.linalg.det(u @ vt))
     d[d == 0] = 1.0
@@ -113,7 +123,9 @@ def fuse_with_odometry(recorded_xy: np.ndarray, odometry_xy: np.ndarray,
     scale = np.where(moving, s.sum(axis=1) / np.where(moving, var_o, 1.0), 0.0)
     fused = mg + scale[:, None] * np.einsum("kij,kj->ki", rot, o - mo)
     fused += g0
-    moved = float(np.median(np.linalg.norm(fused - (g + g0), axis=1)))
+    fused[counts == 0] = np.nan
+    have = w > 0
+    moved = float(np.median(np.linalg.norm(fused[have] - (g[have] + g0), axis=1)))
     return FusedPositions(fused, moved,
                           float(np.median(scale[moving])) if moving.any() else 1.0)
 
