@@ -99,6 +99,29 @@ def test_taught_frames_are_placed_along_the_odometry_the_robot_sent(seed: int) -
     assert fused < 0.6 * located and fused < line, (located, line, fused)
 
 
+def test_images_without_a_position_are_placed_by_their_odometry_alone() -> None:
+    """``known``: only those rows' recorded positions align the odometry. Stretches of 20
+    images whose recorded positions are garbage are placed by the odometry between the known
+    ones as well as the known ones are; used as recorded they would pull the fit off; an image
+    with no known one in its window gets NaN."""
+    rng = np.random.default_rng(4)
+    truth = _route()
+    gps, odom = _gps(truth, rng), _odometry(truth, rng)
+    known = np.ones(len(truth), bool)
+    for start in (60, 130, 250):
+        known[start:start + 20] = False
+    garbage = np.where(known[:, None], gps, gps + 25.0)
+    err = np.linalg.norm(fuse_with_odometry(garbage, odom, known=known).xy - truth[:, :2],
+                         axis=1)
+    assert float(err[~known].mean()) < max(0.35, 1.5 * float(err[known].mean())), err
+    blind = np.linalg.norm(fuse_with_odometry(garbage, odom).xy - truth[:, :2], axis=1)
+    assert float(blind[~known].mean()) > 5.0
+    lone = np.zeros(len(truth), bool)
+    lone[:3] = True  # three known images at the start, nothing near the end
+    far = fuse_with_odometry(gps, odom, known=lone).xy
+    assert np.isfinite(far[:10]).all() and np.isnan(far[-10:]).all()
+
+
 def test_taught_frames_without_odometry_or_with_odometry_that_does_not_fit_are_smoothed(
 ) -> None:
     _, images, seqs, odom = _taught(3)

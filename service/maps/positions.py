@@ -85,7 +85,8 @@ def fuse_with_odometry(recorded_xy: np.ndarray, odometry_xy: np.ndarray,
     ``window_m`` of travel (see the module's docstring). Both arrays are (N, 2) in the same
     image order; the odometry in any frame of its own. ``known`` (N, bool): only these images
     have a recorded position (the others' rows are ignored, and they are placed by their
-    odometry alone); an image with no known one within its window gets NaN."""
+    odometry alone); an image whose window holds no known one, or known ones that do not
+    spread (nothing to align its odometry with), gets NaN."""
     g = np.asarray(recorded_xy, np.float64)
     o = np.asarray(odometry_xy, np.float64)
     if g.shape != o.shape or g.ndim != 2 or g.shape[1] != 2:
@@ -123,8 +124,8 @@ def fuse_with_odometry(recorded_xy: np.ndarray, odometry_xy: np.ndarray,
     scale = np.where(moving, s.sum(axis=1) / np.where(moving, var_o, 1.0), 0.0)
     fused = mg + scale[:, None] * np.einsum("kij,kj->ki", rot, o - mo)
     fused += g0
-    fused[counts == 0] = np.nan
     have = w > 0
+    fused[(counts == 0) | (~have & ~moving)] = np.nan  # nothing known to align it with
     moved = float(np.median(np.linalg.norm(fused[have] - (g[have] + g0), axis=1)))
     return FusedPositions(fused, moved,
                           float(np.median(scale[moving])) if moving.any() else 1.0)
