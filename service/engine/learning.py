@@ -1,7 +1,8 @@
 """Learning sessions: frames where a robot is confidently localized become an experience.
 
 A session created with ``learn`` hands each estimate to ``Learner.observe``. A frame teaches
-only when every gate holds (a kidnapped or lost robot never does):
+only when every gate holds (a kidnapped or lost robot never does), or when the robot's wheels
+bridge it between two frames that did (below):
 
 1. the estimate is ``tracking`` with ``accuracy_m`` at most ``learn_accuracy_m`` or, where it
    is tracking with a larger ``accuracy_m``, gate 4 locates it (the learner's own two-view
@@ -236,10 +237,11 @@ class Learner:
                 features: Features, est: Estimate, stopped: str | None,
                 odom: Odometry | None = None) -> None:
         """One estimate of a learning session, ``stopped`` by gate 1 or 2 (``path_gate`` on
-        the session's path) or not: collect the frame if it passes the other gates, hand the
-        collection to the writer when it is full (no map write here). On a map of two
-        feature types the frame's both sets are kept; ``odom``: the odometry pose the robot
-        sent with the frame (``placed`` uses it)."""
+        the session's path) or not: collect the frame if it passes the other gates (a frame
+        stopped by gate 1, 2 or 4 is held for the wheels to bridge, and a taught one bridges
+        the frames held before it), hand the collection to the writer when it is full (no
+        map write here). On a map of two feature types the frame's both sets are kept;
+        ``odom``: the odometry pose the robot sent with the frame (``placed`` uses it)."""
         with self._lock:
             t = self._trails.get(robot_id)
             if t is None or t.map_name != m.name:
