@@ -413,8 +413,15 @@ def test_frames_between_taught_ones_are_taught_by_the_wheels(
     without, stats = _teach_with_gaps(m, cloudy1, cloudy_features, gaps, [None] * STRETCH)
     assert stats["bridged"] == 0 and not set(seqs(without)) & set(in_gap)
 
-    carried = [p if p is None or i < 24 else p.model_copy(update={"x": p.x + 15, "y": p.y + 15})
-               for i, p in enumerate(poses)]  # carried 21 m off unseen by the wheels at frame 24
+    # carried 6 m ahead, unseen by the wheels, in the middle of the first stretch: the wheels
+    # say the robot moved 6 m less between the taught frames on either side than it did
+    a, b = poses[19], poses[28]
+    assert a is not None and b is not None
+    ahead = np.array([b.x - a.x, b.y - a.y])
+    ahead *= 6.0 / float(np.linalg.norm(ahead))
+    carried = [p if p is None or i < 24 else
+               p.model_copy(update={"x": p.x - float(ahead[0]), "y": p.y - float(ahead[1])})
+               for i, p in enumerate(poses)]
     kidnapped, stats = _teach_with_gaps(m, cloudy1, cloudy_features, gaps, carried)
     assert not set(seqs(kidnapped)) & set(gaps[0]), stats
 
