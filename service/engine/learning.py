@@ -26,8 +26,9 @@ line through the located positions of nearby frames.
 
 Frames between two taught ones are *bridged by the wheels*: where the robot sends its
 odometry, a frame stopped by gate 1, 2 or 4 after a taught frame is held, and when the next
-frame is taught within ``BRIDGE_M`` of travel, and the wheels agree with the two taught
-frames' located distance (within ``BRIDGE_TOLERANCE_M``: a robot carried off between them is
+frame is taught within ``BRIDGE_M`` of travel, and the wheels agree with where it was located
+(``wheels_agree``: their path aligned to the taught frames before the stretch puts it within
+``BRIDGE_TOLERANCE_M``, so a robot carried off between them, along its way or across it, is
 not bridged), the held frames join the collection if they pass gates 3 and 5 at the place the
 wheels give them; ``placed`` then places them by the odometry alone, aligned to the taught
 frames around them. A session that never tracks confidently teaches no frame, so it bridges
@@ -76,7 +77,8 @@ SMOOTH_FRAMES = 4  # learned positions: a line through the taught frames this ma
 CONTEXT_FRAMES = 48  # the last batch's taught frames that place the next one's first frames
 BRIDGE_M = 15.0  # a stretch between two taught frames this long (odometry) is taught by the wheels
 BRIDGE_FRAMES = 64  # and holds at most this many frames
-BRIDGE_TOLERANCE_M = 3.0  # the two taught frames' located distance agrees with the wheels' so
+BRIDGE_TOLERANCE_M = 3.0  # the wheels, aligned to the taught frames before a stretch, put the
+# frame after it this close to where it was located
 LEARN_IDLE_S = 30.0  # a replica writes what it collected of a robot that sent it nothing so long
 
 Context = list[tuple[int, np.ndarray, np.ndarray]]  # a batch's taught frames (seq, xy, odometry)
@@ -186,6 +188,47 @@ def path_gate(path: LearnPath, est: Estimate, accuracy_m: float) -> tuple[LearnP
     if float(np.linalg.norm(predicted - np.array([est.x, est.y]))) > PATH_TOLERANCE_M:
         return new, "path"
     return new, ("accuracy" if est.accuracy_m > accuracy_m else None)
+
+
+def located(images: list[NewImage], seqs: list[int], odometry: list[np.ndarray | None],
+            known: list[bool]) -> Context:
+    """The located (not bridged) images sent with odometry, as (seq, xy, odometry)."""
+    return [(q, f.xy, o) for f, q, o, ok in zip(images, seqs, odometry, known, strict=True)
+            if ok and o is not None]
+
+
+def wheels_place(before: Context, here: np.ndarray) -> np.ndarray | None:
+    """Where the robot's wheels put a frame with odometry ``here`` after the taught frames
+    ``before`` (oldest first): its odometry aligned to their located positions
+    (``fuse_with_odometry``, their last ``positions.WINDOW_M`` of travel). None where they do
+    not spread (nothing gives the wheels' heading on the map)."""
+    if len(before) < 3:
+        return None
+    xy = np.array([c[1] for c in before] + [np.zeros(2)], float)
+    odo = np.array([c[2] for c in before] + [here], float)
+    known = np.ones(len(xy), bool)
+    known[-1] = False
+    at = fuse_with_odometry(xy, odo, known=known).xy[-1]
+    return at if np.isfinite(at).all() else None
+
+
+def wheels_agree(before: Context, at: np.ndarray, here: np.ndarray) -> bool:
+    """Whether the robot's wheels agree with a taught frame located at ``at`` (odometry
+    ``here``) after a stretch it did not teach, the taught frames ``before`` it (oldest
+    first; the last one starts the stretch): ``wheels_place`` puts it within
+    ``BRIDGE_TOLERANCE_M`` of ``at``, so a robot carried off in the stretch, along its way or
+    across it, disagrees. Where those frames give no heading (they do not spread: the first
+    taught frames of a session), the distance the wheels travelled since the last of them
+    agrees with the located one within ``BRIDGE_TOLERANCE_M`` (a carry across the way passes
+    this check)."""
+    p = wheels_place(before, here)
+    if p is not None:
+        return float(np.linalg.norm(p - at)) <= BRIDGE_TOLERANCE_M
+    if not before:
+        return False
+    _, a_xy, a_odom = before[-1]
+    return abs(float(np.linalg.norm(at - a_xy)) - float(np.linalg.norm(here - a_odom))) \
+        <= BRIDGE_TOLERANCE_M
 
 
 def experience_id(robot_id: str, created: float) -> str:
@@ -307,8 +350,8 @@ class Learner:
     def _bridge(t: _Trail, at: np.ndarray, seq: int, here: np.ndarray | None
                 ) -> list[tuple[NewImage, int, np.ndarray]]:
         """A taught frame at ``at`` (odometry ``here``): the frames held since the last taught
-        one, placed by the wheels between the two, where the wheels agree with both (their
-        distance within ``BRIDGE_TOLERANCE_M``). Under the lock."""
+        one, placed by the wheels between the two, where the wheels agree with it
+        (``wheels_agree``). Under the lock."""
         gap, anchor = t.gap, t.anchor
         t.gap, t.gap_m = [], 0.0
         t.anchor = None if here is None else (seq, at, here)
@@ -316,8 +359,8 @@ class Learner:
             return []
         _, a_xy, a_odom = anchor
         chord_map, chord_odom = at - a_xy, here - a_odom
-        d_map, d_odom = float(np.linalg.norm(chord_map)), float(np.linalg.norm(chord_odom))
-        if abs(d_map - d_odom) > BRIDGE_TOLERANCE_M or d_odom < 1e-6:
+        if float(np.linalg.norm(chord_odom)) < 1e-6 or \
+                not wheels_agree(Learner._before(t), at, here):
             return []
         # the similarity that maps the two odometry positions onto the two located ones
         factor = complex(*chord_map) / complex(*chord_odom)
@@ -326,6 +369,13 @@ class Learner:
             z = factor * complex(*(odom - a_odom))
             out.append((replace(img, xy=a_xy + np.array([z.real, z.imag])), gseq, odom))
         return out
+
+    @staticmethod
+    def _before(t: _Trail) -> Context:
+        """The robot's located taught frames with odometry, oldest first, the last batch's
+        included (the last ``CONTEXT_FRAMES``). Under the lock."""
+        mine = located(t.pending, t.seqs, t.odometry, t.known)
+        return (t.context + sorted(mine, key=lambda c: c[0]))[-CONTEXT_FRAMES:]
 
     def _bridged(self, t: _Trail, m: RouteMap, held: list[tuple[NewImage, int, np.ndarray]]
                  ) -> None:
@@ -415,9 +465,7 @@ class Learner:
             odometry, t.odometry = t.odometry, []
             known, t.known = t.known, []
             context = t.context
-            t.context = [(q, f.xy, o) for f, q, o, ok in zip(images, seqs, odometry, known,
-                                                             strict=True)
-                         if ok and o is not None][-CONTEXT_FRAMES:]
+            t.context = located(images, seqs, odometry, known)[-CONTEXT_FRAMES:]
         if images:
             self._commit(t.map_name, t.exp_id, placed(images, seqs, odometry, known, context),
                          t.condition, robot_id)
