@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -433,6 +434,32 @@ def test_the_service_hands_a_learning_robot_s_odometry_to_its_learner(
     assert run.stats["odometry"] == run.stats["taught"] > 0, run.stats
 
 
+def test_a_learning_robot_is_answered_before_its_frames_teach(
+        camera_maps: Path, tmp_path: Path, cloudy1: Round) -> None:
+    """The gates run on the learner's thread: while it is held up (the test holds the
+    learner's lock, which every observation takes) the robot's frames are answered; once it
+    runs, the statistics count every frame."""
+    service = _service(camera_maps, tmp_path)
+    service.put_session("r1", SessionConfig(map="route", learn=True, condition="cloudy"))
+    answers: list[Estimate] = []
+
+    def send() -> None:
+        for i in range(4):
+            answers.append(service.process_frame("r1", cloudy1.image_path(i).read_bytes(),
+                                                 t=float(i)))
+
+    robot = threading.Thread(target=send)
+    with service.learner._lock:
+        robot.start()
+        robot.join(120)
+        answered = not robot.is_alive()
+    robot.join()
+    assert answered and [a.seq for a in answers] == [1, 2, 3, 4]
+    assert service.learner.stats("r1")["seen"] == 4
+    service.close()
+    assert not service.learner.running
+
+
 def test_confirming_tracking_moves_no_estimate_on_a_learned_map(
         learning_run: LearningRun, cloudy1: Round) -> None:
     """``confirm_tracking`` is a report: on a map with an experience (the layer choice and
@@ -473,7 +500,7 @@ def test_the_in_process_client_closes_the_engine_it_started(
     assert taught > 0
     assert experience_list(load_map(d / "route.swmap")) == []  # nothing written yet
     client.close()
-    assert not client.service.warmer.running
+    assert not client.service.warmer.running and not client.service.learner.running
     (e,) = experience_list(load_map(d / "route.swmap", verify=True))
     assert e["robot"] == "r1" and 0 < int(e["images"]) <= taught
     client.close()  # a second close changes nothing

@@ -1,6 +1,8 @@
 """Learning sessions: frames where a robot is confidently localized become an experience.
 
-A session created with ``learn`` hands each estimate to ``Learner.observe``. A frame teaches
+A session created with ``learn`` hands each estimate to ``Learner.submit``, which runs
+``Learner.observe`` on the learner's own thread (service/engine/learn_queue.py: the frame is
+answered before its gates run, in the order the frames came). A frame teaches
 only when every gate holds (a kidnapped or lost robot never does), or when the robot's wheels
 bridge it between two frames that did (below):
 
@@ -37,7 +39,8 @@ none either.
 Taught frames are kept (one per place) until ``learn_commit_images`` are collected or the
 session ends or is reset; then the map admin writes them into the map as a new version
 (service/maps/experiences.py). The collected frames stay in this process's memory, not in the
-stored session: a replica that dies loses at most one batch, never a map. Gates 1 and 2 read
+stored session: a replica that dies loses at most one batch (and the frames waiting for their
+gates), never a map. Gates 1 and 2 read
 only the session's recent path (``path_gate``), which is kept with the stored session: a robot
 whose frames alternate between replicas (an HTTP round robin on a shared store) keeps its path,
 each replica collects the frames it served into the same experience (its id comes from the
@@ -52,10 +55,12 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
 from service.api.models import Estimate, Odometry
+from service.engine.learn_queue import LearnQueue
 from service.estimators.along_track import path_tangent
 from service.maps.experiences import (
     GAP_SPACINGS,
@@ -239,7 +244,9 @@ def experience_id(robot_id: str, created: float) -> str:
 
 
 class Learner:
-    """The learning robots' collections of one service; thread-safe."""
+    """The learning robots' collections of one service; thread-safe. ``submit`` runs
+    ``observe`` on the learner's own thread; every other call first waits for the frames
+    handed over before it."""
 
     def __init__(self, gates: LearnGates, commit: Commit) -> None:
         self.gates = gates
@@ -248,6 +255,12 @@ class Learner:
         self._usage: dict[str, Usage] = {}
         self._levels: dict[str, float] = {}  # map version -> same_light_level
         self._lock = threading.Lock()
+        self._queue = LearnQueue()  # ``submit``: the gates off the frame path
+
+    @property
+    def running(self) -> bool:
+        """Whether the learner's thread runs (from the first ``submit`` to ``flush_all``)."""
+        return self._queue.running
 
     # ---- use statistics of experiences (every session) -------------------------------------
     def used(self, map_name: str, exp_id: str, now: float) -> None:
@@ -268,6 +281,7 @@ class Learner:
         """A learning robot's frames seen, taught (``odometry``: of them, sent with the
         robot's odometry), images waiting, and frames stopped by each gate (``confident``,
         ``path``, ``appearance``, ``located``, ``place``)."""
+        self._queue.drain()
         with self._lock:
             t = self._trails.get(robot_id)
             if t is None:
@@ -275,6 +289,14 @@ class Learner:
             return {"seen": t.seen, "taught": t.taught, "bridged": t.bridged,
                     "odometry": t.with_odometry,
                     "waiting": len(t.pending), **t.refused}
+
+    def submit(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
+               features: Features, est: Estimate, stopped: str | None,
+               odom: Odometry | None = None) -> None:
+        """``observe`` on the learner's thread, in the order of the calls
+        (service/engine/learn_queue.py): the frame's answer does not wait for its gates."""
+        self._queue.submit(partial(self.observe, robot_id, created, condition, m, features,
+                                   est, stopped, odom))
 
     def observe(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
                 features: Features, est: Estimate, stopped: str | None,
@@ -455,7 +477,9 @@ class Learner:
         return None
 
     def flush(self, robot_id: str, end: bool = False) -> None:
-        """Hand the robot's collected images to the writer (and with ``end`` forget it)."""
+        """Hand the robot's collected images to the writer (and with ``end`` forget it), its
+        frames handed over before included."""
+        self._queue.drain()
         with self._lock:
             t = self._trails.pop(robot_id, None) if end else self._trails.get(robot_id)
             if t is None:
@@ -474,6 +498,7 @@ class Learner:
         """Write the collections of robots that sent this replica no frame for ``idle_s``
         (their frames go to another replica now, or they stopped; the trail stays)."""
         now = time.monotonic() if now is None else now
+        self._queue.drain()
         with self._lock:
             robots = [rid for rid, t in self._trails.items()
                       if t.pending and now - t.last_seen > idle_s]
@@ -482,12 +507,15 @@ class Learner:
 
     def flush_all(self) -> None:
         """At shutdown: write every learning robot's collected images (they live in memory
-        only; a session that continues after a restart starts a new collection)."""
+        only; a session that continues after a restart starts a new collection), and stop
+        the learner's thread."""
+        self._queue.close()
         with self._lock:
             robots = list(self._trails)
         for rid in robots:
             self.flush(rid, end=True)
 
     def forget(self, robot_id: str) -> None:
+        self._queue.drain()
         with self._lock:
             self._trails.pop(robot_id, None)

@@ -478,9 +478,9 @@ class LocalizationService:
             raise
         if est.experience is not None:
             self.learner.used(ran_on.name, est.experience, time.time())
-        if learn:  # outside the session's lock; a full collection is handed to the writer
-            self.learner.observe(robot_id, created, condition, ran_on, features, est, stopped,
-                                 odom)
+        if learn:  # the gates run on the learner's thread; a full collection goes to the writer
+            self.learner.submit(robot_id, created, condition, ran_on, features, est, stopped,
+                                odom)
         self.metrics.frames.labels(transport).inc()
         self.metrics.comparisons.inc(est.comparisons)
         elapsed = time.perf_counter() - t0
