@@ -436,9 +436,9 @@ def test_the_service_hands_a_learning_robot_s_odometry_to_its_learner(
 
 def test_a_learning_robot_is_answered_before_its_frames_teach(
         camera_maps: Path, tmp_path: Path, cloudy1: Round) -> None:
-    """The gates run on the learner's thread: while it is held up (the test holds the
-    learner's lock, which every observation takes) the robot's frames are answered; once it
-    runs, the statistics count every frame."""
+    """The gates run on the learner's threads: while they are held up (the test holds the
+    learner's lock, which every observation takes) the robot's frames are answered; once they
+    run, the statistics count every frame."""
     service = _service(camera_maps, tmp_path)
     service.put_session("r1", SessionConfig(map="route", learn=True, condition="cloudy"))
     answers: list[Estimate] = []

@@ -2,100 +2,118 @@
 
 A learning robot's frame is answered as soon as it is localized: the learner's gates
 (service/engine/learning.py; its two-view geometry, and at the frame that closes a stretch
-bridged by the wheels the appearance check of every held frame) run on one background thread
-per service, in the order the frames were handed over (``submit``), so that a robot's
-collection is the one the gates make frame by frame. The queue is bounded
-(``LEARN_QUEUE_FRAMES``): where the thread falls behind, the next learning frame waits for a
-place, so the learner never drops a frame, and only learning robots wait. ``drain`` waits for
-what was handed over before it (a session's end or reset, the statistics); ``close`` drains
-and stops the thread (a job handed over after it runs at once). A job that fails is logged,
-and the next one runs.
+bridged by the wheels the appearance check of every held frame) run on the learner's own
+threads. Each robot's frames go to one of them (``submit`` with the robot's id as the key),
+in the order they were handed over, so that its collection is the one the gates make frame
+by frame; several robots spread over ``LEARN_THREADS`` threads. Each thread's queue is
+bounded (``LEARN_QUEUE_FRAMES``): where a thread falls behind, the next learning frame waits
+for a place, so the learner never drops a frame, and only learning robots wait. ``drain``
+waits for what was handed over before it (a session's end or reset, the statistics);
+``close`` drains and stops the threads (a job handed over after it runs at once). A job that
+fails is logged, and the next one runs.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
+import zlib
 from collections.abc import Callable
 
 log = logging.getLogger("swarmloc")
 
-LEARN_QUEUE_FRAMES = 64  # learning frames waiting for their gates (~115 kB of features each)
+LEARN_QUEUE_FRAMES = 64  # learning frames waiting for their gates, per thread (~115 kB each)
+LEARN_THREADS = max(1, min(4, os.cpu_count() or 1))  # threads running the gates
+
+Job = Callable[[], None]
 
 
 class LearnQueue:
-    """One background thread that runs jobs in the order they were handed over."""
+    """Background threads that run each key's jobs in the order they were handed over."""
 
-    def __init__(self, maxsize: int = LEARN_QUEUE_FRAMES) -> None:
-        self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue(maxsize)
+    def __init__(self, maxsize: int = LEARN_QUEUE_FRAMES, threads: int = LEARN_THREADS
+                 ) -> None:
+        if threads < 1:
+            raise ValueError(f"the learner needs at least one thread, got {threads}")
+        self._jobs: list[queue.Queue[Job | None]] = [queue.Queue(maxsize)
+                                                     for _ in range(threads)]
+        self._threads: list[threading.Thread | None] = [None] * threads
         self._cond = threading.Condition()
         self._submitted = 0
         self._done = 0
-        self._thread: threading.Thread | None = None
         self._closed = False
         self.failed = 0  # jobs that raised
 
-    def submit(self, job: Callable[[], None]) -> None:
-        """Hand ``job`` to the thread (started on the first job); waits for a place where the
-        queue is full; runs it here once the queue is closed."""
+    def submit(self, key: str, job: Job) -> None:
+        """Hand ``job`` to ``key``'s thread (started on its first job), after the key's
+        earlier jobs; waits for a place where its queue is full; runs it here once the queue
+        is closed."""
+        k = zlib.crc32(key.encode()) % len(self._jobs)
         with self._cond:
             closed = self._closed
             if not closed:
-                if self._thread is None:
-                    self._thread = threading.Thread(target=self._run, name="swarmloc-learn",
-                                                    daemon=True)
-                    self._thread.start()
+                if self._threads[k] is None:
+                    t = threading.Thread(target=self._run, args=(self._jobs[k],),
+                                         name=f"swarmloc-learn-{k}", daemon=True)
+                    self._threads[k] = t
+                    t.start()
                 self._submitted += 1
         if closed:
             self._call(job)
         else:
-            self._jobs.put(job)
+            self._jobs[k].put(job)
 
     def drain(self, timeout: float | None = None) -> bool:
-        """Wait until every job handed over before this call has run (at once on the thread
-        itself); False where ``timeout`` passed first."""
-        if threading.current_thread() is self._thread:
+        """Wait until every job handed over before this call has run (at once on one of the
+        threads: a job may drain); False where ``timeout`` passed first."""
+        if threading.current_thread() in self._threads:
             return True
         with self._cond:
             target = self._submitted
             return self._cond.wait_for(lambda: self._done >= target, timeout)
 
     def close(self) -> None:
-        """Run what is queued and stop the thread."""
+        """Run what is queued and stop the threads."""
         with self._cond:
-            thread, self._closed = self._thread, True
-        if thread is not None and thread.is_alive():
-            self._jobs.put(None)
-            thread.join()
-        while True:  # handed over while it closed: run here
-            try:
-                job = self._jobs.get_nowait()
-            except queue.Empty:
-                return
-            if job is not None:
-                self._call(job)
-                with self._cond:
-                    self._done += 1
-                    self._cond.notify_all()
+            self._closed = True
+            threads = list(self._threads)
+        for q, t in zip(self._jobs, threads, strict=True):
+            if t is not None and t.is_alive():
+                q.put(None)
+                t.join()
+        for q in self._jobs:  # handed over while it closed: run here
+            while True:
+                try:
+                    job = q.get_nowait()
+                except queue.Empty:
+                    break
+                if job is not None:
+                    self._call(job)
+                    self._ran()
 
     @property
     def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+        return any(t is not None and t.is_alive() for t in self._threads)
 
-    def _call(self, job: Callable[[], None]) -> None:
+    def _call(self, job: Job) -> None:
         try:
             job()
         except Exception:  # a learning frame's failure must not stop the others
-            self.failed += 1
+            with self._cond:
+                self.failed += 1
             log.exception("learning: a frame's gates failed; the session goes on")
 
-    def _run(self) -> None:
+    def _ran(self) -> None:
+        with self._cond:
+            self._done += 1
+            self._cond.notify_all()
+
+    def _run(self, jobs: queue.Queue[Job | None]) -> None:
         while True:
-            job = self._jobs.get()
+            job = jobs.get()
             if job is None:
                 return
             self._call(job)
-            with self._cond:
-                self._done += 1
-                self._cond.notify_all()
+            self._ran()

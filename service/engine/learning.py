@@ -1,8 +1,8 @@
 """Learning sessions: frames where a robot is confidently localized become an experience.
 
 A session created with ``learn`` hands each estimate to ``Learner.submit``, which runs
-``Learner.observe`` on the learner's own thread (service/engine/learn_queue.py: the frame is
-answered before its gates run, in the order the frames came). A frame teaches
+``Learner.observe`` on the learner's own threads (service/engine/learn_queue.py: the frame
+is answered before its gates run, a robot's frames in the order they came). A frame teaches
 only when every gate holds (a kidnapped or lost robot never does), or when the robot's wheels
 bridge it between two frames that did (below):
 
@@ -245,7 +245,7 @@ def experience_id(robot_id: str, created: float) -> str:
 
 class Learner:
     """The learning robots' collections of one service; thread-safe. ``submit`` runs
-    ``observe`` on the learner's own thread; every other call first waits for the frames
+    ``observe`` on the learner's own threads; every other call first waits for the frames
     handed over before it."""
 
     def __init__(self, gates: LearnGates, commit: Commit) -> None:
@@ -259,7 +259,7 @@ class Learner:
 
     @property
     def running(self) -> bool:
-        """Whether the learner's thread runs (from the first ``submit`` to ``flush_all``)."""
+        """Whether the learner's threads run (from the first ``submit`` to ``flush_all``)."""
         return self._queue.running
 
     # ---- use statistics of experiences (every session) -------------------------------------
@@ -293,10 +293,10 @@ class Learner:
     def submit(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
                features: Features, est: Estimate, stopped: str | None,
                odom: Odometry | None = None) -> None:
-        """``observe`` on the learner's thread, in the order of the calls
+        """``observe`` on the robot's learner thread, after the robot's earlier frames
         (service/engine/learn_queue.py): the frame's answer does not wait for its gates."""
-        self._queue.submit(partial(self.observe, robot_id, created, condition, m, features,
-                                   est, stopped, odom))
+        self._queue.submit(robot_id, partial(self.observe, robot_id, created, condition, m,
+                                             features, est, stopped, odom))
 
     def observe(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
                 features: Features, est: Estimate, stopped: str | None,
@@ -508,7 +508,7 @@ class Learner:
     def flush_all(self) -> None:
         """At shutdown: write every learning robot's collected images (they live in memory
         only; a session that continues after a restart starts a new collection), and stop
-        the learner's thread."""
+        the learner's threads."""
         self._queue.close()
         with self._lock:
             robots = list(self._trails)

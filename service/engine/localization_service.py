@@ -478,7 +478,7 @@ class LocalizationService:
             raise
         if est.experience is not None:
             self.learner.used(ran_on.name, est.experience, time.time())
-        if learn:  # the gates run on the learner's thread; a full collection goes to the writer
+        if learn:  # the gates on the learner's threads; a full collection goes to the writer
             self.learner.submit(robot_id, created, condition, ran_on, features, est, stopped,
                                 odom)
         self.metrics.frames.labels(transport).inc()
