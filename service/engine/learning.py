@@ -40,12 +40,11 @@ Taught frames are kept (one per place) until ``learn_commit_images`` are collect
 session ends or is reset; then the map admin writes them into the map as a new version
 (service/maps/experiences.py). The collected frames stay in this process's memory, not in the
 stored session: a replica that dies loses at most one batch (and the frames waiting for their
-gates), never a map. Gates 1 and 2 read
-only the session's recent path (``path_gate``), which is kept with the stored session: a robot
-whose frames alternate between replicas (an HTTP round robin on a shared store) keeps its path,
-each replica collects the frames it served into the same experience (its id comes from the
-robot and the session's creation), and a replica writes a collection its robot has left for
-``idle_s`` (``flush_idle``).
+gates), never a map. Gates 1 and 2 read only the session's recent path (``path_gate``), which
+is kept with the stored session: a robot whose frames alternate between replicas (an HTTP
+round robin on a shared store) keeps its path, each replica collects the frames it served
+into the same experience (its id comes from the robot and the session's creation), and a
+replica writes a collection its robot has left for ``idle_s`` (``flush_idle``).
 """
 
 from __future__ import annotations
