@@ -513,8 +513,3 @@ class Learner:
             robots = list(self._trails)
         for rid in robots:
             self.flush(rid, end=True)
-
-    def forget(self, robot_id: str) -> None:
-        self._queue.drain()
-        with self._lock:
-            self._trails.pop(robot_id, None)
