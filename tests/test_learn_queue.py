@@ -46,8 +46,7 @@ def test_another_robot_s_jobs_are_not_held_up() -> None:
     ran = threading.Event()
     q.submit(a, lambda: gate.wait(60))
     q.submit(b, ran.set)
-    assert ran.wait(60)  # while robot a's job still waits
-    assert not gate.is_set()
+    assert ran.wait(60)  # while robot a's job still waits (one thread: it never would)
     gate.set()
     q.close()
 

@@ -393,10 +393,10 @@ class Learner:
 
     @staticmethod
     def _before(t: _Trail) -> Context:
-        """The robot's located taught frames with odometry, oldest first, the last batch's
-        included (the last ``CONTEXT_FRAMES``). Under the lock."""
-        mine = located(t.pending, t.seqs, t.odometry, t.known)
-        return (t.context + sorted(mine, key=lambda c: c[0]))[-CONTEXT_FRAMES:]
+        """The robot's located taught frames with odometry, oldest first (located frames join
+        the collection in frame order; bridged ones, which join later, are left out), the
+        last batch's included (the last ``CONTEXT_FRAMES``). Under the lock."""
+        return (t.context + located(t.pending, t.seqs, t.odometry, t.known))[-CONTEXT_FRAMES:]
 
     def _bridged(self, t: _Trail, m: RouteMap, held: list[tuple[NewImage, int, np.ndarray]]
                  ) -> None:
