@@ -400,7 +400,7 @@ def test_the_learner_locates_a_dark_frame_with_the_second_set(dual_map: RouteMap
         truth = np.asarray(sunny2.xy[i], float)
         near = int(dual_map.nearest(truth[None, :])[0][0])
         by_first += dual_map.geometry.locate(f, near, p) is not None  # type: ignore[union-attr]
-        at = learner._located(dual_map, f, truth)
+        at, _ = learner._located(dual_map, f, truth)
         by_learner += bool(at is not None and np.linalg.norm(at - truth) <= 1.0)
     assert by_first <= len(frames) // 4  # RootSIFT's matches cannot locate the dark frames
     assert by_learner >= len(frames) // 2

@@ -428,6 +428,36 @@ def test_frames_between_taught_ones_are_taught_by_the_wheels(
         assert not set(seqs(kidnapped)) & set(gaps[0]), (carry, stats)
 
 
+def test_a_carry_across_the_way_after_a_session_s_first_taught_frame_is_not_bridged(
+        camera_maps: Path, cloudy1: Round, cloudy_features: list[Features]) -> None:
+    """A stretch right after the first frame a session taught (one located frame before it:
+    no path of taught frames to align the wheels to): the wheels' step, turned into the map
+    by that frame's located camera heading, must reach the frame after the stretch. Without a
+    carry the stretch is bridged; carried 5 m across its way in the middle (the distance
+    between the taught frames on either side barely changes), none of it is."""
+    m = load_map(camera_maps / "route.swmap")
+    assert cloudy1.odometry is not None
+    poses = odometry_poses(cloudy1.odometry, np.arange(STRETCH))
+
+    def seqs(images: list[NewImage]) -> list[int]:
+        return [int(f.name.rsplit("/", 1)[1]) - 1 for f in images]
+
+    first = min(seqs(_teach_with_gaps(m, cloudy1, cloudy_features, [], list(poses))[0]))
+    gap = range(first + 1, first + 9)
+    taught, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [gap], list(poses))
+    assert stats["bridged"] > 0 and set(seqs(taught)) & set(gap), stats
+
+    a, b = poses[first], poses[gap.stop]
+    assert a is not None and b is not None
+    ahead = np.array([b.x - a.x, b.y - a.y]) / float(np.hypot(b.x - a.x, b.y - a.y))
+    carry = 5.0 * np.array([-ahead[1], ahead[0]])
+    carried = [p if p is None or i < first + 5 else
+               p.model_copy(update={"x": p.x - float(carry[0]), "y": p.y - float(carry[1])})
+               for i, p in enumerate(poses)]
+    kidnapped, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [gap], carried)
+    assert not set(seqs(kidnapped)) & set(gap), stats
+
+
 def test_the_service_hands_a_learning_robot_s_odometry_to_its_learner(
         camera_maps: Path, tmp_path: Path, cloudy1: Round) -> None:
     run = _learn(camera_maps, tmp_path, cloudy1, odometry=True, frames=12)

@@ -29,9 +29,10 @@ line through the located positions of nearby frames.
 Frames between two taught ones are *bridged by the wheels*: where the robot sends its
 odometry, a frame stopped by gate 1, 2 or 4 after a taught frame is held, and when the next
 frame is taught within ``BRIDGE_M`` of travel, and the wheels agree with where it was located
-(``wheels_agree``: their path aligned to the taught frames before the stretch puts it within
-``BRIDGE_TOLERANCE_M``, so a robot carried off between them, along its way or across it, is
-not bridged), the held frames join the collection if they pass gates 3 and 5 at the place the
+(``wheels_agree``: their step from the frame before the stretch, turned into the map by that
+frame's located camera heading, and their path aligned to the taught frames before, put it
+within ``BRIDGE_TOLERANCE_M``, so a robot carried off between them, along its way or across
+it, is not bridged), the held frames join the collection if they pass gates 3 and 5 at the place the
 wheels give them; ``placed`` then places them by the odometry alone, aligned to the taught
 frames around them. A session that never tracks confidently teaches no frame, so it bridges
 none either.
@@ -58,6 +59,7 @@ from functools import partial
 
 import numpy as np
 
+from service.api.geo import wrap_angle
 from service.api.models import Estimate, Odometry
 from service.engine.learn_queue import LearnQueue
 from service.estimators.along_track import path_tangent
@@ -114,6 +116,7 @@ class _Trail:
     odometry: list[np.ndarray | None] = field(default_factory=list)  # each one's (x, y), if sent
     known: list[bool] = field(default_factory=list)  # each one located (False: bridged)
     anchor: tuple[int, np.ndarray, np.ndarray] | None = None  # last taught (seq, xy, odometry)
+    turn: float | None = None  # the anchor's located heading less its odometry yaw
     gap: list[tuple[NewImage, int, np.ndarray]] = field(default_factory=list)  # since it
     gap_m: float = 0.0  # the wheels' travel since it
     bridged: int = 0
@@ -216,18 +219,34 @@ def wheels_place(before: Context, here: np.ndarray) -> np.ndarray | None:
     return at if np.isfinite(at).all() else None
 
 
-def wheels_agree(before: Context, at: np.ndarray, here: np.ndarray) -> bool:
+def wheels_turned(before: Context, turn: float, here: np.ndarray) -> np.ndarray | None:
+    """Where the robot's wheels put a frame with odometry ``here`` after the last taught frame
+    of ``before``, their step turned into the map by ``turn`` (the map heading of that
+    frame's located camera less its odometry yaw)."""
+    if not before:
+        return None
+    _, a_xy, a_odom = before[-1]
+    c, s = np.cos(turn), np.sin(turn)
+    step = here - a_odom
+    return a_xy + np.array([c * step[0] - s * step[1], s * step[0] + c * step[1]])
+
+
+def wheels_agree(before: Context, at: np.ndarray, here: np.ndarray,
+                 turn: float | None = None) -> bool:
     """Whether the robot's wheels agree with a taught frame located at ``at`` (odometry
     ``here``) after a stretch it did not teach, the taught frames ``before`` it (oldest
-    first; the last one starts the stretch): ``wheels_place`` puts it within
+    first; the last one starts the stretch): each place the wheels give it is within
     ``BRIDGE_TOLERANCE_M`` of ``at``, so a robot carried off in the stretch, along its way or
-    across it, disagrees. Where those frames give no heading (they do not spread: the first
-    taught frames of a session), the distance the wheels travelled since the last of them
-    agrees with the located one within ``BRIDGE_TOLERANCE_M`` (a carry across the way passes
-    this check)."""
-    p = wheels_place(before, here)
-    if p is not None:
-        return float(np.linalg.norm(p - at)) <= BRIDGE_TOLERANCE_M
+    across it, disagrees. The places: ``wheels_turned`` by ``turn`` (the stretch's first
+    frame's located heading less its odometry yaw: from a session's first taught frame on)
+    and ``wheels_place`` (where the frames before spread). Where neither applies, the
+    distance the wheels travelled since the last of them agrees with the located one within
+    ``BRIDGE_TOLERANCE_M`` (a carry across the way passes this check)."""
+    places = [p for p in (wheels_place(before, here),
+                          None if turn is None else wheels_turned(before, turn, here))
+              if p is not None]
+    if places:
+        return all(float(np.linalg.norm(p - at)) <= BRIDGE_TOLERANCE_M for p in places)
     if not before:
         return False
     _, a_xy, a_odom = before[-1]
@@ -319,9 +338,10 @@ class Learner:
                 self._hold(t, m, features, est.seq, odom)
                 return
         at: np.ndarray | None = None
+        heading: float | None = None
         gate: str | None = "appearance"
         if self._new_appearance(m, features, xy):
-            at = self._located(m, features, xy)
+            at, heading = self._located(m, features, xy)
             gate = None if at is not None else "located"
             if stopped == "accuracy" and (gate is not None or m.geometry is None):
                 gate = "confident"  # neither the estimate nor the geometry is sure of it
@@ -337,7 +357,9 @@ class Learner:
                 return
             t.taught += 1
             here = None if odom is None else np.array([odom.x, odom.y], float)
-            held = self._bridge(t, at, est.seq, here)
+            turn = None if odom is None or heading is None else \
+                wrap_angle(heading - odom.yaw)
+            held = self._bridge(t, at, est.seq, here, turn)
             t.pending.append(NewImage.of(features, at, f"{t.exp_id}/{est.seq:06d}",
                                          second=m.second is not None))
             t.seqs.append(est.seq)
@@ -368,20 +390,21 @@ class Learner:
                                   second=m.second is not None), seq, here))
 
     @staticmethod
-    def _bridge(t: _Trail, at: np.ndarray, seq: int, here: np.ndarray | None
-                ) -> list[tuple[NewImage, int, np.ndarray]]:
+    def _bridge(t: _Trail, at: np.ndarray, seq: int, here: np.ndarray | None,
+                turn: float | None = None) -> list[tuple[NewImage, int, np.ndarray]]:
         """A taught frame at ``at`` (odometry ``here``): the frames held since the last taught
         one, placed by the wheels between the two, where the wheels agree with it
         (``wheels_agree``). Under the lock."""
-        gap, anchor = t.gap, t.anchor
+        gap, anchor, anchor_turn = t.gap, t.anchor, t.turn
         t.gap, t.gap_m = [], 0.0
         t.anchor = None if here is None else (seq, at, here)
+        t.turn = None if here is None else turn
         if here is None or anchor is None or not gap:
             return []
         _, a_xy, a_odom = anchor
         chord_map, chord_odom = at - a_xy, here - a_odom
         if float(np.linalg.norm(chord_odom)) < 1e-6 or \
-                not wheels_agree(Learner._before(t), at, here):
+                not wheels_agree(Learner._before(t), at, here, anchor_turn):
             return []
         # the similarity that maps the two odometry positions onto the two located ones
         factor = complex(*chord_map) / complex(*chord_odom)
@@ -444,14 +467,15 @@ class Learner:
         ids, dist = m.nearest_per_layer(xy[None, :])
         return ids[0][dist[0] <= GAP_SPACINGS * base_spacing(m)]
 
-    def _located(self, m: RouteMap, features: Features, xy: np.ndarray) -> np.ndarray | None:
+    def _located(self, m: RouteMap, features: Features, xy: np.ndarray
+                 ) -> tuple[np.ndarray | None, float | None]:
         """Gate 4: where the geometry places the frame, near the estimate; None where it does
         not (maps without the camera: the estimate, the gate does not apply). On a map of two
         feature types an image the first set (RootSIFT) does not locate the frame at is tried
         with the second (XFeat)."""
         geometry = m.geometry
         if geometry is None:
-            return xy
+            return xy, None
         tries = [(geometry, features)]
         if m.second_geometry is not None and features.second is not None:
             tries.append((m.second_geometry, features.second))
@@ -472,8 +496,8 @@ class Learner:
                 at = m.positions[image] + off.right_m * right + off.ahead_m * tangent
                 if np.isfinite(at).all() and \
                         float(np.linalg.norm(at - xy)) <= LOCATED_TOLERANCE_M:
-                    return np.asarray(at, float)
-        return None
+                    return np.asarray(at, float), off.heading
+        return None, None
 
     def flush(self, robot_id: str, end: bool = False) -> None:
         """Hand the robot's collected images to the writer (and with ``end`` forget it), its
