@@ -32,9 +32,9 @@ frame is taught within ``BRIDGE_M`` of travel, and the wheels agree with where i
 (``wheels_agree``: their step from the frame before the stretch, turned into the map by that
 frame's located camera heading, and their path aligned to the taught frames before, put it
 within ``BRIDGE_TOLERANCE_M``, so a robot carried off between them, along its way or across
-it, is not bridged), the held frames join the collection if they pass gates 3 and 5 at the place the
-wheels give them; ``placed`` then places them by the odometry alone, aligned to the taught
-frames around them. A session that never tracks confidently teaches no frame, so it bridges
+it, is not bridged), the held frames join the collection if they pass gates 3 and 5 at the
+place the wheels give them; ``placed`` then places them by the odometry alone, aligned to the
+taught frames around them. A session that never tracks confidently teaches no frame, so it bridges
 none either.
 
 Taught frames are kept (one per place) until ``learn_commit_images`` are collected or the
