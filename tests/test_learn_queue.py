@@ -98,6 +98,24 @@ def test_close_runs_what_is_queued_and_later_jobs_run_at_once() -> None:
     assert ran == [1, 2]
 
 
+def test_close_waits_for_a_job_counted_before_it_and_handed_over_after() -> None:
+    """A submit counts its job, then hands it over (it may wait for a place): a close in
+    between runs that job too, so a drain after it does not wait forever. The submit is
+    played by hand (counted, then put 0.3 s later, after the thread has stopped)."""
+    q = LearnQueue(threads=1)
+    ran: list[int] = []
+    q.submit("r", lambda: ran.append(1))  # starts the thread
+    assert q.drain(5)
+    with q._cond:
+        q._submitted += 1
+    late = threading.Timer(0.3, q._jobs[0].put, args=(lambda: ran.append(2),))
+    late.start()
+    q.close()
+    late.join()
+    assert ran == [1, 2] and not q.running
+    assert q.drain(1)
+
+
 def test_the_learner_needs_a_thread() -> None:
     with pytest.raises(ValueError, match="at least one thread"):
         LearnQueue(threads=0)

@@ -83,12 +83,17 @@ class LearnQueue:
             if t is not None and t.is_alive():
                 q.put(None)
                 t.join()
-        for q in self._jobs:  # handed over while it closed: run here
-            while True:
+        # handed over while it closed (a job counted before it may still be on its way): run
+        # here, until every job counted has run
+        while True:
+            with self._cond:
+                if self._done >= self._submitted:
+                    return
+            for q in self._jobs:
                 try:
-                    job = q.get_nowait()
+                    job = q.get(timeout=0.01)
                 except queue.Empty:
-                    break
+                    continue
                 if job is not None:
                     self._call(job)
                     self._ran()
