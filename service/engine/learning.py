@@ -59,7 +59,6 @@ from functools import partial
 
 import numpy as np
 
-from service.api.geo import wrap_angle
 from service.api.models import Estimate, Odometry
 from service.engine.learn_queue import LearnQueue
 from service.estimators.along_track import path_tangent
@@ -83,8 +82,8 @@ SMOOTH_FRAMES = 4  # learned positions: a line through the taught frames this ma
 CONTEXT_FRAMES = 48  # the last batch's taught frames that place the next one's first frames
 BRIDGE_M = 15.0  # a stretch between two taught frames this long (odometry) is taught by the wheels
 BRIDGE_FRAMES = 64  # and holds at most this many frames
-BRIDGE_TOLERANCE_M = 3.0  # the wheels, aligned to the taught frames before a stretch, put the
-# frame after it this close to where it was located
+BRIDGE_TOLERANCE_M = 3.0  # the wheels put the frame after a stretch this close to where it was
+# located (``wheels_agree``)
 LEARN_IDLE_S = 30.0  # a replica writes what it collected of a robot that sent it nothing so long
 
 Context = list[tuple[int, np.ndarray, np.ndarray]]  # a batch's taught frames (seq, xy, odometry)
@@ -226,9 +225,8 @@ def wheels_turned(before: Context, turn: float, here: np.ndarray) -> np.ndarray 
     if not before:
         return None
     _, a_xy, a_odom = before[-1]
-    c, s = np.cos(turn), np.sin(turn)
-    step = here - a_odom
-    return a_xy + np.array([c * step[0] - s * step[1], s * step[0] + c * step[1]])
+    z = complex(np.cos(turn), np.sin(turn)) * complex(*(here - a_odom))
+    return a_xy + np.array([z.real, z.imag])
 
 
 def wheels_agree(before: Context, at: np.ndarray, here: np.ndarray,
@@ -357,8 +355,7 @@ class Learner:
                 return
             t.taught += 1
             here = None if odom is None else np.array([odom.x, odom.y], float)
-            turn = None if odom is None or heading is None else \
-                wrap_angle(heading - odom.yaw)
+            turn = None if odom is None or heading is None else heading - odom.yaw
             held = self._bridge(t, at, est.seq, here, turn)
             t.pending.append(NewImage.of(features, at, f"{t.exp_id}/{est.seq:06d}",
                                          second=m.second is not None))
