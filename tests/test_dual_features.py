@@ -19,7 +19,6 @@ from typer.testing import CliRunner
 from client.cli import app
 from client.dataset import Round
 from client.lab.world import World
-from client.lab.world.geometry import Pose
 from service.api.models import SessionConfig
 from service.api.params import DPSOParams
 from service.api.round_format import camera_from_hfov
@@ -41,7 +40,6 @@ from service.settings import Settings
 from service.vision.features import DualParams, SiftParams, extract, named_params
 from service.vision.fusion import Fusion
 from service.vision.map_geometry import GeometryParams
-from service.vision.place_index import build_place_index
 from service.vision.xfeat import XFeatParams
 from tests.test_experiences import feed_a_wrong_place
 
@@ -156,44 +154,6 @@ def test_a_dark_frame_is_placed_by_xfeat_where_rootsift_finds_nothing(dual_map: 
         placed += bool(np.linalg.norm(best - truth) <= 3.0)
     assert by_rootsift <= len(frames) // 2  # RootSIFT sees (almost) nothing in the dark
     assert placed >= len(frames) - 1
-
-
-def test_a_dual_map_finds_a_dusk_frame_s_place_by_its_xfeat_features(
-        dual_map: RouteMap, small_world: World, tmp_path: Path) -> None:
-    """The place index of a map of two types describes its images by their XFeat features
-    (recorded in the file), and at dusk it proposes the true place among its top five far
-    more often than an index of the same images' RootSIFT features. Such an index, the one
-    maps built before carry, still loads and seeds from a frame's RootSIFT features."""
-    index = dual_map.place_index
-    assert index is not None and index.second and index.words.shape[1] == 64
-    assert dual_map.path is not None
-    header, _, _ = _header(dual_map.path)
-    assert header["place_index"]["feature_set"] == "second"
-    before = load_map(dual_map.path)  # a map built before: its index on RootSIFT
-    before.place_index = build_place_index(before, np.random.default_rng(0))
-    old = load_map(save_map(before, tmp_path / "before"))
-    assert old.place_index is not None and not old.place_index.second
-    assert old.place_index.words.shape[1] == 128
-    xy, t, _ = small_world.round_trajectory(3)
-    frames = range(0, len(xy), 6)
-    found = {"xfeat": 0, "rootsift": 0}
-    for i in frames:
-        f = extract(small_world.render(Pose(*xy[i]), "dusk", t=float(t[i])),
-                    dual_map.feature_params)
-        assert f.second is not None
-        assert np.array_equal(index.frame_codes(f), f.second.codes)
-        assert np.array_equal(old.place_index.frame_codes(f), f.codes)
-        for name, idx in (("xfeat", index), ("rootsift", old.place_index)):
-            ids, _ = idx.query(idx.frame_codes(f), 5)
-            found[name] += bool((np.linalg.norm(dual_map.positions[ids] - xy[i][:2], axis=1)
-                                 <= 3.0).any())
-    assert found["xfeat"] >= 0.9 * len(frames)  # 0.96 when written
-    assert found["xfeat"] >= found["rootsift"] + 0.1 * len(frames)  # RootSIFT: 0.78
-    loc = Localizer(old, seed=0)  # the old index still seeds a search
-    f = extract(small_world.render(Pose(*xy[30]), "sunny", t=float(t[30])),
-                old.feature_params)
-    loc.step(f, t=0.0)
-    assert loc.seeder is not None and loc.seeder.queries == 1 and len(loc.seeder.last_ids)
 
 
 def test_dpso_localizes_on_a_dual_map_with_the_geometry(dual_map: RouteMap, sunny2: Round
@@ -336,9 +296,6 @@ def test_a_learning_session_on_a_dual_map_learns_both_sets(dual_map: RouteMap, c
         assert got.second is not None and frame.second is not None
         assert np.array_equal(got.codes, frame.codes)
         assert np.array_equal(got.second.codes, frame.second.codes)
-        assert m.place_index is not None and m.place_index.second  # placed by its XFeat
-        np.testing.assert_allclose(m.place_index.descriptors[i],
-                                   m.place_index.describe(frame.second.codes), atol=2e-3)
     own = m.image_features(0)  # the map's own images keep their sets
     assert own.second is not None and dual_map.second is not None
     assert np.array_equal(own.second.codes, dual_map.second.codes[dual_map.second.rows(0)])

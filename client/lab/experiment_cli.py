@@ -56,12 +56,9 @@ def map_for(dataset: Path, rounds: str, papers: bool, features: str = "clahe-roo
     if path.is_file():
         kept = load_map(path)
         placed = [round_positions(r, rule)[1] for r in rnds]
-        # else built before the camera was known, with other positions, or before a map of
-        # two types described its places by XFeat
+        # else built before the camera was known, or with other positions
         if (kept.meta.get("camera") == rnds[0].camera
-                and kept.meta.get("source", {}).get("positions") == placed
-                and (kept.place_index is None
-                     or kept.place_index.second == (kept.second is not None))):
+                and kept.meta.get("source", {}).get("positions") == placed):
             return kept
     params = SiftParams.papers() if papers else named_params(features, *size, max_features)
     m = build_map_from_rounds(rnds, params=params, prune_features=papers, positions=rule)

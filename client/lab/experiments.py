@@ -96,7 +96,7 @@ def run(route_map: RouteMap, table: SimilarityTable, rnd: Round, estimator: str 
     for it, q in enumerate(seq):
         t0 = time.perf_counter()
         motion = loc.take_odometry(poses[it])
-        loc.seed_places(table.queries[q])  # the place index, while searching
+        loc.seed_places(table.queries[q].codes)  # the place index, while searching
         e = loc.estimator.step(partial(table.scores, int(q)), it * dt,
                                loc.locator(table.queries[q]), motion,
                                first=table.first_of(int(q)))

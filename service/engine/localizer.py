@@ -117,10 +117,11 @@ class Localizer:
         motion = self.take_odometry(odom)
         if prior is not None:
             self.estimator.constrain((prior[0], prior[1]), prior[2])
+        codes = features.codes
         learned = bool(experience_layers(self.map))
         verified = ComparisonCache(lambda ids: self.map.similarity(features, ids)) \
             if learned else None
-        self.seed_places(features, None if verified is None else self._verify(verified))
+        self.seed_places(codes, None if verified is None else self._verify(verified))
         # the similarity keeps the frame's matches for the geometry (no second matching),
         # XFeat's too where its geometry may be tried (``locator``)
         kept = FramePairs(GeometryParams().delta) if self.map.geometry is not None else None
@@ -197,12 +198,11 @@ class Localizer:
             return np.asarray(similarity(ids) >= SEED_SHARE * self._level)
         return verify
 
-    def seed_places(self, features: Features, verify: Verify | None = None) -> None:
+    def seed_places(self, codes: np.ndarray, verify: Verify | None = None) -> None:
         """Candidate places of this frame for a searching estimator (service/vision/place_index.py);
         a no-op without a place index. ``verify``: the learned candidates it may be given."""
         if self.seeder is not None:
             last = self.last
-            codes = self.seeder.index.frame_codes(features)
             self.seeder.before_step(self.estimator, codes, None if last is None
                                     else np.array([last.x, last.y]), verify)
 

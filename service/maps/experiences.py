@@ -28,7 +28,7 @@ from __future__ import annotations
 import datetime as dt
 import math
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -37,6 +37,7 @@ import numpy as np
 from service.estimators.along_track import path_tangents
 from service.maps.compact import KEYPOINT_DTYPE, Keypoints
 from service.maps.route_map import Chunk, MapError, RouteMap, load_map, write_map
+from service.vision.place_index import PlaceIndex
 
 if TYPE_CHECKING:
     from service.vision.features import Features
@@ -173,20 +174,19 @@ def _rewrite(m: RouteMap, path: Path, keep: np.ndarray, new: Sequence[NewImage],
     names = [m.image_names[int(i)] for i in kept] + [f.name for f in new]
     layers = np.concatenate([layer_map[_layers(m)[kept]],
                              np.full(len(new), new_layer, np.int64)]).astype(np.int64)
+    place = m.place_index
+    if place is not None:
+        extra = np.array([place.describe(f.codes) for f in new], np.float32).reshape(
+            -1, place.dims)
+        place = PlaceIndex(place.words, place.mean, place.projection,
+                           np.concatenate([np.asarray(place.descriptors)[kept], extra]))
+
+    second: tuple[np.ndarray, Iterator[Chunk]] | None = None
     if m.second is not None:
         missing = [f.name for f in new if f.codes2 is None or f.keypoints2 is None]
         if missing:
             raise MapError(f"map '{m.name}' holds two feature types: the learned images "
                            f"{missing[:3]} lack the second set (XFeat)")
-    place = m.place_index
-    if place is not None:
-        extra = np.array([place.describe(place.codes(f.codes, f.codes2)) for f in new],
-                         np.float32).reshape(-1, place.dims)
-        place = replace(place, descriptors=np.concatenate(
-            [np.asarray(place.descriptors)[kept], extra]))
-
-    second: tuple[np.ndarray, Iterator[Chunk]] | None = None
-    if m.second is not None:
         s2 = m.second
         new2 = [(np.asarray(f.codes2), np.asarray(f.keypoints2)) for f in new]
         counts2 = np.concatenate([np.diff(s2.offsets)[kept], [len(c) for c, _ in new2]]

@@ -388,16 +388,9 @@ class RouteMap:
         if s is None:
             raise ValueError(f"map '{self.name}' has one feature type")
         def make() -> PreparedCodes:
-            return prepare_codes(self.second_codes_of(image_id))
+            self._check_second(image_id)
+            return prepare_codes(np.asarray(s.codes[s.rows(image_id)]))
         return self.image_cache.get(("codes2", int(image_id)), make)
-
-    def second_codes_of(self, image_id: int) -> np.ndarray:
-        """One map image's second set's (XFeat) descriptor codes, checked."""
-        s = self.second
-        if s is None:
-            raise ValueError(f"map '{self.name}' has one feature type")
-        self._check_second(image_id)
-        return np.asarray(s.codes[s.rows(image_id)])
 
     def image_features(self, image_id: int) -> Features:
         """One map image as a frame's ``Features`` (both sets on a map of two types)."""
@@ -685,20 +678,6 @@ def position_problem(positions: np.ndarray) -> str | None:
     return None
 
 
-@dataclass(frozen=True)
-class SecondCodes:
-    """A map of two types seen through its second feature set (XFeat), for its place index."""
-
-    m: RouteMap
-
-    @property
-    def n_images(self) -> int:
-        return self.m.n_images
-
-    def codes_of(self, image_id: int) -> np.ndarray:
-        return self.m.second_codes_of(image_id)
-
-
 def build_map(
     name: str,
     images: Iterable[np.ndarray],
@@ -790,9 +769,8 @@ def build_map(
         m.meta["fusion"] = fusion_levels(
             positions, layer_arr,
             lambda i, ids: m.type_similarities(m.image_features(i), ids)).as_dict()
-    if place_index:  # a map of two types: by its XFeat features (service/vision/place_index.py)
-        m.place_index = build_place_index(SecondCodes(m) if dual else m,
-                                          np.random.default_rng(0), second=dual)
+    if place_index:
+        m.place_index = build_place_index(m, np.random.default_rng(0))
     return m
 
 
@@ -1300,8 +1278,7 @@ def load_map(path: str | Path, verify: Verify = True, matcher: str = "auto") -> 
     second = _check_second(path, arrays, n) if "codes2" in arrays else None
     place_index = None
     if version >= 3:
-        place_index = _check_place_index(path, arrays, n, dims, version,
-                                         None if second is None else XFEAT_DIMS)
+        place_index = _check_place_index(path, arrays, n, dims, version)
         if arrays["image_digests"].shape != (n, 2 * _DIGEST):
             raise MapError(f"{path}: image digests {arrays['image_digests'].shape} do not "
                            f"have the shape ({n}, {2 * _DIGEST})")
@@ -1392,10 +1369,7 @@ def _check_second(path: Path, arrays: dict[str, np.ndarray], n: int) -> SecondSe
 
 
 def _check_place_index(path: Path, arrays: dict[str, np.ndarray], n: int, dims: int,
-                       version: int, second_dims: int | None = None) -> PlaceIndex | None:
-    """The place index's arrays fit the map: its words have the first set's ``dims`` or, on
-    a map of two types (``second_dims``), the second set's (a map built since the index
-    describes XFeat there; before, RootSIFT)."""
+                       version: int) -> PlaceIndex | None:
     keys = _OPTIONAL_V6 if version == 6 else _OPTIONAL
     present = [k for k in keys if k in arrays]
     if not present:
@@ -1404,15 +1378,13 @@ def _check_place_index(path: Path, arrays: dict[str, np.ndarray], n: int, dims: 
         raise MapError(f"{path}: the place index is incomplete (has {present})")
     w, mu, proj, desc = (arrays[k] for k in _OPTIONAL)
     scale = arrays.get("place_projection_scale")
-    second = second_dims is not None and w.ndim == 2 and w.shape[1] == second_dims
-    dims = second_dims if second and second_dims is not None else dims
     if w.ndim != 2 or w.shape[1] != dims or mu.shape != (w.shape[0] * dims,) or \
             proj.ndim != 2 or proj.shape[0] != len(mu) or desc.shape != (n, proj.shape[1]) or \
             (scale is not None and (scale.shape != (proj.shape[1],) or
                                     not np.isfinite(scale).all())):
         raise MapError(f"{path}: the place index arrays do not fit together (words "
                        f"{w.shape}, projection {proj.shape}, descriptors {desc.shape})")
-    return PlaceIndex.from_arrays(arrays, second)
+    return PlaceIndex.from_arrays(arrays)
 
 
 def list_maps(directory: str | Path) -> list[Path]:

@@ -7,11 +7,7 @@ own descriptors), the residuals to the word are summed per word, each word's sum
 L2-normalised, the K x 128 vector signed-square-rooted and L2-normalised, then projected by a
 PCA (with damped whitening) fitted on the map's images to ``dims`` dimensions and normalised
 again. A frame is described the same way; its candidate places are the map images with the
-highest scalar products. A map of two feature types (CLAHE + RootSIFT and XFeat) describes
-its places by its XFeat features (``PlaceIndex.second``): across light they find a frame's
-place far more often (rendered dusk, sunny map: the true place first for 0.54-0.68 of the
-frames against 0.12-0.16 with RootSIFT, docs/research/lighting.md); maps built before keep
-their RootSIFT index and still load (NumPy brute force: 40,000 images x 256 dims is a ~10 M
+highest scalar products (NumPy brute force: 40,000 images x 256 dims is a ~10 M
 multiply-adds per query, a few milliseconds, so an ANN library would not pay here).
 
 ``PlaceSeeder`` uses the index to seed global initialisation and recovery: while an estimator
@@ -30,7 +26,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from service.vision.features import Features, unit_descriptors
+from service.vision.features import unit_descriptors
 
 WORDS = 32  # visual words K
 DIMS = 256  # PCA dimensions of the stored descriptors
@@ -45,29 +41,13 @@ _CHUNK = 8_192  # images per scoring block (bounded temporary memory)
 class PlaceIndex:
     """VLAD vocabulary, PCA and one global descriptor per map image."""
 
-    words: np.ndarray  # (K, D) float32 unit visual words (D: 128 RootSIFT, 64 XFeat)
-    mean: np.ndarray  # (K * D,) float32 PCA centre
-    projection: np.ndarray  # (K * D, dims) float32 PCA (whitened) basis
+    words: np.ndarray  # (K, 128) float32 unit visual words
+    mean: np.ndarray  # (K * 128,) float32 PCA centre
+    projection: np.ndarray  # (K * 128, dims) float32 PCA (whitened) basis
     # (n_images, dims) float32 unit global descriptors: stored as float16 (format 6) and
     # widened once on load, since a query over float16 rows costs ~10x (35 against 3.6 ms at
     # 40,000 images); a float32 array of an older map stays memory-mapped
     descriptors: np.ndarray
-    # describes the second feature set (XFeat on a map of two types), not the first
-    second: bool = False
-
-    def codes(self, first: np.ndarray, second: np.ndarray | None) -> np.ndarray:
-        """Of an image's two descriptor sets (codes), the one this index describes."""
-        if not self.second:
-            return first
-        if second is None:
-            raise ValueError("the place index describes the second feature set (XFeat), "
-                             "which this image lacks")
-        return second
-
-    def frame_codes(self, features: Features) -> np.ndarray:
-        """The codes of a frame that this index describes."""
-        return self.codes(features.codes,
-                          None if features.second is None else features.second.codes)
 
     @property
     def n_images(self) -> int:
@@ -113,26 +93,23 @@ class PlaceIndex:
                 "place_descriptors": np.ascontiguousarray(self.descriptors, "<f2")}
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray], second: bool = False
-                    ) -> PlaceIndex | None:
-        """The index of a map file's arrays (format 6, or the float32 ones of formats 3-5);
-        ``second``: it describes the map's second feature set."""
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> PlaceIndex | None:
+        """The index of a map file's arrays (format 6, or the float32 ones of formats 3-5)."""
         if "place_descriptors" not in arrays:
             return None
         proj = np.asarray(arrays["place_projection"])
         if "place_projection_scale" in arrays:
             proj = decode_projection(proj, np.asarray(arrays["place_projection_scale"]))
         return cls(np.asarray(arrays["place_words"]), np.asarray(arrays["place_mean"]),
-                   proj, np.asarray(arrays["place_descriptors"], np.float32), second)
+                   proj, np.asarray(arrays["place_descriptors"], np.float32))
 
     def meta(self) -> dict[str, Any]:
         return {"type": "vlad", "words": len(self.words), "dims": self.dims,
-                "whiten_power": WHITEN_POWER,
-                "feature_set": "second" if self.second else "first"}
+                "whiten_power": WHITEN_POWER}
 
 
 def vlad(desc: np.ndarray, words: np.ndarray) -> np.ndarray:
-    """Intra-normalised, power-normalised VLAD (K * D,) of unit descriptors (n, D)."""
+    """Intra-normalised, power-normalised VLAD (K * 128,) of unit descriptors (n, 128)."""
     k, d = words.shape
     out = np.zeros((k, d), np.float32)
     if len(desc):
@@ -173,10 +150,9 @@ class CodesSource(Protocol):
 
 
 def build_place_index(source: CodesSource, rng: np.random.Generator, words: int = WORDS,
-                      dims: int = DIMS, second: bool = False) -> PlaceIndex | None:
+                      dims: int = DIMS) -> PlaceIndex | None:
     """Train the vocabulary and the PCA on the map's own descriptors, describe every image.
-    None when the map is too small or has too few features for a vocabulary. ``second``:
-    ``source`` gives the map's second feature set (recorded in the index)."""
+    None when the map is too small or has too few features for a vocabulary."""
     n = source.n_images
     sample_ids = np.sort(rng.choice(n, min(n, TRAIN_IMAGES), replace=False))
     pool = [source.codes_of(int(i)) for i in sample_ids]
@@ -206,8 +182,7 @@ def build_place_index(source: CodesSource, rng: np.random.Generator, words: int 
         ids = range(a, min(n, a + 1024))
         out[a: a + len(ids)] = index._project(
             np.stack([vlad(unit_descriptors(source.codes_of(i)), voc) for i in ids]))
-    return PlaceIndex(voc, index.mean, proj, out.astype(np.float32),  # as a loaded map's
-                      second)
+    return PlaceIndex(voc, index.mean, proj, out.astype(np.float32))  # as a loaded map's
 
 
 def encode_projection(proj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
