@@ -31,7 +31,6 @@ frames and seeds.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import shutil
 import tempfile
 import time
@@ -46,6 +45,7 @@ from client.lab.bench_experience import (
     Replay,
     _features,
     learned_images,
+    moved,
     replays,
     source_frames,
 )
@@ -53,7 +53,7 @@ from client.lab.experiment_cli import map_for
 from service.engine.learning import placed
 from service.maps import experiences as ex
 from service.maps.experiences import NewImage, add_experience
-from service.maps.route_map import RouteMap, load_map, save_map
+from service.maps.route_map import RouteMap, load_map
 from service.vision.features import Features
 
 
@@ -91,9 +91,7 @@ def at_truth(learned: RouteMap, truth: np.ndarray, path: Path) -> RouteMap:
     """The learned map with its learned images at the true places of their round-1 frames,
     written to ``path`` and loaded."""
     ids = learned_images(learned)
-    pos = np.array(learned.positions, float)
-    pos[ids] = truth[source_frames(learned, ids)]
-    return load_map(save_map(dataclasses.replace(learned, positions=pos), path))
+    return moved(learned, ids, truth[source_frames(learned, ids)], path)
 
 
 def at_fix(learned: RouteMap, first: Round, path: Path) -> RouteMap:
@@ -109,9 +107,7 @@ def at_fix(learned: RouteMap, first: Round, path: Path) -> RouteMap:
     none = np.zeros((0, 2), np.float32)  # only the positions matter to ``placed``
     fixes = [NewImage(none, none, first.xy[k], str(k)) for k in src[order]]
     taught = placed(fixes, list(src[order]), list(first.odometry[src[order], :2]))
-    pos = np.array(learned.positions, float)
-    pos[ids[order]] = [f.xy for f in taught]
-    return load_map(save_map(dataclasses.replace(learned, positions=pos), path))
+    return moved(learned, ids[order], np.array([f.xy for f in taught], float), path)
 
 
 def every_frame(sunny: RouteMap, feats: list[Features], truth: np.ndarray, light: str,

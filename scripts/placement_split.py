@@ -23,7 +23,6 @@ monkeypatches the learner to record which geometry located a frame. Nothing is a
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import shutil
 import tempfile
 from pathlib import Path
@@ -35,15 +34,16 @@ from client.dataset import read_round
 from client.lab.bench_experience import (
     _features,
     learned_images,
-    replay,
+    moved,
     replays,
     source_frames,
+    teach,
 )
 from client.lab.experiment_cli import map_for
 from service.engine import learning
 from service.engine.localization_service import LocalizationService
 from service.maps.experiences import GAP_SPACINGS, NewImage
-from service.maps.route_map import RouteMap, load_map, save_map
+from service.maps.route_map import RouteMap, load_map
 from service.settings import Settings
 from service.vision.features import Features
 from service.vision.map_geometry import MapGeometry
@@ -100,12 +100,6 @@ def frame_axes(ref: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndar
     return tan, np.column_stack([-tan[:, 1], tan[:, 0]])
 
 
-def moved(m: RouteMap, ids: np.ndarray, xy: np.ndarray, path: Path) -> RouteMap:
-    pos = np.array(m.positions, float)
-    pos[ids] = xy
-    return load_map(save_map(dataclasses.replace(m, positions=pos), path))
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("world", type=Path)
@@ -130,10 +124,7 @@ def main() -> None:
         svc = LocalizationService(Settings(maps_dir=work, session_store="memory"))
         base = svc.get_map("sunny1")
         rec.install(base.second_geometry)
-        replay(base, first, _features(first, base, a.frames), teach=(svc, a.light))
-        stats = svc.learner.stats("teacher")
-        svc.learner.flush("teacher", end=True)
-        svc.writer.wait()
+        stats = teach(svc, base, first, a.light, a.frames)
         svc.close()
         m = load_map(work / "sunny1.swmap")
         ids = learned_images(m)

@@ -18,6 +18,7 @@ budget. Benchmarks print numbers; nothing here asserts.
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import time
 from dataclasses import dataclass
@@ -36,7 +37,7 @@ from service.maps.experiences import (
     experience_layers,
     experience_list,
 )
-from service.maps.route_map import RouteMap
+from service.maps.route_map import RouteMap, load_map, save_map
 from service.settings import Settings
 from service.vision.features import Features, extract
 
@@ -112,6 +113,27 @@ def replays(m: RouteMap, rnd: Round, feats: list[Features], n: int,
                   float(np.mean([r.on_experience for r in runs])))
 
 
+def teach(service: LocalizationService, base: RouteMap, rnd: Round, condition: str,
+          frames: int, odometry: bool = True) -> dict[str, int]:
+    """The learning session: ``rnd``'s first ``frames`` frames replayed on ``base`` (the
+    service's map) with ``learn``, then ended, so that its images are written into the map
+    (``service.get_map`` loads the new version). Returns the session's gate counts."""
+    replay(base, rnd, _features(rnd, base, frames), teach=(service, condition),
+           odometry=odometry)
+    stats = service.learner.stats("teacher")
+    service.learner.flush("teacher", end=True)  # the session ends: its images are written
+    service.writer.wait()
+    return stats
+
+
+def moved(m: RouteMap, ids: np.ndarray, xy: np.ndarray, path: Path) -> RouteMap:
+    """A copy of ``m`` with images ``ids`` at ``xy`` (lab ablations of where learned images
+    sit), written to ``path`` and loaded."""
+    pos = np.array(m.positions, float)
+    pos[ids] = xy
+    return load_map(save_map(dataclasses.replace(m, positions=pos), path))
+
+
 def learned_images(m: RouteMap) -> np.ndarray:
     """Ids of the map's experience images."""
     return np.flatnonzero(np.isin(np.asarray(m.layers), list(experience_layers(m).values())))
@@ -172,11 +194,7 @@ def run_case(dataset: Path, seed: int, condition: str, work: Path, budget_mb: fl
     unlearned = replays(base, second, test_feats, runs, odometry)
     same_light = replays(same, second, test_feats, runs, odometry)
     t0 = time.perf_counter()
-    replay(base, first, _features(first, base, frames), teach=(service, condition),
-           odometry=odometry)
-    stats = service.learner.stats("teacher")
-    service.learner.flush("teacher", end=True)  # the session ends: its images are written
-    service.writer.wait()
+    stats = teach(service, base, first, condition, frames, odometry)
     learn_s = time.perf_counter() - t0
     m = service.get_map("sunny1")
     learned = replays(m, second, test_feats, runs, odometry)
