@@ -20,7 +20,7 @@ from client.dataset import Round
 from client.lab.world import World
 from client.runs import odometry_poses
 from client.transports import LocalClient
-from service.api.errors import NotFound
+from service.api.errors import Conflict, NotFound
 from service.api.models import Estimate, MapSummary, Odometry, PosePrior, SessionConfig
 from service.api.round_format import camera_from_hfov
 from service.engine.learning import Learner, LearnGates, LearnPath, path_gate
@@ -588,6 +588,84 @@ def test_deleting_an_experience_and_unknown_ones(map_copy: RouteMap, tmp_path: P
     summary = service.admin.delete_experience("small", "e1", if_match=f'"{version}"')
     assert summary.experiences == [] and summary.checksum != version
     assert summary.n_images == map_copy.n_images
+
+
+def test_a_running_session_moves_live_onto_its_map_s_new_experiences(
+        map_copy: RouteMap, cloudy1: Round, cloudy_images: list[NewImage]) -> None:
+    """A session keeps running, not reset, onto each new version of its map that differs only
+    by experiences: another robot's learned light reaches it at its next frame, and a deleted
+    experience leaves it on the map's own images. A learning session, and a session on a
+    rebuilt map, wait for their reset."""
+    assert map_copy.path is not None
+    service = LocalizationService(Settings(maps_dir=map_copy.path.parent,
+                                           session_store="memory"))
+    service.put_session("b", SessionConfig(map="small", seed=3))
+    service.put_session("teacher", SessionConfig(map="small", learn=True))
+
+    def frame(i: int) -> Estimate:
+        return service.process_frame("b", cloudy1.image_path(i).read_bytes(), t=float(i))
+
+    before = [frame(i) for i in range(4)]
+    v1 = service.session("b").info().map_checksum
+    assert all(e.experience is None for e in before)
+    service.admin.commit_experience("small", "e1", cloudy_images, "cloudy", "teacher")
+    v2 = service.map_summary("small").checksum
+    assert v2 != v1
+    with pytest.raises(Conflict, match="older than the last"):  # a rejected frame moves nothing
+        service.process_frame("b", cloudy1.image_path(4).read_bytes(), t=1.0)
+    assert service.session("b").info().map_checksum == v1
+    after = [frame(i) for i in range(4, 14)]
+    info = service.session("b").info()
+    assert info.map_checksum == v2 and info.frames == 14  # moved on, not started over
+    assert [e.seq for e in after] == list(range(5, 15))
+    assert abs(after[0].x - before[-1].x) < 3.0  # where the session was, not a new search
+    assert any(e.experience == "e1" for e in after)  # matched with the learned light
+    moved = service.metrics.sessions_moved
+    assert moved._value.get() == 1
+    # a learning robot never localizes against, nor is gated by, what it has just taught
+    service.process_frame("teacher", cloudy1.image_path(0).read_bytes(), t=0.0)
+    assert service.session("teacher").info().map_checksum == v1 and moved._value.get() == 1
+    assert service.reset_session("teacher").map_checksum == v2
+
+    service.admin.delete_experience("small", "e1")
+    v3 = service.map_summary("small").checksum
+    e = frame(14)
+    assert e.experience is None and e.seq == 15
+    assert service.session("b").info().map_checksum == v3 and moved._value.get() == 2
+
+    rebuilt = load_map(map_copy.path)
+    rebuilt.meta["checksum"] = "f" * 64  # as if the map had been rebuilt: not compatible
+    service.admin.register(rebuilt, "upload")
+    assert frame(15).seq == 16
+    assert service.session("b").info().map_checksum == v3  # until the robot resets
+    service.reset_session("b")
+    assert service.session("b").info().map_checksum == "f" * 64
+    service.close()
+
+
+def test_a_session_follows_the_version_another_service_wrote(
+        map_copy: RouteMap, sunny2: Round, cloudy_images: list[NewImage]) -> None:
+    """Two services on one maps directory: the one that did not write the new version loads
+    it in its periodic sweep (``expire_idle``), and its sessions move on at their next frame."""
+    assert map_copy.path is not None
+    writer, reader = (LocalizationService(Settings(maps_dir=map_copy.path.parent,
+                                                   session_store="memory")) for _ in range(2))
+    reader.put_session("b", SessionConfig(map="small"))
+
+    def frame(i: int) -> Estimate:
+        return reader.process_frame("b", sunny2.image_path(i).read_bytes(), t=float(i))
+
+    frame(0)
+    old = reader.session("b").info().map_checksum
+    writer.admin.commit_experience("small", "e1", cloudy_images[:20], "cloudy", "teacher")
+    new = writer.map_summary("small").checksum
+    frame(1)
+    assert reader.session("b").info().map_checksum == old  # not looked for on a frame's path
+    reader.expire_idle()
+    assert frame(2).seq == 3
+    assert reader.session("b").info().map_checksum == new != old
+    writer.close()
+    reader.close()
 
 
 def test_learner_gates_need_a_continuous_path() -> None:

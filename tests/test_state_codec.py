@@ -17,13 +17,15 @@ from service.engine.state_codec import (
     REBUILT,
     SessionState,
     StateError,
+    continued_on,
     decode_session,
     dumps,
     encode_session,
     loads,
 )
 from service.estimators.along_track import AlongTrackSmoother
-from service.maps.route_map import RouteMap
+from service.maps.experiences import NewImage, add_experience, compatible
+from service.maps.route_map import RouteMap, load_map, save_map
 from service.vision.features import Features
 
 # every estimator kind the service offers: (estimator, params)
@@ -109,6 +111,32 @@ def test_reloaded_every_frame_continues_bit_identical(small_map: RouteMap, frame
         statuses.add(a.status)
     assert_same(_estimator_state(ref), _estimator_state(moved))
     assert len(statuses) >= 2  # the sequence exercised more than one state of the machine
+
+
+@pytest.mark.parametrize(("estimator", "params"), KINDS, ids=KIND_IDS)
+def test_a_session_continued_live_on_a_new_experience_is_the_stored_one(
+        small_map: RouteMap, frames, sunny2, tmp_path, estimator, params) -> None:
+    """A session moved live onto a version of its map with a new experience
+    (``continued_on``) steps exactly as the same session stored and loaded onto that version
+    (``decode_session``): its state carried whole, what derives from the map built again."""
+    v1 = load_map(save_map(small_map, tmp_path / "small"))
+    assert v1.path is not None
+    images = [NewImage(f.codes, f.keypoints, np.asarray(sunny2.xy[i], float), f"e/{i}")
+              for i, f in enumerate(frames[:8])]
+    v2, _ = add_experience(v1, v1.path, "e1", images, condition="sunny", robot="r0", now=1.0,
+                           budget_bytes=1 << 30)
+    assert v2.n_layers == v1.n_layers + 1 and compatible(v2, v1.meta["checksum"])
+    live = Localizer(v1, estimator, params, seed=4)
+    for i, f in enumerate(frames[:6]):
+        live.step(f, float(i))
+    blob = encode_session(SessionState("r1", live, 1.0, 2.0))
+    stored = decode_session(blob, lambda name, checksum: v2).localizer
+    live = continued_on(live, v2)
+    assert live.map is v2 and live.seq == 6 and live.last == stored.last
+    assert_same(_estimator_state(live), _estimator_state(stored))
+    for i, f in enumerate(frames[6:], start=6):
+        assert live.step(f, float(i)).model_dump() == stored.step(f, float(i)).model_dump()
+    assert live.seq == len(frames)
 
 
 def test_reset_near_a_pose_survives(small_map: RouteMap, frames) -> None:

@@ -280,8 +280,9 @@ class SessionInfo(BaseModel):
     last_used: float
     last_estimate: Estimate | None = None
     map_checksum: str | None = Field(
-        None, description="version of the map the session runs on (a replaced map keeps "
-        "serving its sessions until they are reset)")
+        None, description="version of the map the session runs on: a version that only "
+        "adds or removes experiences is taken up live at the next frame (not by a learning "
+        "session); a replaced map keeps serving its sessions until they are reset")
     learn: bool = Field(False, description="the session teaches its map (experiences)")
     condition: str | None = None
 

@@ -46,7 +46,7 @@ from service.engine.map_admin import MapAdmin
 from service.engine.map_mirror import MapMirror
 from service.engine.metrics import Metrics
 from service.engine.sqlite_store import SqliteStore, sqlite_location
-from service.engine.state_codec import StateError
+from service.engine.state_codec import StateError, continued_on
 from service.engine.store import (
     InProcessStore,
     RedisOptions,
@@ -372,6 +372,38 @@ class LocalizationService:
         self.learner.flush(robot_id)  # a reset breaks the path: its images are written
         return s.info()
 
+    def _followed(self, s: Session) -> Localizer:
+        """The session's localizer, or where this service now serves a version of its map
+        that differs from the session's only by experiences (a fleet's learning, an
+        experience deleted), the localizer continued on that version: its state goes on,
+        nothing is reset (``continued_on``; the frame's step then moves the session). Until
+        its reset, a learning session stays on its version (it must not localize against,
+        nor be gated by, what it has just taught), and so does a session whose map was
+        rebuilt or replaced."""
+        loc = s.localizer
+        current = self.maps.get(loc.map.name)
+        if s.learn or current is None or current is loc.map or \
+                not compatible(current, loc.map.meta.get("checksum")):
+            return loc
+        try:
+            return continued_on(loc, current)
+        except StateError as exc:  # cannot happen for a state this version made; stay
+            log.error("session of robot %s stays on its map version: %s", s.robot_id, exc)
+            return loc
+
+    def follow_maps(self) -> None:
+        """Load the newer versions another service wrote of the maps served here (a header
+        read each), so that their sessions move on live at their next frame; a map another
+        service deleted is no longer served."""
+        for name in list(self.maps):
+            try:
+                self.admin.refresh(name)
+            except ServiceError as exc:  # deleted by another service: no longer served
+                log.info("map %s not followed: %s", name, exc.message)
+            except Exception:  # the sweep goes on; the map keeps serving its version
+                log.exception("map %s: its file could not be checked for a new version",
+                              name)
+
     def expire_idle(self, now: float | None = None) -> list[str]:
         now = time.time() if now is None else now
         with self._lock:
@@ -388,6 +420,7 @@ class LocalizationService:
         # a learning robot whose frames now go to another replica, or that stopped: what this
         # replica collected is written (the session may live on in a shared store)
         self.learner.flush_idle(LEARN_IDLE_S)
+        self.follow_maps()
         return gone
 
     def claim(self, robot_id: str) -> bool:
@@ -440,8 +473,8 @@ class LocalizationService:
             loc = s.localizer
             features = loc.extract(image)
             with self.store.locked(robot_id) as s:
-                if s.localizer.map is not loc.map:  # reset onto a new map version meanwhile
-                    features = s.localizer.extract(image)
+                if s.localizer.map.feature_params != loc.map.feature_params:
+                    features = s.localizer.extract(image)  # reset onto a rebuilt map meanwhile
                 last = s.localizer.last
                 if input_seq is not None and input_seq == s.last_input_seq \
                         and t == s.last_t and last is not None:
@@ -455,12 +488,16 @@ class LocalizationService:
                                    f"frame ({s.last_t}); send frames in time order")
                 if t is not None:
                     check_timestamp(t, s.last_t)
+                stepped = self._followed(s)  # on a new version of its map, live
                 try:
-                    est = s.localizer.step(features, t,
-                                           (prior.x, prior.y, prior.radius) if prior else None,
-                                           odom)
+                    est = stepped.step(features, t,
+                                       (prior.x, prior.y, prior.radius) if prior else None,
+                                       odom)
                 except EstimatorStateError as exc:  # re-initialised: the next frame works
                     raise ServiceError(f"internal error: {exc}", 500) from None
+                if stepped is not s.localizer:  # moved only by a frame that was applied
+                    s.localizer, s.map_changed = stepped, False
+                    self.metrics.sessions_moved.inc()
                 if t is not None:
                     s.last_t = t
                 if input_seq is not None:

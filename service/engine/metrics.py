@@ -28,6 +28,9 @@ class Metrics:
         self.sessions = Gauge("swarmloc_sessions", "Open robot sessions", registry=r)
         self.expired = Counter("swarmloc_sessions_expired_total", "Sessions expired when idle",
                                registry=r)
+        self.sessions_moved = Counter(
+            "swarmloc_sessions_moved_total", "Sessions moved live onto a new version of their "
+            "map (one that differs only by experiences)", registry=r)
         self.dropped = Counter("swarmloc_zenoh_dropped_frames_total",
                                "Stale Zenoh frames dropped (a newer one arrived first)",
                                registry=r)

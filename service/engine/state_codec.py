@@ -295,6 +295,20 @@ def apply_object(obj: object, state: dict[str, Any], skip: frozenset[str], where
         object.__setattr__(obj, k, v)
 
 
+def continued_on(loc: Localizer, route_map: RouteMap) -> Localizer:
+    """``loc`` continued on ``route_map``, another version of its map that differs only by
+    experiences (``service.maps.experiences.compatible``): its state carried over as it is,
+    what derives from the map built again, exactly as a stored session continues on such a
+    version when it is loaded (``decode_session``). ``loc`` is left to be dropped: the two
+    share its arrays."""
+    new = Localizer(route_map, loc.estimator_name, loc.params, loc.seed)
+    for obj, state, kind in ((new, loc, "localizer"), (new.estimator, loc.estimator,
+                                                       "estimator")):
+        apply_object(obj, {k: v for k, v in vars(state).items() if k not in REBUILT[kind]},
+                     REBUILT[kind], kind)
+    return new
+
+
 # ---- one robot's session -----------------------------------------------------------------
 @dataclass
 class SessionState:

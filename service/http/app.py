@@ -339,4 +339,5 @@ async def _read_body(request: Request, limit: int, service: LocalizationService)
 async def _expire_loop(service: LocalizationService, period: float) -> None:
     while True:
         await asyncio.sleep(period)
-        service.expire_idle()
+        # off the event loop: the sweep may load a map's new version (another replica's)
+        await asyncio.to_thread(service.expire_idle)
