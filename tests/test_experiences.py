@@ -740,7 +740,7 @@ def test_a_robot_behind_an_http_round_robin_teaches_its_map(
     assert {q % 2 for q in seqs} == {0, 1}, seqs  # frames served by each replica
 
 
-def test_http_lists_and_deletes_experiences(map_copy: RouteMap,
+def test_http_lists_and_deletes_experiences(map_copy: RouteMap, cloudy1: Round,
                                             cloudy_images: list[NewImage]) -> None:
     import httpx
 
@@ -771,9 +771,16 @@ def test_http_lists_and_deletes_experiences(map_copy: RouteMap,
         with pytest.raises(SwarmlocError) as exc:
             client.delete_experience("small", "e9")
         assert exc.value.status == 404 and "no experience 'e9'" in exc.value.message
+        client.create_session("walker", "small")  # a robot driving meanwhile
+        client.localize("walker", cloudy1.image_path(0).read_bytes(), t=0.0)
         after = client.delete_experience("small", "e1", if_match=etag.strip('"'))
         assert after.experiences == [] and f'"{after.checksum}"' != etag
         assert httpx.get(f"{url}/maps/small").headers["ETag"] == f'"{after.checksum}"'
+        assert client.localize("walker", cloudy1.image_path(1).read_bytes(), t=1.0).seq == 2
+        walker = client.session("walker")  # moved onto the new version, not reset
+        assert walker.map_checksum == after.checksum and walker.frames == 2
+        client.localize("r2", cloudy1.image_path(0).read_bytes(), t=0.0)
+        assert client.session("r2").map_checksum == etag.strip('"')  # learning: its version
         client.close()
 
 
