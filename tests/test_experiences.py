@@ -668,6 +668,39 @@ def test_a_session_follows_the_version_another_service_wrote(
     reader.close()
 
 
+def test_a_served_robot_follows_the_version_another_service_wrote(
+        map_copy: RouteMap, sunny2: Round, cloudy_images: list[NewImage]) -> None:
+    """Over a real uvicorn server: its periodic sweep (every second at this idle time) loads
+    the version another service on the maps directory wrote, and a robot sending frames moves
+    onto it without a reset."""
+    import time
+
+    from client.transports import HttpClient
+    from service.server import free_port, running_server
+
+    assert map_copy.path is not None
+    writer = LocalizationService(Settings(maps_dir=map_copy.path.parent,
+                                          session_store="memory"))
+    reader = LocalizationService(Settings(maps_dir=map_copy.path.parent, port=free_port(),
+                                          session_store="memory", session_idle_s=4.0))
+    with running_server(reader, zenoh=False) as url:
+        client = HttpClient(url)
+        old = client.create_session("b", "small").map_checksum
+        client.localize("b", sunny2.image_path(0).read_bytes(), t=0.0)
+        writer.admin.commit_experience("small", "e1", cloudy_images[:20], "cloudy", "teacher")
+        new = writer.map_summary("small").checksum
+        seen, k, deadline = old, 1, time.monotonic() + 15.0
+        while seen != new and time.monotonic() < deadline:
+            time.sleep(0.3)
+            assert client.localize("b", sunny2.image_path(k).read_bytes(), t=float(k)).seq \
+                == k + 1  # never reset
+            seen = client.session("b").map_checksum
+            k += 1
+        assert seen == new != old
+        client.close()
+    writer.close()
+
+
 def test_learner_gates_need_a_continuous_path() -> None:
     """Gate 2: a frame right after a jump (or the first frames) does not teach; a frame that
     is not confident (gate 1) clears the path."""

@@ -73,11 +73,15 @@ def create_app(service: LocalizationService, *, expire_every_s: float | None = N
             for hook in lifespan_hooks or []:
                 await stack.enter_async_context(hook)
             period = expire_every_s or max(1.0, min(30.0, settings.session_idle_s / 4))
-            task = asyncio.create_task(_expire_loop(service, period))
+            sweeps: list[asyncio.Future[list[str]]] = []
+            task = asyncio.create_task(_expire_loop(service, period, sweeps))
             try:
                 yield
             finally:
                 task.cancel()
+                for sweep in sweeps:  # a sweep in flight ends before the service closes
+                    with contextlib.suppress(Exception):
+                        await sweep
 
     app = FastAPI(title="swarmloc", version=__version__, lifespan=lifespan,
                   openapi_url=None, docs_url=None, redoc_url=None,
@@ -336,8 +340,16 @@ async def _read_body(request: Request, limit: int, service: LocalizationService)
     return b"".join(chunks)
 
 
-async def _expire_loop(service: LocalizationService, period: float) -> None:
+async def _expire_loop(service: LocalizationService, period: float,
+                       sweeps: list[asyncio.Future[list[str]]]) -> None:
+    """Every ``period`` seconds, the sweep (``expire_idle``: idle sessions, idle learners, maps
+    other services wrote) on a thread, off the event loop: it may load a map's new version.
+    ``sweeps`` holds the one in flight, which a cancelled loop leaves running to its end."""
+    loop = asyncio.get_running_loop()
     while True:
         await asyncio.sleep(period)
-        # off the event loop: the sweep may load a map's new version (another replica's)
-        await asyncio.to_thread(service.expire_idle)
+        sweeps[:] = [loop.run_in_executor(None, service.expire_idle)]
+        try:
+            await asyncio.shield(sweeps[0])
+        except Exception:  # logged; the next sweep runs as usual
+            log.exception("the periodic sweep failed")
