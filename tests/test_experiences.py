@@ -23,6 +23,7 @@ from client.transports import LocalClient
 from service.api.errors import Conflict, NotFound
 from service.api.models import Estimate, MapSummary, Odometry, PosePrior, SessionConfig
 from service.api.round_format import camera_from_hfov
+from service.engine.geometry_warmer import warm_order
 from service.engine.learning import Learner, LearnGates, LearnPath, path_gate
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
@@ -34,6 +35,7 @@ from service.maps.experiences import (
     NewImage,
     add_experience,
     base_spacing,
+    carry_geometry,
     compatible,
     experience_layers,
     experience_list,
@@ -43,6 +45,7 @@ from service.maps.experiences import (
 from service.maps.route_map import RouteMap, load_map, save_map
 from service.settings import Settings
 from service.vision.features import Features, extract
+from service.vision.map_geometry import GeometryParams
 from service.vision.metric_pose import Camera
 
 STRETCH = 60  # cloudy frames the map-format tests use (a stretch of the round)
@@ -699,6 +702,52 @@ def test_a_served_robot_follows_the_version_another_service_wrote(
         assert seen == new != old
         client.close()
     writer.close()
+
+
+def test_a_new_version_keeps_the_structures_built_on_the_old_one(
+        camera_maps: Path, tmp_path: Path, cloudy_images: list[NewImage]) -> None:
+    """The two-view structures built on a version carry over to the next one (a session that
+    moves on finds them built), and each is the one the new version would build itself;
+    not where the image's partner changed, nor for an image that is gone."""
+    shutil.copy(camera_maps / "route.swmap", tmp_path / "route.swmap")
+    v0 = load_map(tmp_path / "route.swmap", verify="lazy")
+    p = GeometryParams()
+    v1, _ = add_experience(v0, tmp_path / "route.swmap", "e1", cloudy_images[:30:2],
+                           condition="cloudy", robot=None, now=1.0, budget_bytes=1 << 30)
+    g1 = v1.geometry
+    assert g1 is not None
+    g1.warm(range(v1.n_images), p)
+    v2, _ = add_experience(v1, tmp_path / "route.swmap", "e1", cloudy_images[30::2],
+                           condition="cloudy", robot=None, now=2.0, budget_bytes=1 << 30)
+    assert carry_geometry(v1, v2) > 0.9 * v0.n_images
+    g2 = v2.geometry
+    assert g2 is not None
+    carried = set(g2.cached())
+    assert set(range(v0.n_images)) <= carried  # the map's own images: all kept
+    fresh = load_map(tmp_path / "route.swmap", verify="lazy").geometry  # built anew
+    assert fresh is not None
+    for i in sorted(carried):
+        a, b = g2.structure(i, p), fresh.structure(i, p)
+        assert (a is None) == (b is None), i
+        if a is not None and b is not None:
+            assert np.array_equal(a.feature_ids, b.feature_ids) and \
+                np.array_equal(a.points, b.points), i
+    # e1's images appended in the second write, further along, make a new partner for the
+    # last of the first write's
+    e1 = experience_layers(v1)["e1"]
+    first = np.flatnonzero(np.asarray(v1.layers) == e1)
+    moved = [i for i in first if g1.partner(int(i), p.baseline_m) != g2.partner(int(i),
+                                                                                 p.baseline_m)]
+    assert moved and not set(moved) & carried
+    # removed: nothing of the experience is carried
+    v3 = remove_experience(v2, tmp_path / "route.swmap", "e1")
+    carry_geometry(v2, v3)
+    assert v3.geometry is not None and set(v3.geometry.cached()) <= set(range(v0.n_images))
+    # the warmer builds a version's learned images first, in the order they were taught
+    order = warm_order(v2)
+    learned = np.flatnonzero(np.asarray(v2.layers) == experience_layers(v2)["e1"])
+    assert sorted(order.tolist()) == list(range(v2.n_images))
+    assert order[: len(learned)].tolist() == learned.tolist() and learned[0] >= v0.n_images
 
 
 def test_learner_gates_need_a_continuous_path() -> None:

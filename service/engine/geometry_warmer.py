@@ -17,7 +17,10 @@ import threading
 import time
 from collections.abc import Callable
 
+import numpy as np
+
 from service.engine.duty import rest
+from service.maps.experiences import base_images
 from service.maps.route_map import RouteMap
 from service.vision.map_geometry import GeometryParams, MapGeometry
 
@@ -90,16 +93,26 @@ class GeometryWarmer:
         p = GeometryParams()
         while (m := self._next()) is not None:
             try:
-                for g in (m.geometry, m.second_geometry):
-                    if g is not None:
-                        self._warm(m, g, p)
+                self._warm(m, [g for g in (m.geometry, m.second_geometry) if g is not None], p)
             except Exception:  # a structure that cannot be built is built (or not) on use
                 log.exception("map %s: geometry not warmed", m.name)
 
-    def _warm(self, m: RouteMap, g: MapGeometry, p: GeometryParams) -> None:
-        for i in range(m.n_images):
-            if self._stop.is_set() or not self.current(m):
-                return
-            t0 = time.perf_counter()
-            g.structure(i, p)
-            rest(t0, self.duty)  # leave the rest of the core to the frames
+    def _warm(self, m: RouteMap, geometries: list[MapGeometry], p: GeometryParams) -> None:
+        for i in warm_order(m):
+            for g in geometries:  # both feature types of an image, then the next image
+                if self._stop.is_set() or not self.current(m):
+                    return
+                t0 = time.perf_counter()
+                g.structure(int(i), p)
+                rest(t0, self.duty)  # leave the rest of the core to the frames
+
+
+def warm_order(m: RouteMap) -> np.ndarray:
+    """The order a map's images are warmed in: its experiences' images first, in the order
+    they were taught, then the map's own images. A new version's learned images are where the
+    robots that move onto it find no structure yet (those it shares with the version before
+    are carried over, ``carry_geometry``, and skipped at once); a robot following a learning
+    one reaches them in the order they were taught."""
+    own = base_images(m)
+    learned = np.setdiff1d(np.arange(m.n_images), own)
+    return np.concatenate([learned, own]).astype(np.int64)

@@ -61,6 +61,7 @@ from service.maps.experiences import (
     NewImage,
     add_experience,
     budget_bytes,
+    carry_geometry,
     experience_layers,
     remove_experience,
 )
@@ -437,6 +438,9 @@ class MapAdmin:
 
     def register(self, m: RouteMap, source: str) -> bool:
         created = m.name not in self.service.maps
+        old = self.service.maps.get(m.name)
+        if old is not None and old is not m:  # a version with new experiences: what the old
+            carry_geometry(old, m)  # one has built of the images both hold is kept
         self.service.maps[m.name] = m
         self.service.adopt(m)
         self.service.load_errors.pop(m.path.name if m.path else "", None)

@@ -317,6 +317,39 @@ def with_usage(m: RouteMap, usage: Usage) -> list[dict]:
     return _with_usage(experience_list(m), usage)
 
 
+def same_images(old: RouteMap, new: RouteMap) -> np.ndarray:
+    """For each image of ``old``, its id in ``new`` (another version of the same map) where
+    ``new`` holds it unchanged, else -1: the same name, position, number of features and
+    layer (the same experience, or the same traversal of the map's own)."""
+    def keys(m: RouteMap) -> list[tuple]:
+        names = {k: f"experience:{e}" for e, k in experience_layers(m).items()}
+        counts = np.diff(m.offsets)
+        return [(names.get(int(layer), f"own:{int(layer)}"), m.image_names[i],
+                 float(m.positions[i, 0]), float(m.positions[i, 1]), int(counts[i]))
+                for i, layer in enumerate(_layers(m))]
+    where: dict[tuple, int] = {}
+    for i, key in enumerate(keys(new)):
+        where.setdefault(key, i)
+    return np.array([where.get(key, -1) for key in keys(old)], np.int64)
+
+
+def carry_geometry(old: RouteMap, new: RouteMap) -> int:
+    """Give ``new``, a version of ``old`` that differs only by experiences, the two-view
+    structures ``old`` has built for the images both hold unchanged (both feature types'), so
+    that the sessions moving onto it do not build them again; returns how many."""
+    if not compatible(new, old.meta.get("checksum")):
+        return 0
+    ids: np.ndarray | None = None
+    n = 0
+    for attr in ("geometry", "second_geometry"):
+        was = vars(old).get(attr)  # built only where a frame or the warmer used it
+        now = getattr(new, attr) if was is not None else None
+        if was is not None and now is not None:
+            ids = same_images(old, new) if ids is None else ids
+            n += now.carry(was, ids)
+    return n
+
+
 def compatible(m: RouteMap, checksum: str | None) -> bool:
     """Whether a session stored on version ``checksum`` may continue on ``m`` (the same
     version, or an earlier one that differs only by experiences)."""

@@ -192,6 +192,33 @@ class MapGeometry:
                 self._cache.popitem(last=False)
         return st
 
+    def carry(self, old: MapGeometry, ids: np.ndarray) -> int:
+        """Keep the structures ``old`` (the geometry of another version of the same map, the
+        same camera) has built, for the images this version holds unchanged: ``ids[i]`` is
+        this version's id of ``old``'s image ``i`` (-1: not here). A structure is carried
+        where its image's partner is the same image in both versions (a new image of the same
+        traversal can be the nearer partner now); returns how many were. The robots on the
+        new version then find them built, as on the old one."""
+        if not np.array_equal(old.k, self.k):
+            return 0
+        with old._lock:
+            items = list(old._cache.items())
+        n = 0
+        for (i, p), st in items:
+            j = int(ids[i]) if i < len(ids) else -1
+            if j < 0:
+                continue
+            was, now = old.partner(i, p.baseline_m), self.partner(j, p.baseline_m)
+            if (now is None) != (was is None) or \
+                    (was is not None and int(ids[was]) != now):
+                continue
+            with self._lock:
+                self._cache.setdefault((j, p), st)
+                while len(self._cache) > self.max_cached:
+                    self._cache.popitem(last=False)
+            n += 1
+        return n
+
     def cached(self) -> list[int]:
         """The images whose structure (or its absence) is kept now, at any parameters."""
         with self._lock:
