@@ -473,7 +473,8 @@ class LocalizationService:
             loc = s.localizer
             features = loc.extract(image)
             with self.store.locked(robot_id) as s:
-                if s.localizer.map.feature_params != loc.map.feature_params:
+                if s.localizer.map is not loc.map and \
+                        s.localizer.map.feature_params != loc.map.feature_params:
                     features = s.localizer.extract(image)  # reset onto a rebuilt map meanwhile
                 last = s.localizer.last
                 if input_seq is not None and input_seq == s.last_input_seq \

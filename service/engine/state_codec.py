@@ -295,17 +295,32 @@ def apply_object(obj: object, state: dict[str, Any], skip: frozenset[str], where
         object.__setattr__(obj, k, v)
 
 
+def _localizer(route_map: RouteMap, estimator: str, params: dict[str, Any] | None, seed: int,
+               localizer: dict[str, Any], state: dict[str, Any],
+               added: dict[str, frozenset[str]]) -> Localizer:
+    """A localizer on ``route_map`` built from its configuration, then given a session's
+    state (``localizer`` and ``state``: the localizer's and the estimator's attributes, less
+    ``REBUILT``); what derives from the map is the freshly built one's. ``added``: the
+    attributes a state may lack (``ADDED``)."""
+    loc = Localizer(route_map, estimator, params, seed)
+    apply_object(loc, localizer, REBUILT["localizer"] | {"last"}, "localizer",
+                 added.get("localizer", frozenset()))
+    apply_object(loc.estimator, state, REBUILT["estimator"], "estimator",
+                 added.get("estimator", frozenset()))
+    return loc
+
+
 def continued_on(loc: Localizer, route_map: RouteMap) -> Localizer:
     """``loc`` continued on ``route_map``, another version of its map that differs only by
-    experiences (``service.maps.experiences.compatible``): its state carried over as it is,
-    what derives from the map built again, exactly as a stored session continues on such a
-    version when it is loaded (``decode_session``). ``loc`` is left to be dropped: the two
-    share its arrays."""
-    new = Localizer(route_map, loc.estimator_name, loc.params, loc.seed)
-    for obj, state, kind in ((new, loc, "localizer"), (new.estimator, loc.estimator,
-                                                       "estimator")):
-        apply_object(obj, {k: v for k, v in vars(state).items() if k not in REBUILT[kind]},
-                     REBUILT[kind], kind)
+    experiences (``service.maps.experiences.compatible``): built as ``decode_session`` builds
+    a stored session loaded onto such a version, from ``loc``'s state as it is. ``loc`` is
+    left to be dropped: the two share its arrays."""
+    skip_loc = REBUILT["localizer"] | {"last"}
+    new = _localizer(route_map, loc.estimator_name, loc.params, loc.seed,
+                     {k: v for k, v in vars(loc).items() if k not in skip_loc},
+                     {k: v for k, v in vars(loc.estimator).items()
+                      if k not in REBUILT["estimator"]}, {})
+    new.last = loc.last
     return new
 
 
@@ -352,11 +367,8 @@ def decode_session(blob: bytes, resolve_map: MapResolver) -> SessionState:
     d = loads(blob)
     try:
         route_map = resolve_map(d["map"], d["map_checksum"])
-        loc = Localizer(route_map, d["estimator_name"], d["params"], d["seed"])
-        apply_object(loc, d["localizer"], REBUILT["localizer"] | {"last"}, "localizer",
-                     ADDED["localizer"])
-        apply_object(loc.estimator, d["estimator"], REBUILT["estimator"], "estimator",
-                     ADDED["estimator"])
+        loc = _localizer(route_map, d["estimator_name"], d["params"], d["seed"],
+                         d["localizer"], d["estimator"], ADDED)
         loc.last = Estimate.model_validate(d["last"]) if d["last"] is not None else None
         return SessionState(d["robot_id"], loc, d["created"], d["last_used"], d["last_t"],
                             d["last_input_seq"], bool(d.get("learn", False)),
