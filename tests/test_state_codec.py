@@ -113,6 +113,29 @@ def test_reloaded_every_frame_continues_bit_identical(small_map: RouteMap, frame
     assert len(statuses) >= 2  # the sequence exercised more than one state of the machine
 
 
+def test_a_search_with_odometry_continues_bit_identical(small_map: RouteMap, frames,
+                                                        sunny2) -> None:
+    """DPSO's search with the wheels (the places it follows along the path,
+    service/estimators/place_sequence.py) survives a round trip before every frame: the
+    same estimates as one uninterrupted session, and the places themselves identical."""
+    from client.runs import odometry_poses
+
+    idx = np.r_[np.arange(8), np.arange(8, 12), np.arange(8, 14)]  # the noise frames move on
+    odom = odometry_poses(sunny2.odometry, idx)
+    params = {"sequence_frames": 2, "sequence_travel_m": 0.5}  # short: the test's search
+    ref = Localizer(small_map, "dpso", params, seed=3)
+    moved = Localizer(small_map, "dpso", params, seed=3)
+    followed = 0
+    for i, f in enumerate(frames):
+        moved = _roundtrip(moved, small_map, i)
+        a = ref.step(f, float(i), odom=odom[i])
+        b = moved.step(f, float(i), odom=odom[i])
+        assert a.model_dump() == b.model_dump(), f"frame {i}"
+        assert_same(_estimator_state(ref), _estimator_state(moved))
+        followed += ref.estimator.sequence is not None and len(ref.estimator.sequence) > 0
+    assert followed >= 3  # the search followed places over several frames
+
+
 @pytest.mark.parametrize(("estimator", "params"), KINDS, ids=KIND_IDS)
 def test_a_session_continued_live_on_a_new_experience_is_the_stored_one(
         small_map: RouteMap, frames, sunny2, tmp_path, estimator, params) -> None:
@@ -163,9 +186,10 @@ def test_state_is_compact(small_map: RouteMap, frames) -> None:
     # odom_jitter_share, ~30 bytes; 4.91 KB with DPSO's confirmed place and its parameter
     # confirm_tracking, ~30 bytes; 4.93 KB with the parameter local_scout_unlocated, ~25
     # bytes: the frame's verdict it reads is not stored; 4.96 KB with the parameter
-    # scout_unconfirmed, ~25 bytes)
+    # scout_unconfirmed, ~25 bytes; 5.03 KB with the search's sequence, None while tracking,
+    # and its three parameters, ~65 bytes)
     n = int(loc.params["n_particles"])
-    assert len(blob) < n * 6 * 8 + 4960
+    assert len(blob) < n * 6 * 8 + 5040
 
 
 def test_bad_blobs_are_refused(small_map: RouteMap) -> None:

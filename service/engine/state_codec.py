@@ -65,7 +65,7 @@ REBUILT: dict[str, frozenset[str]] = {
 # before.)
 ADDED: dict[str, frozenset[str]] = {
     "localizer": frozenset({"odom_prev", "choice"}),
-    "estimator": frozenset({"odometry", "gate", "first_monitor", "jump", "theta",
+    "estimator": frozenset({"odometry", "gate", "first_monitor", "jump", "theta", "sequence",
                             "confirmed"}),
 }
 

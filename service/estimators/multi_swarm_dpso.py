@@ -89,6 +89,7 @@ from service.estimators.base import (
     Hypothesis,
     Status,
     StepResult,
+    disc_sample,
     sigma_for_accuracy,
     weighted_covariance,
 )
@@ -98,6 +99,7 @@ from service.estimators.located_noise import LocatedNoise
 from service.estimators.lost_detection import DistinctnessMonitor, Evidence, vouch
 from service.estimators.odometry import LocatedGate, OdomStep
 from service.estimators.paper_dpso import DPSO
+from service.estimators.place_sequence import PlaceSequence
 
 if TYPE_CHECKING:
     from service.vision.metric_pose import Offset
@@ -148,6 +150,9 @@ class MultiSwarmDPSO(DPSO):
         self.noise = LocatedNoise()  # the located positions' noise: their radius
         self.gate = LocatedGate()  # located frames against the odometry's prediction
         self.jump = JumpHold()  # a far jump of the reported place, until confirmed
+        # places followed along the wheels while the swarm searches (``sequence_frames``);
+        # None otherwise, so that a tracking session's stored state stays small
+        self.sequence: PlaceSequence | None = None
         self._reset_coasting()
 
     def start_v0(self) -> float:
@@ -170,6 +175,7 @@ class MultiSwarmDPSO(DPSO):
         self.noise.reset()
         self.gate.reset()
         self.jump.reset()
+        self.sequence = None
         self._reset_coasting()
 
     def _reset_coasting(self) -> None:
@@ -178,6 +184,7 @@ class MultiSwarmDPSO(DPSO):
 
     def _step(self, fitness: FrameFitness, t: float | None, odom: OdomStep | None
               ) -> StepResult:
+        searching = self.wants_places()  # before the first placement, the search's frames
         if self._needs_init:
             self._initialize()
         p = self.params
@@ -198,6 +205,7 @@ class MultiSwarmDPSO(DPSO):
         # sub-swarms around the best particles of this frame (their attractors, as p^n in the
         # papers); a sub-swarm's support is the most evidence any of its particles carries
         seeds, label = speciate(self.x, f, p.species_radius_m, p.max_species)
+        species_xy = self.x[seeds]  # the places the sub-swarms hold in this frame (a copy)
         support = np.array([self.evidence[label == s].max() for s in range(len(seeds))])
         best_s = int(np.argmax(support))
         if 0 < p.verify_switch_frames <= self.unverified and len(seeds) > 1:
@@ -319,6 +327,9 @@ class MultiSwarmDPSO(DPSO):
         heading, source, h_sigma = self.odom_heading(odom, heading)
         if cam is not None and cam.heading is not None:  # the camera's yaw
             heading, source, h_sigma = cam.heading, "camera", cam.heading_sigma
+        # last, so that its comparisons judge nothing of this frame: the sequence's place
+        # draws the swarm for the next frame
+        self._follow_sequence(fitness, odom, searching, species_xy)
         return StepResult(reported, cov, heading, speed,
                           Status.RECOVERING if disagree or unconfirmed
                           or (jumped and status is Status.TRACKING) else status,
@@ -466,6 +477,38 @@ class MultiSwarmDPSO(DPSO):
                                         self.ema_step, motion=odom_d, across=gain,
                                         hold=not confirmed)
         return self.smoother.update(pos, tangent, alpha, p.along_track_gate_m, self.ema_step)
+
+    def _follow_sequence(self, fitness: FrameFitness, odom: OdomStep | None,
+                         searching: bool, held: np.ndarray) -> None:
+        """While the swarm searches with odometry, the places followed along the wheels
+        take this frame (service/estimators/place_sequence.py; ``held``: the sub-swarms'
+        places); where one stands out and less than half of the swarm is within
+        ``species_radius_m`` of it, the other particles are redrawn there, with no evidence
+        and no velocity. A frame that is not searching or has no odometry drops the
+        places."""
+        p = self.params
+        if p.sequence_frames <= 0 or odom is None or not searching:
+            self.sequence = None
+            return
+        if self.sequence is None:
+            self.sequence = PlaceSequence()
+        # born at the frame's place candidates and at the places the sub-swarms hold (the
+        # incumbent competes: a swarm already at the robot's place is not drawn away)
+        births = held if self.place_candidates is None else \
+            np.concatenate([self.place_candidates, held])
+        self.sequence.step(odom.distance, births, self._map_positions,
+                           self._spacing, lambda x: self.index.nearest(x)[0],
+                           lambda x: fitness(x)[0])
+        at = self.sequence.place(p.sequence_frames, p.sequence_ratio, p.sequence_travel_m)
+        if at is None:
+            return
+        out = np.linalg.norm(self.x - at, axis=1) > p.species_radius_m
+        if 2 * int(out.sum()) <= len(self.x):
+            return
+        self.x[out] = disc_sample(self.rng, at, p.species_radius_m, int(out.sum()))
+        self.v[out] = 0.0
+        self.evidence[out] = 0.0
+        self.age[out] = 0.0
 
     def _odom_restart(self) -> None:
         """After a jump beyond along_track_gate_m: the odometry's map heading restarts."""
