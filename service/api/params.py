@@ -432,12 +432,13 @@ class DPSOParams(CommonParams):
         "located (frames; 0: off); off by default because it does not win in every condition")
 
     sequence_frames: int = Field(
-        8, ge=0, le=10_000, description="while the swarm searches and frames carry odometry, "
-        "places along the map's path are followed by the wheels and scored frame after frame "
-        "(sequence matching, service/estimators/place_sequence.py); one that has seen this "
-        "many frames and stands out draws the swarm to it (frames; 0: off). 8: at dusk on "
-        "eight rendered worlds the search found the robot sooner on four and changed nothing "
-        "on the others (docs/research/lighting.md)")
+        8, ge=0, le=10_000, description="while the swarm searches for the first time (a new "
+        "or reset session) and frames carry odometry, places along the map's path are followed "
+        "by the wheels and scored frame after frame (sequence matching, "
+        "service/estimators/place_sequence.py); one that has seen this many frames and stands "
+        "out draws the swarm to it (frames; 0: off). 8: at dusk the start found the robot "
+        "sooner on three of nine rendered worlds and changed nothing on the others "
+        "(docs/research/lighting.md)")
     sequence_ratio: float = Field(
         1.3, ge=1, le=100, description="a followed place stands out when its mean score is "
         "at least this many times that of every other place 15 m or more away (no unit)")

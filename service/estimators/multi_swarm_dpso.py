@@ -34,6 +34,11 @@ changes, each measured in docs/research/lighting.md:
   frame (more while recovering, and on a map with the camera while tracking is not yet
   confirmed by a located frame, ``scout_unconfirmed``). They are the background the lost
   detection measures against, and the way the swarm discovers a place it is not searching.
+- **The start follows places along the wheels** (``sequence_frames``). While the swarm
+  searches for the first time and the frames carry odometry, places on the map's path are
+  moved by the wheels and scored frame after frame (service/estimators/place_sequence.py);
+  one that stands out over a sequence draws the swarm there, where single frames at dusk
+  match look-alike places as well as the true one.
 - **Local scouts.** While tracking, every ``local_scout_every``-th frame, a few more are
   redrawn at map images 4-15 m from the estimate: the local search a particle filter's motion
   noise gives. A swarm that stalled (the robot set off after a stop while weak matches kept
@@ -184,7 +189,7 @@ class MultiSwarmDPSO(DPSO):
 
     def _step(self, fitness: FrameFitness, t: float | None, odom: OdomStep | None
               ) -> StepResult:
-        searching = self.wants_places()  # before the first placement, the search's frames
+        starting = not self._converged  # the session's first search (or a reset's)
         if self._needs_init:
             self._initialize()
         p = self.params
@@ -329,7 +334,7 @@ class MultiSwarmDPSO(DPSO):
             heading, source, h_sigma = cam.heading, "camera", cam.heading_sigma
         # last, so that its comparisons judge nothing of this frame: the sequence's place
         # draws the swarm for the next frame
-        self._follow_sequence(fitness, odom, searching, species_xy)
+        self._follow_sequence(fitness, odom, starting, species_xy)
         return StepResult(reported, cov, heading, speed,
                           Status.RECOVERING if disagree or unconfirmed
                           or (jumped and status is Status.TRACKING) else status,
@@ -479,15 +484,18 @@ class MultiSwarmDPSO(DPSO):
         return self.smoother.update(pos, tangent, alpha, p.along_track_gate_m, self.ema_step)
 
     def _follow_sequence(self, fitness: FrameFitness, odom: OdomStep | None,
-                         searching: bool, held: np.ndarray) -> None:
-        """While the swarm searches with odometry, the places followed along the wheels
-        take this frame (service/estimators/place_sequence.py; ``held``: the sub-swarms'
-        places); where one stands out and less than half of the swarm is within
+                         starting: bool, held: np.ndarray) -> None:
+        """While the swarm searches for the first time (``starting``: not yet converged
+        since the session began or was reset) with odometry, the places followed along the
+        wheels take this frame (service/estimators/place_sequence.py; ``held``: the
+        sub-swarms' places); where one stands out and less than half of the swarm is within
         ``species_radius_m`` of it, the other particles are redrawn there, with no evidence
-        and no velocity. A frame that is not searching or has no odometry drops the
-        places."""
+        and no velocity. Any other frame, or one without odometry, drops the places. (A
+        swarm that lost a place it held is left to its own search: there a look-alike that
+        stood out over 8 frames drew a swarm that was right 77 m away, lab replays of seed
+        23 at dusk.)"""
         p = self.params
-        if p.sequence_frames <= 0 or odom is None or not searching:
+        if p.sequence_frames <= 0 or odom is None or not starting:
             self.sequence = None
             return
         if self.sequence is None:
