@@ -12,6 +12,7 @@ from service.engine.localizer import Localizer
 from service.estimators.fitness import FrameFitness
 from service.estimators.particle_filter import low_variance_resample
 from service.estimators.registry import params_for
+from tests.line_index import LineIndex
 
 WARMUP = 20  # frames of global convergence left out of tracking errors
 
@@ -192,23 +193,6 @@ def test_a_young_better_sub_swarm_survives_but_does_not_take_the_estimate(
     assert (np.linalg.norm(est.x[scout] - pos[far]) < 3) == by_mean
 
 
-class _LineIndex:
-    """An estimator's view of a map: ``n`` images on a line ``spacing`` m apart."""
-
-    def __init__(self, n: int, spacing: float) -> None:
-        self.positions = np.column_stack([np.arange(n) * spacing, np.zeros(n)])
-
-    def nearest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pts = np.asarray(positions, float).reshape(-1, 2)
-        d = np.linalg.norm(pts[:, None, :] - self.positions[None], axis=2)
-        ids = d.argmin(axis=1)
-        return ids.astype(np.int64), d[np.arange(len(pts)), ids]
-
-    def nearest_per_layer(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ids, d = self.nearest(positions)
-        return ids[:, None], d[:, None]
-
-
 def test_the_swarm_starts_fast_enough_for_a_map_with_images_far_apart() -> None:
     """v0 starts at two image spacings per frame where the papers' fraction of the map's
     extent is slower (ten images 2.5 m apart: capped at v0_max) and keeps the papers' value
@@ -218,7 +202,7 @@ def test_the_swarm_starts_fast_enough_for_a_map_with_images_far_apart() -> None:
     from service.estimators.base import Status
     from service.estimators.multi_swarm_dpso import MultiSwarmDPSO
 
-    short, long_ = _LineIndex(10, 2.5), _LineIndex(200, 0.6)
+    short, long_ = LineIndex(10, 2.5), LineIndex(200, 0.6)
     rng = np.random.default_rng
     assert MultiSwarmDPSO(short, DPSOParams(), rng(0)).v0 == DPSOParams().v0_max
     assert MultiSwarmDPSO(short, DPSOParams(v0_spacings=0), rng(0)).v0 == DPSOParams().v0

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.estimators.place_sequence import PlaceSequence
+from tests.line_index import LineIndex
 
 SPACING = 0.6
 
@@ -127,23 +128,6 @@ def test_hypotheses_are_bounded_and_clear_empties_them() -> None:
     assert len(seq) == 0 and seq.place(*RULE) is None
 
 
-class _LineIndex:
-    """An estimator's view of a map: ``n`` images on a line ``spacing`` m apart."""
-
-    def __init__(self, n: int, spacing: float) -> None:
-        self.positions = np.column_stack([np.arange(n) * spacing, np.zeros(n)])
-
-    def nearest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pts = np.asarray(positions, float).reshape(-1, 2)
-        d = np.linalg.norm(pts[:, None, :] - self.positions[None], axis=2)
-        ids = d.argmin(axis=1)
-        return ids.astype(np.int64), d[np.arange(len(pts)), ids]
-
-    def nearest_per_layer(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ids, d = self.nearest(positions)
-        return ids[:, None], d[:, None]
-
-
 def _search(sequence_frames: int, seed: int) -> tuple[int, int]:
     """A DPSO started on a line of 400 images; the robot drives an image per frame from
     image 30 with odometry. A frame matches its image weakly (0.03 over noise up to 0.02),
@@ -155,7 +139,7 @@ def _search(sequence_frames: int, seed: int) -> tuple[int, int]:
     from service.estimators.multi_swarm_dpso import MultiSwarmDPSO
     from service.estimators.odometry import OdomStep
 
-    line = _LineIndex(400, SPACING)
+    line = LineIndex(400, SPACING)
     est = MultiSwarmDPSO(line, DPSOParams(sequence_frames=sequence_frames),
                          np.random.default_rng(seed))
     draw = np.random.default_rng(100 + seed)
