@@ -8,7 +8,7 @@ from service.api.params import DPSOParams
 from service.estimators.base import Status
 from service.estimators.jump_hold import JumpHold
 from service.estimators.multi_swarm_dpso import MultiSwarmDPSO
-from tests.test_estimators import _LineIndex
+from tests.line_index import LineIndex
 
 STEP = np.array([0.6, 0.0])
 
@@ -60,7 +60,7 @@ def test_a_swarm_that_moves_to_a_far_place_earns_tracking_there_later_positions_
     the same way with and without the hold (the same positions, bit for bit); with the hold
     the new place is reported ``recovering`` for longer, with an ``accuracy_m`` at least the
     jump, before it is ``tracking``."""
-    line = _LineIndex(200, 0.6)
+    line = LineIndex(200, 0.6)
 
     def m(ids: np.ndarray, at: int) -> np.ndarray:
         return 0.3 * np.exp(-np.abs(np.asarray(ids) - at)) + 0.01
