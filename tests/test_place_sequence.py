@@ -88,6 +88,35 @@ def test_it_follows_a_robot_driving_against_the_map_and_round_a_corner() -> None
     assert _wrong(places, positions, truth_ids) == 0
 
 
+def test_it_follows_a_robot_that_backs_up() -> None:
+    """Forward over 30 images, then backing up over 30: the wheels' distance comes signed
+    (negative backwards), and the place follows the robot back."""
+    positions = _route()
+    truth_ids = np.r_[np.arange(20, 50), np.arange(48, 18, -1)]
+    seq = PlaceSequence()
+    nearest = _nearest(positions)
+    rng = np.random.default_rng(6)
+    places = []
+    for k, tid in enumerate(truth_ids):
+        truth, twin = positions[tid], positions[tid + 100]
+
+        def score(x: np.ndarray, truth: np.ndarray = truth, twin: np.ndarray = twin,
+                  k: int = k) -> np.ndarray:
+            m = np.where(np.linalg.norm(x - truth, axis=1) < 1.0, 0.07, 0.02)
+            at_twin = np.linalg.norm(x - twin, axis=1) < 1.0
+            return np.where(at_twin & (k % 4 == 0), 0.14, m + rng.normal(0, 0.005, len(x)))
+
+        step = 0.0 if k == 0 else SPACING * float(np.sign(tid - truth_ids[k - 1]))
+        cands = [twin, *positions[rng.integers(0, len(positions), 6)]]
+        if k % 2 == 0:
+            cands.append(truth)
+        seq.step(step, np.array(cands), positions, SPACING, nearest, score)
+        places.append(seq.place(*RULE))
+    back = [p for k, p in enumerate(places) if k >= 40 and p is not None]
+    assert len(back) >= 10
+    assert _wrong(places, positions, truth_ids) == 0
+
+
 def test_a_robot_standing_still_makes_no_sequence() -> None:
     positions = _route()
     rng = np.random.default_rng(3)

@@ -432,9 +432,9 @@ class DPSOParams(CommonParams):
         "located (frames; 0: off); off by default because it does not win in every condition")
 
     sequence_frames: int = Field(
-        8, ge=0, le=10_000, description="while the swarm searches for the first time (a new "
-        "or reset session) and frames carry odometry, places along the map's path are followed "
-        "by the wheels and scored frame after frame (sequence matching, "
+        8, ge=0, le=10_000, description="the swarmloc variant: while the swarm searches for "
+        "the first time (a new or reset session) and frames carry odometry, places along the "
+        "map's path are followed by the wheels and scored frame after frame (sequence matching, "
         "service/estimators/place_sequence.py); one that has seen this many frames and stands "
         "out draws the swarm to it (frames; 0: off). 8: at dusk the start found the robot "
         "sooner on three of nine rendered worlds and changed nothing on the others "

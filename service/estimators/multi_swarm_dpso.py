@@ -504,9 +504,10 @@ class MultiSwarmDPSO(DPSO):
         # incumbent competes: a swarm already at the robot's place is not drawn away)
         births = held if self.place_candidates is None else \
             np.concatenate([self.place_candidates, held])
-        self.sequence.step(odom.distance, births, self._map_positions,
-                           self._spacing, lambda x: self.index.nearest(x)[0],
-                           lambda x: fitness(x)[0])
+        # a robot backing up moves the places against their direction
+        self.sequence.step(math.copysign(odom.distance, odom.forward), births,
+                           self._map_positions, self._spacing,
+                           lambda x: self.index.nearest(x)[0], lambda x: fitness(x)[0])
         at = self.sequence.place(p.sequence_frames, p.sequence_ratio, p.sequence_travel_m)
         if at is None:
             return

@@ -12,7 +12,7 @@ candidates (service/vision/place_index.py), in both directions, and moves with e
 along the path by the distance the wheels travelled. Each frame it is scored like a
 particle (journal Eq. 3 at its place), and it keeps the decayed mean of its scores. The
 sequence's place is the hypothesis whose mean is at least ``ratio`` times that of every
-other hypothesis ``far_m`` or more away, once it has seen ``min_frames`` frames over at least
+other hypothesis FAR_M or more away, once it has seen ``min_frames`` frames over at least
 ``min_travel_m`` of travel (a robot standing still repeats one frame: no sequence).
 
 Pure computation on arrays; the estimator owns it and decides what the place is used for
@@ -58,9 +58,10 @@ class PlaceSequence:
     def step(self, distance: float, candidates: np.ndarray | None, positions: np.ndarray,
              spacing: float, nearest: NearestIds, score: ScoreFn) -> None:
         """One frame: move every hypothesis ``distance`` metres along the path of the map
-        images ``positions`` (``nearest`` names the image nearest to a place), add
-        hypotheses at ``candidates`` (k, 2), then score them all with ``score``."""
-        if len(self.x) and distance > 0:
+        images ``positions`` (``nearest`` names the image nearest to a place; a negative
+        distance, a robot backing up, moves it against its direction), add hypotheses at
+        ``candidates`` (k, 2), then score them all with ``score``."""
+        if len(self.x) and distance != 0:
             self._advance(distance, positions, spacing, nearest)
         if candidates is not None and len(candidates):
             self._add(np.asarray(candidates, float), positions, spacing, nearest)
@@ -110,7 +111,7 @@ class PlaceSequence:
         along = np.einsum("ij,ij->i", rel, t2)
         on_path = positions[ids] + along[:, None] * t2
         self.x = np.where(np.any(t2 != 0, axis=1)[:, None], on_path, moved)
-        self.travel = self.travel + distance
+        self.travel = self.travel + abs(distance)
 
     def _add(self, candidates: np.ndarray, positions: np.ndarray, spacing: float,
              nearest: NearestIds) -> None:
