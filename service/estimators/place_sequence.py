@@ -91,38 +91,37 @@ class PlaceSequence:
             return None
         return self.x[best].copy()
 
-    def _tangents(self, at: np.ndarray, positions: np.ndarray, spacing: float,
-                  nearest: NearestIds) -> tuple[np.ndarray, np.ndarray]:
-        """(nearest image ids, the path's unit direction there; zero rows where none)."""
+    def _on_path(self, at: np.ndarray, positions: np.ndarray, spacing: float,
+                 nearest: NearestIds) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(``at`` moved onto the path: along the line of its nearest image; the path's
+        unit direction there; whether it has one). A point whose image has no direction
+        stays where it is, with a zero direction."""
         ids = np.asarray(nearest(at), np.int64)
-        return ids, path_tangents(positions, ids, spacing)
+        t = path_tangents(positions, ids, spacing)
+        has = np.any(t != 0, axis=1)
+        along = np.einsum("ij,ij->i", at - positions[ids], t)
+        on_path = np.where(has[:, None], positions[ids] + along[:, None] * t, at)
+        return on_path, t, has
 
     def _advance(self, distance: float, positions: np.ndarray, spacing: float,
                  nearest: NearestIds) -> None:
-        _, t = self._tangents(self.x, positions, spacing, nearest)
-        has = np.any(t != 0, axis=1)
+        _, t, has = self._on_path(self.x, positions, spacing, nearest)
         # the path's direction there, turned to the hypothesis's own
         t = np.where((np.einsum("ij,ij->i", t, self.direction) < 0)[:, None], -t, t)
         self.direction = np.where(has[:, None], t, self.direction)
-        moved = self.x + distance * self.direction
-        # back onto the path: the place along the line of its nearest image
-        ids, t2 = self._tangents(moved, positions, spacing, nearest)
-        rel = moved - positions[ids]
-        along = np.einsum("ij,ij->i", rel, t2)
-        on_path = positions[ids] + along[:, None] * t2
-        self.x = np.where(np.any(t2 != 0, axis=1)[:, None], on_path, moved)
+        self.x, _, _ = self._on_path(self.x + distance * self.direction, positions, spacing,
+                                     nearest)
         self.travel = self.travel + abs(distance)
 
     def _add(self, candidates: np.ndarray, positions: np.ndarray, spacing: float,
              nearest: NearestIds) -> None:
-        ids, t = self._tangents(candidates, positions, spacing, nearest)
-        keep = np.any(t != 0, axis=1)
-        ids, t = ids[keep], t[keep]
-        along = np.einsum("ij,ij->i", candidates[keep] - positions[ids], t)
-        at = positions[ids] + along[:, None] * t  # on the path
+        at, t, keep = self._on_path(candidates, positions, spacing, nearest)
+        at, t = at[keep], t[keep]
         x = np.concatenate([at, at])
         d = np.concatenate([t, -t])
-        if len(self.x):  # not where a hypothesis of that direction already is
+        # not where a hypothesis of that direction already is (``_merge`` would drop it
+        # after scoring it: this saves its comparison)
+        if len(self.x):
             dist = np.linalg.norm(x[:, None, :] - self.x[None, :, :], axis=2)
             same = np.einsum("ik,jk->ij", d, self.direction) > 0
             new = ~((dist < MERGE_M) & same).any(axis=1)
