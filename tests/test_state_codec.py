@@ -187,8 +187,8 @@ def test_state_is_compact(small_map: RouteMap, frames) -> None:
     # odom_jitter_share, ~30 bytes; 4.91 KB with DPSO's confirmed place and its parameter
     # confirm_tracking, ~30 bytes; 4.93 KB with the parameter local_scout_unlocated, ~25
     # bytes: the frame's verdict it reads is not stored; 4.96 KB with the parameter
-    # scout_unconfirmed, ~25 bytes; 5.03 KB with the search's sequence, None while tracking,
-    # and its three parameters, ~65 bytes)
+    # scout_unconfirmed, ~25 bytes; then the search's sequence, None while tracking,
+    # and its three parameters, 78 bytes on a rendered world's map)
     n = int(loc.params["n_particles"])
     assert len(blob) < n * 6 * 8 + 5040
 
