@@ -1,10 +1,14 @@
 from __future__ import annotations
 
+import dataclasses
+import os
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import pytest
 
+from service.maps import route_map
 from service.maps.route_map import MapError, list_maps, load_map, prune, save_map
 from service.vision.features import Features, extract, match_batch, unit_descriptors
 
@@ -148,6 +152,43 @@ def test_atomic_write_replaces_whole_file(small_map, tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["m.swmap"]  # no temp files left
     assert load_map(path).n_images == small_map.n_images
     assert list_maps(tmp_path) == [path]
+
+
+@pytest.mark.parametrize("verify", [True, "lazy"])
+@pytest.mark.parametrize("change", ["moved", "grown"])
+def test_a_new_version_renamed_in_while_loading_is_not_mixed_in(
+        small_map, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, verify, change) -> None:
+    """Another writer (a replica, the experience writer) renames its new version onto the
+    path between the loader's header read and its arrays: the loader reads the file it
+    opened, whole, and never the old header over the new arrays (a replica under load once
+    refused its map's new version for 'bytes following the last array')."""
+    path = _copy(small_map, tmp_path)
+    old = load_map(path)
+    if change == "moved":  # the same sizes, other positions
+        new = dataclasses.replace(old, positions=np.asarray(old.positions) + 1.0)
+    else:  # a larger file: longer image names
+        new = dataclasses.replace(old, image_names=[f"{n}-renamed-{'x' * 40}"
+                                                    for n in old.image_names])
+    staged = save_map(new, tmp_path / "staged" / "m")
+    assert staged.stat().st_size != path.stat().st_size or change == "moved"
+    read_header = route_map._read_header
+
+    def header_then_rename(p: Path, fh: BinaryIO | None = None) -> tuple[dict, int]:
+        got = read_header(p, fh)
+        if staged.exists():
+            os.replace(staged, path)  # the writer's atomic rename, mid-load
+        return got
+
+    monkeypatch.setattr(route_map, "_read_header", header_then_rename)
+    loaded = load_map(path, verify=verify)
+    assert loaded.meta["checksum"] == old.meta["checksum"]  # the version it opened, whole
+    assert np.array_equal(loaded.positions, old.positions)
+    assert loaded.image_names == old.image_names
+    assert not staged.exists()  # the rename did happen mid-load
+    monkeypatch.setattr(route_map, "_read_header", read_header)
+    again = load_map(path, verify=True)  # and the next load reads the new version
+    assert again.image_names == new.image_names
+    assert np.array_equal(again.positions, np.asarray(new.positions))
 
 
 def test_saving_a_map_elsewhere_leaves_its_path_alone(small_map, tmp_path: Path) -> None:

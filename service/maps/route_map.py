@@ -42,7 +42,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, BinaryIO, Literal, Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -1086,19 +1086,24 @@ def _stream_set(put: Callable[[str, int, np.ndarray], None], layout: dict[str, d
     layout["image_digests" + suffix]["sha256"] = _sha256(digests)
 
 
-def _read_header(path: Path) -> tuple[dict, int]:
+def _read_header(path: Path, fh: BinaryIO | None = None) -> tuple[dict, int]:
+    """The header and where the arrays start, from the open file ``fh`` (the file at
+    ``path`` opened here where None)."""
     try:
-        with path.open("rb") as fh:
-            magic = fh.read(len(MAGIC))
-            if magic != MAGIC:
-                raise MapError(f"{path}: not a swarmloc map (bad magic bytes)")
-            raw_len = fh.read(8)
-            if len(raw_len) != 8:
-                raise MapError(f"{path}: truncated header")
-            (n,) = struct.unpack("<Q", raw_len)
-            if n > 64 * 1024 * 1024:
-                raise MapError(f"{path}: header length {n} is implausible (corrupted file)")
-            raw = fh.read(n)
+        if fh is None:
+            with path.open("rb") as own:
+                return _read_header(path, own)
+        fh.seek(0)
+        magic = fh.read(len(MAGIC))
+        if magic != MAGIC:
+            raise MapError(f"{path}: not a swarmloc map (bad magic bytes)")
+        raw_len = fh.read(8)
+        if len(raw_len) != 8:
+            raise MapError(f"{path}: truncated header")
+        (n,) = struct.unpack("<Q", raw_len)
+        if n > 64 * 1024 * 1024:
+            raise MapError(f"{path}: header length {n} is implausible (corrupted file)")
+        raw = fh.read(n)
     except OSError as exc:
         raise MapError(f"{path}: cannot read ({exc})") from None
     if len(raw) != n:
@@ -1124,9 +1129,12 @@ def file_version(path: str | Path) -> str | None:
     return v if isinstance(v, str) else None
 
 
-def _open_arrays(path: Path, header: dict, data_start: int, dtypes: dict[str, np.dtype],
-                 optional: tuple[str, ...]) -> dict[str, np.ndarray]:
-    size = path.stat().st_size
+def _open_arrays(path: Path, fh: BinaryIO, header: dict, data_start: int,
+                 dtypes: dict[str, np.dtype], optional: tuple[str, ...]
+                 ) -> dict[str, np.ndarray]:
+    """The arrays memory-mapped from the open file ``fh``: the file the header was read from,
+    even where ``path`` is replaced meanwhile (another writer's new version)."""
+    size = os.fstat(fh.fileno()).st_size
     arrays: dict[str, np.ndarray] = {}
     try:
         layout = header["arrays"]
@@ -1144,7 +1152,7 @@ def _open_arrays(path: Path, header: dict, data_start: int, dtypes: dict[str, np
             begin = data_start + offset
             if begin + nbytes > size:
                 raise MapError(f"{path}: truncated file (array '{key}' runs past the end)")
-            arrays[key] = (np.memmap(path, dtype=dtype, mode="r", offset=begin, shape=shape)
+            arrays[key] = (np.memmap(fh, dtype=dtype, mode="r", offset=begin, shape=shape)
                            if nbytes else np.zeros(shape, dtype))
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         if isinstance(exc, MapError):
@@ -1153,13 +1161,13 @@ def _open_arrays(path: Path, header: dict, data_start: int, dtypes: dict[str, np
     return arrays
 
 
-def _check_no_trailing_bytes(path: Path, header: dict, data_start: int,
+def _check_no_trailing_bytes(path: Path, fh: BinaryIO, header: dict, data_start: int,
                              arrays: dict[str, np.ndarray]) -> None:
     """A version 3 file ends with its last (padded) array: anything after it was appended."""
     layout = header["arrays"]
     end = data_start + max((int(layout[k]["offset"]) + int(layout[k]["nbytes"]) +
                             _pad(int(layout[k]["nbytes"])) for k in arrays), default=0)
-    size = path.stat().st_size
+    size = os.fstat(fh.fileno()).st_size
     if size > end:
         raise MapError(f"{path}: {size - end} bytes follow the map's last array (something was "
                        "appended to the file); rebuild or download the map again")
@@ -1205,7 +1213,18 @@ def load_map(path: str | Path, verify: Verify = True, matcher: str = "auto") -> 
     path = Path(path)
     if not path.is_file():
         raise MapError(f"{path}: no such map file")
-    header, data_start = _read_header(path)
+    # one open file for the header and every array: another writer's new version renamed
+    # onto ``path`` meanwhile is not mixed into this one
+    try:
+        fh = path.open("rb")
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read ({exc})") from None
+    with fh:
+        return _load_open(path, fh, verify, matcher)
+
+
+def _load_open(path: Path, fh: BinaryIO, verify: Verify, matcher: str) -> RouteMap:
+    header, data_start = _read_header(path, fh)
     version = header.get("format_version")
     if version not in READABLE_VERSIONS:
         raise MapError(
@@ -1214,7 +1233,7 @@ def load_map(path: str | Path, verify: Verify = True, matcher: str = "auto") -> 
             "'swarmloc map build'"
         )
     if version == 2:
-        arrays = _open_arrays(path, header, data_start, _DTYPES, ())
+        arrays = _open_arrays(path, fh, header, data_start, _DTYPES, ())
         if verify:
             _verify_v2(path, header, arrays)
     else:
@@ -1242,8 +1261,8 @@ def load_map(path: str | Path, verify: Verify = True, matcher: str = "auto") -> 
             if missing:
                 raise MapError(f"{path}: the map of two feature types lacks its XFeat arrays "
                                f"({', '.join(missing)}); {REBUILD_DUAL}")
-        arrays = _open_arrays(path, header, data_start, dtypes, optional)
-        _check_no_trailing_bytes(path, header, data_start, arrays)
+        arrays = _open_arrays(path, fh, header, data_start, dtypes, optional)
+        _check_no_trailing_bytes(path, fh, header, data_start, arrays)
         if verify:
             _verify_v3(path, header, arrays, lazy=verify == "lazy")
     positions = np.asarray(arrays["positions"])
