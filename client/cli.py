@@ -21,7 +21,7 @@ from client.lab.bench_odometry import register as register_odometry_bench
 from client.lab.experiment_cli import experiment, sweep
 from client.lab.night_places_cli import register as register_night_places
 from client.lab.scale_map_cli import register as register_scale_map
-from service.api.models import DEFAULT_FEATURES, MAX_FEATURES_CAP
+from service.api.models import DEFAULT_FEATURES, MAX_FEATURES_CAP, SessionInfo
 from service.cli import DebugOpt, run_cli, serve
 
 if TYPE_CHECKING:
@@ -630,7 +630,8 @@ def _replay(round_dir: Path, map_name: str | None, via: str, estimator: str,
                    + (f"?map={map_name}" if map_name else "")
                    + (" (add the token: &token=... or ?token=...)" if token else ""))
     try:
-        runs = replay(client, rnd, cfg, robot_id=robot_id, progress=True)
+        runs = replay(client, rnd, cfg, robot_id=robot_id, progress=True,
+                      on_end=_echo_learning if learn else None)
         route = _route_positions(client, map_name, rnd)
         if learn:
             _echo_experiences(client, map_name)
@@ -674,6 +675,18 @@ def _map_origin(via: str, token: str | None, map_name: str | None
     match = [m for m in maps if m.name == name]
     o = match[0].meta.get("origin") if len(match) == 1 else None
     return (float(o["lat"]), float(o["lon"])) if o else None
+
+
+def _echo_learning(info: SessionInfo) -> None:
+    """What a learning run taught (where the service answers its session's progress)."""
+    lr = info.learning
+    if lr is None:
+        typer.echo("learning: the service reported no progress for this run")
+        return
+    stopped = ", ".join(f"{g} {n}" for g, n in lr.stopped.items() if n)
+    typer.echo(f"learning: {lr.taught} of {lr.frames} frames taught, {lr.bridged} bridged by "
+               f"the wheels, into experience {lr.experience}"
+               + (f"; stopped: {stopped}" if stopped else ""))
 
 
 def _echo_experiences(client: Client, map_name: str | None) -> None:

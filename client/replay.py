@@ -12,7 +12,7 @@ import numpy as np
 from client.dataset import Round
 from client.runs import Run, frame_sequence, odometry_poses
 from client.transports import Client
-from service.api.models import Estimate
+from service.api.models import Estimate, SessionInfo
 
 
 @dataclass(frozen=True)
@@ -33,8 +33,11 @@ class ReplayConfig:
 
 def replay(client: Client, rnd: Round, cfg: ReplayConfig, *, robot_id: str = "replay",
            progress: bool = False,
-           on_frame: Callable[[int, Estimate], None] | None = None) -> list[Run]:
-    """Stream the round's frames in order to a session, once per run."""
+           on_frame: Callable[[int, Estimate], None] | None = None,
+           on_end: Callable[[SessionInfo], None] | None = None) -> list[Run]:
+    """Stream the round's frames in order to a session, once per run; ``on_end``: the
+    session as it stands after each run's last frame, before it is deleted (a learning
+    session's ``learning``: what it taught)."""
     n = len(rnd)
     dt = float(np.median(np.diff(rnd.t))) if rnd.t is not None and n > 1 else 1.0
     cache: dict[int, bytes] = {}
@@ -63,6 +66,8 @@ def replay(client: Client, rnd: Round, cfg: ReplayConfig, *, robot_id: str = "re
             estimates.append(est)
             if on_frame:
                 on_frame(i, est)
+        if on_end is not None:
+            on_end(client.session(robot_id))
         client.delete_session(robot_id)
         runs.append(Run.from_estimates(
             estimates, estimator=cfg.estimator, start=start, seed=seed, frames=seq,

@@ -451,7 +451,7 @@ class LocalClient:
         return self._wrap(self.service.put_session, robot_id, cfg)[0]
 
     def session(self, robot_id: str) -> SessionInfo:
-        return self._wrap(lambda: self.service.session(robot_id).info())
+        return self._wrap(lambda: self.service.session_info(robot_id))
 
     def delete_session(self, robot_id: str) -> None:
         self._wrap(self.service.delete_session, robot_id)

@@ -9,6 +9,7 @@ nothing.
 from __future__ import annotations
 
 import dataclasses
+import re
 import shutil
 import threading
 from pathlib import Path
@@ -21,10 +22,18 @@ from client.lab.world import World
 from client.runs import odometry_poses
 from client.transports import LocalClient
 from service.api.errors import Conflict, NotFound
-from service.api.models import Estimate, MapSummary, Odometry, PosePrior, SessionConfig
+from service.api.models import (
+    Estimate,
+    LearningInfo,
+    MapSummary,
+    Odometry,
+    PosePrior,
+    SessionConfig,
+    SessionInfo,
+)
 from service.api.round_format import camera_from_hfov
 from service.engine.geometry_warmer import warm_order
-from service.engine.learning import Learner, LearnGates, LearnPath, path_gate
+from service.engine.learning import OUTCOMES, Learner, LearnGates, LearnPath, path_gate
 from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
 from service.maps.experiences import (
@@ -294,6 +303,9 @@ class LearningRun:
     stats: dict[str, int]
     summary: MapSummary  # after the session ended
     on_disk: RouteMap
+    learning: LearningInfo | None  # GET /sessions/r1's progress after the last frame
+    counted: dict[str, float]  # swarmloc_learning_frames_total by outcome
+    other: SessionInfo  # a session on the same map that does not learn
 
 
 def _learn(camera_maps: Path, tmp: Path, cloudy1: Round, odometry: bool,
@@ -303,12 +315,17 @@ def _learn(camera_maps: Path, tmp: Path, cloudy1: Round, odometry: bool,
     service = _service(camera_maps, tmp)
     old = str(service.get_map("route").meta["checksum"])
     service.put_session("r1", SessionConfig(map="route", learn=True, condition="cloudy"))
+    service.put_session("r2", SessionConfig(map="route"))
     assert cloudy1.odometry is not None
     poses = odometry_poses(cloudy1.odometry if odometry else None, np.arange(frames))
     for i in range(frames):
         service.process_frame("r1", cloudy1.image_path(i).read_bytes(), t=float(i),
                               odom=poses[i])
+    learning = service.session_info("r1").learning  # waits for the queued gates
     stats = service.learner.stats("r1")
+    counted = {o: service.metrics.registry.get_sample_value(
+        "swarmloc_learning_frames_total", {"outcome": o}) or 0.0 for o in OUTCOMES}
+    other = service.session_info("r2")
     assert service.writer.wait(120)  # the full collections were handed to the writer
     during = str(service.map_summary("route").checksum)
     service.delete_session("r1")  # the images collected since the last commit are written
@@ -318,7 +335,7 @@ def _learn(camera_maps: Path, tmp: Path, cloudy1: Round, odometry: bool,
     assert path is not None
     on_disk = load_map(path, verify=True)
     service.close()
-    return LearningRun(old, during, stats, summary, on_disk)
+    return LearningRun(old, during, stats, summary, on_disk, learning, counted, other)
 
 
 @pytest.fixture(scope="module")
@@ -344,6 +361,24 @@ def test_a_learning_session_teaches_its_map_a_new_version(learning_run: Learning
     mask = m.layers == e.layer
     assert int(mask.sum()) == e.images
     assert float(np.max(np.abs(m.positions[mask] - _truth(cloudy1, m.image_names, mask)))) < 3.0
+
+
+def test_a_learning_session_shows_what_it_taught(learning_run: LearningRun) -> None:
+    """GET /sessions/{id}'s ``learning`` and the metrics count every frame once: taught, or
+    stopped by one gate (a bridged frame was stopped first); a session that does not learn
+    shows none."""
+    run, lr = learning_run, learning_run.learning
+    assert lr is not None and run.other.learning is None and not run.other.learn
+    assert lr.frames == run.stats["seen"] == LEARN_FRAMES
+    assert lr.taught == run.stats["taught"] > 0 and lr.bridged == run.stats["bridged"]
+    assert lr.collected == run.stats["waiting"]
+    assert lr.taught + sum(lr.stopped.values()) == lr.frames, lr
+    assert lr.stopped and set(lr.stopped) <= set(OUTCOMES) - {"taught", "bridged"}
+    (e,) = run.summary.experiences  # its images went into the experience it named
+    assert e.id == lr.experience
+    assert run.counted["taught"] == lr.taught and run.counted["bridged"] == lr.bridged
+    assert all(run.counted[g] == n for g, n in lr.stopped.items())
+    assert sum(run.counted.values()) == lr.frames + lr.bridged
 
 
 def _teach_with_gaps(m: RouteMap, cloudy1: Round, feats: list[Features], gaps: list[range],
@@ -808,6 +843,12 @@ def test_a_robot_behind_an_http_round_robin_teaches_its_map(
             replicas[i % 2].process_frame("rr", cloudy1.image_path(i).read_bytes(), t=float(i))
         taught = [r.learner.stats("rr")["taught"] for r in replicas]
         assert all(n > 0 for n in taught), taught
+        # each replica shows what it collected, into the one experience
+        progress = [r.session_info("rr").learning for r in replicas]
+        assert all(p is not None for p in progress)
+        assert sum(p.frames for p in progress if p) == LEARN_FRAMES
+        assert [p.taught for p in progress if p] == taught
+        assert len({p.experience for p in progress if p}) == 1
         replicas[0].delete_session("rr")  # replica 0 writes its collection at the end ...
         replicas[1].learner.flush_idle(0.0)  # ... replica 1 once the robot left it
         for r in replicas:
@@ -862,7 +903,13 @@ def test_http_lists_and_deletes_experiences(map_copy: RouteMap, cloudy1: Round,
         walker = client.session("walker")  # moved onto the new version, not reset
         assert walker.map_checksum == after.checksum and walker.frames == 2
         client.localize("r2", cloudy1.image_path(0).read_bytes(), t=0.0)
-        assert client.session("r2").map_checksum == etag.strip('"')  # learning: its version
+        r2 = client.session("r2")
+        assert r2.map_checksum == etag.strip('"')  # learning: its version
+        assert r2.learning is not None and r2.learning.frames == 1  # its progress
+        assert r2.learning.taught + sum(r2.learning.stopped.values()) == 1
+        assert walker.learning is None
+        metrics = httpx.get(f"{url}/metrics").text
+        assert 'swarmloc_learning_frames_total{outcome="' in metrics
         client.close()
 
 
@@ -940,9 +987,12 @@ def test_replay_learn_through_the_local_transport(camera_maps: Path, tmp_path: P
         "--out", str(tmp_path / "report")])
     assert out.exit_code == 0, out.output
     assert "map route: version" in out.output and "condition cloudy" in out.output
+    taught = re.search(r"learning: (\d+) of 20 frames taught, (\d+) bridged", out.output)
+    assert taught is not None, out.output
     m = load_map(tmp_path / "maps" / "route.swmap")
     (e,) = experience_list(m)
-    assert e["condition"] == "cloudy" and e["robot"] == "replay" and e["images"] > 0
+    assert e["condition"] == "cloudy" and e["robot"] == "replay"
+    assert 0 < e["images"] <= int(taught.group(1)) + int(taught.group(2))
 
 
 def _captured_nearest(loc: Localizer) -> list:

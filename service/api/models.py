@@ -269,6 +269,24 @@ class FrameMeta(BaseModel):
     odom: Odometry | None = None
 
 
+class LearningInfo(BaseModel):
+    """What a learning session has taught so far (docs/operations/experiences.md): each
+    frame is taught, bridged by the wheels, or stopped by one gate."""
+
+    experience: str = Field(description="id of the experience its images join")
+    frames: int = Field(description="frames the gates have judged")
+    taught: int = Field(description="frames that passed every gate")
+    bridged: int = Field(description="frames between two taught ones, placed by the wheels")
+    collected: int = Field(description="images collected and not yet handed to the map "
+                           "writer (written every learn_commit_images, at a reset and when "
+                           "the session ends)")
+    stopped: dict[str, int] = Field(
+        description="frames stopped, by gate: confident (not tracking), path (off the "
+        "recent path), appearance (the map already matches it well, or has no image near), "
+        "located (the two-view geometry does not place it near the estimate), place (an "
+        "image of this experience is already there)")
+
+
 class SessionInfo(BaseModel):
     robot_id: str
     map: str
@@ -285,6 +303,10 @@ class SessionInfo(BaseModel):
         "session); a replaced map keeps serving its sessions until they are reset")
     learn: bool = Field(False, description="the session teaches its map (experiences)")
     condition: str | None = None
+    learning: LearningInfo | None = Field(
+        None, description="a learning session's progress on the replica that answers (each "
+        "replica collects the frames it served); null for a session that does not learn, or "
+        "one that has sent this replica no frame yet")
 
 
 class ExperienceInfo(BaseModel):

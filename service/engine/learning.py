@@ -84,6 +84,9 @@ BRIDGE_M = 15.0  # a stretch between two taught frames this long (odometry) is t
 BRIDGE_FRAMES = 64  # and holds at most this many frames
 BRIDGE_TOLERANCE_M = 3.0  # the wheels put the frame after a stretch this close to where it was
 # located (``wheels_agree``)
+PROGRESS_WAIT_S = 1.0  # a session's learning progress waits this long for its queued gates
+# a learning frame's outcomes: taught, bridged by the wheels, or stopped by a gate
+OUTCOMES = ("taught", "bridged", "confident", "path", "appearance", "located", "place")
 LEARN_IDLE_S = 30.0  # a replica writes what it collected of a robot that sent it nothing so long
 
 Context = list[tuple[int, np.ndarray, np.ndarray]]  # a batch's taught frames (seq, xy, odometry)
@@ -264,9 +267,12 @@ class Learner:
     ``observe`` on the learner's own threads; every other call first waits for the frames
     handed over before it."""
 
-    def __init__(self, gates: LearnGates, commit: Commit) -> None:
+    def __init__(self, gates: LearnGates, commit: Commit,
+                 counted: Callable[[str], None] | None = None) -> None:
         self.gates = gates
         self._commit = commit
+        # each frame's outcome (``OUTCOMES``), for the service's metrics
+        self._counted = counted or (lambda outcome: None)
         self._trails: dict[str, _Trail] = {}
         self._usage: dict[str, Usage] = {}
         self._levels: dict[str, float] = {}  # map version -> same_light_level
@@ -296,8 +302,23 @@ class Learner:
     def stats(self, robot_id: str) -> dict[str, int]:
         """A learning robot's frames seen, taught (``odometry``: of them, sent with the
         robot's odometry), images waiting, and frames stopped by each gate (``confident``,
-        ``path``, ``appearance``, ``located``, ``place``)."""
+        ``path``, ``appearance``, ``located``, ``place``), its frames handed over before
+        included."""
         self._queue.drain()
+        return self._snapshot(robot_id)
+
+    def progress(self, robot_id: str, wait_s: float = PROGRESS_WAIT_S
+                 ) -> tuple[str, dict[str, int]] | None:
+        """(experience id, ``stats``) of a robot learning on this replica, the frames handed
+        over before included where their gates run within ``wait_s``; None where it has no
+        collection here."""
+        self._queue.drain(wait_s)
+        with self._lock:
+            t = self._trails.get(robot_id)
+            exp_id = None if t is None else t.exp_id
+        return None if exp_id is None else (exp_id, self._snapshot(robot_id))
+
+    def _snapshot(self, robot_id: str) -> dict[str, int]:
         with self._lock:
             t = self._trails.get(robot_id)
             if t is None:
@@ -305,6 +326,10 @@ class Learner:
             return {"seen": t.seen, "taught": t.taught, "bridged": t.bridged,
                     "odometry": t.with_odometry,
                     "waiting": len(t.pending), **t.refused}
+
+    def _refuse(self, t: _Trail, gate: str) -> None:
+        t.refuse(gate)
+        self._counted(gate)
 
     def submit(self, robot_id: str, created: float, condition: str | None, m: RouteMap,
                features: Features, est: Estimate, stopped: str | None,
@@ -332,7 +357,7 @@ class Learner:
             t.last_seen = time.monotonic()
             xy = np.array([est.x, est.y])
             if stopped not in (None, "accuracy"):
-                t.refuse(str(stopped))
+                self._refuse(t, str(stopped))
                 self._hold(t, m, features, est.seq, odom)
                 return
         at: np.ndarray | None = None
@@ -349,11 +374,12 @@ class Learner:
                                     for f in t.pending):
                 gate = "place"  # one image per place and experience
             if gate is not None or at is None:
-                t.refuse(gate or "located")
+                self._refuse(t, gate or "located")
                 if gate in ("located", "confident"):
                     self._hold(t, m, features, est.seq, odom)
                 return
             t.taught += 1
+            self._counted("taught")
             here = None if odom is None else np.array([odom.x, odom.y], float)
             turn = None if odom is None or heading is None else heading - odom.yaw
             held = self._bridge(t, at, est.seq, here, turn)
@@ -438,6 +464,7 @@ class Learner:
                 t.odometry.append(odom)
                 t.known.append(False)
                 t.bridged += 1
+                self._counted("bridged")
 
     def level(self, m: RouteMap) -> float:
         """The map's same-light level, kept per version."""

@@ -27,6 +27,7 @@ from service.api.errors import (
 from service.api.models import (
     Estimate,
     ExperienceInfo,
+    LearningInfo,
     MapDetail,
     MapSummary,
     Odometry,
@@ -40,7 +41,7 @@ from service.api.params import ParamError
 from service.engine.events import EventHub
 from service.engine.experience_writer import Batch, ExperienceWriter, RedisHandover
 from service.engine.geometry_warmer import GeometryWarmer
-from service.engine.learning import LEARN_IDLE_S, Learner, LearnGates, path_gate
+from service.engine.learning import LEARN_IDLE_S, OUTCOMES, Learner, LearnGates, path_gate
 from service.engine.localizer import Localizer
 from service.engine.map_admin import MapAdmin
 from service.engine.map_mirror import MapMirror
@@ -93,7 +94,8 @@ class LocalizationService:
         self.writer = ExperienceWriter(self._write_batch, handover, lambda: list(self.maps),
                                        waiting=self.metrics.learned_waiting.set)
         self.learner = Learner(LearnGates(settings.learn_accuracy_m, settings.learn_weak_ratio,
-                                          settings.learn_commit_images), self.writer.submit)
+                                          settings.learn_commit_images), self.writer.submit,
+                               counted=lambda o: self.metrics.learning_frames.labels(o).inc())
         snap = settings.session_snapshot
         if isinstance(self.store, InProcessStore) and snap is not None and snap.exists():
             try:
@@ -308,7 +310,7 @@ class LocalizationService:
         if not created and replace:  # viewers drop the old session (maybe on another map)
             self.events.remove(robot_id)
             self.learner.flush(robot_id, end=True)  # what the old session collected
-        return s.info(), created
+        return self.info(s), created
 
     def session(self, robot_id: str) -> Session:
         s = self.store.get(robot_id)
@@ -316,6 +318,24 @@ class LocalizationService:
             raise NotFound(f"no session for robot '{robot_id}'; create it with "
                            f"PUT /sessions/{robot_id}")
         return s
+
+    def session_info(self, robot_id: str) -> SessionInfo:
+        """One session as ``GET /sessions/{robot_id}`` shows it."""
+        return self.info(self.session(robot_id))
+
+    def info(self, s: Session) -> SessionInfo:
+        """The session's info, with a learning session's progress on this replica."""
+        info = s.info()
+        if not s.learn:
+            return info
+        progress = self.learner.progress(s.robot_id)
+        if progress is None:
+            return info
+        exp_id, st = progress
+        stopped = {g: st[g] for g in OUTCOMES if g in st and g not in ("taught", "bridged")}
+        return info.model_copy(update={"learning": LearningInfo(
+            experience=exp_id, frames=st["seen"], taught=st["taught"], bridged=st["bridged"],
+            collected=st["waiting"], stopped=stopped)})
 
     def ensure_session(self, robot_id: str) -> Session:
         """The robot's session, created with the default map and estimator if missing."""
@@ -340,7 +360,7 @@ class LocalizationService:
                 log.warning("%s", exc)
                 continue
             if s is not None:
-                out.append(s.info())
+                out.append(self.info(s))
         return out
 
     def delete_session(self, robot_id: str) -> None:
@@ -370,7 +390,7 @@ class LocalizationService:
             s.learn_path = []
             s.last_used = time.time()
         self.learner.flush(robot_id)  # a reset breaks the path: its images are written
-        return s.info()
+        return self.info(s)
 
     def _followed(self, s: Session) -> Localizer:
         """The session's localizer, or where this service now serves a version of its map

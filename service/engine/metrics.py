@@ -38,6 +38,10 @@ class Metrics:
         self.learned_waiting = Gauge(
             "swarmloc_learned_batches_waiting", "Learned batches handed over and not yet "
             "written (with Redis: not yet in the map's list)", registry=r)
+        self.learning_frames = Counter(
+            "swarmloc_learning_frames_total", "Frames of learning sessions, by outcome: "
+            "taught, bridged, or the gate that stopped them (confident, path, appearance, "
+            "located, place)", ["outcome"], registry=r)
         self.event_subscribers = Gauge("swarmloc_event_subscribers",
                                        "Viewers connected to GET /events", registry=r)
         self.events_published = Counter("swarmloc_events_published_total",

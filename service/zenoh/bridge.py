@@ -108,7 +108,7 @@ def control(service: LocalizationService, robot: str, body: Any) -> dict[str, An
         info, _ = service.put_session(robot, config)
         return info.model_dump(mode="json")
     if action == "get":
-        return service.session(robot).info().model_dump(mode="json")
+        return service.session_info(robot).model_dump(mode="json")
     if action == "delete":
         service.delete_session(robot)
         return {"deleted": robot}
