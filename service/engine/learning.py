@@ -307,25 +307,26 @@ class Learner:
         self._queue.drain()
         return self._snapshot(robot_id)
 
-    def progress(self, robot_id: str, wait_s: float = PROGRESS_WAIT_S
+    def progress(self, robot_id: str, wait_s: float = 0.0
                  ) -> tuple[str, dict[str, int]] | None:
         """(experience id, ``stats``) of a robot learning on this replica, the frames handed
-        over before included where their gates run within ``wait_s``; None where it has no
-        collection here."""
-        self._queue.drain(wait_s)
+        over before included where their gates run within ``wait_s`` (0: those that have
+        run); None where it has no collection here."""
+        if wait_s > 0:
+            self._queue.drain(wait_s)
         with self._lock:
             t = self._trails.get(robot_id)
-            exp_id = None if t is None else t.exp_id
-        return None if exp_id is None else (exp_id, self._snapshot(robot_id))
+            return None if t is None else (t.exp_id, self._counts(t))
 
     def _snapshot(self, robot_id: str) -> dict[str, int]:
         with self._lock:
             t = self._trails.get(robot_id)
-            if t is None:
-                return {}
-            return {"seen": t.seen, "taught": t.taught, "bridged": t.bridged,
-                    "odometry": t.with_odometry,
-                    "waiting": len(t.pending), **t.refused}
+            return {} if t is None else self._counts(t)
+
+    @staticmethod
+    def _counts(t: _Trail) -> dict[str, int]:
+        return {"seen": t.seen, "taught": t.taught, "bridged": t.bridged,
+                "odometry": t.with_odometry, "waiting": len(t.pending), **t.refused}
 
     def _refuse(self, t: _Trail, gate: str) -> None:
         t.refuse(gate)

@@ -41,7 +41,14 @@ from service.api.params import ParamError
 from service.engine.events import EventHub
 from service.engine.experience_writer import Batch, ExperienceWriter, RedisHandover
 from service.engine.geometry_warmer import GeometryWarmer
-from service.engine.learning import LEARN_IDLE_S, OUTCOMES, Learner, LearnGates, path_gate
+from service.engine.learning import (
+    LEARN_IDLE_S,
+    OUTCOMES,
+    PROGRESS_WAIT_S,
+    Learner,
+    LearnGates,
+    path_gate,
+)
 from service.engine.localizer import Localizer
 from service.engine.map_admin import MapAdmin
 from service.engine.map_mirror import MapMirror
@@ -320,15 +327,17 @@ class LocalizationService:
         return s
 
     def session_info(self, robot_id: str) -> SessionInfo:
-        """One session as ``GET /sessions/{robot_id}`` shows it."""
-        return self.info(self.session(robot_id))
+        """One session as ``GET /sessions/{robot_id}`` shows it: a learning one's progress
+        waits up to ``PROGRESS_WAIT_S`` for the gates of the frames it sent (blocking)."""
+        return self.info(self.session(robot_id), PROGRESS_WAIT_S)
 
-    def info(self, s: Session) -> SessionInfo:
-        """The session's info, with a learning session's progress on this replica."""
+    def info(self, s: Session, wait_s: float = 0.0) -> SessionInfo:
+        """The session's info, with a learning session's progress on this replica (the
+        frames whose gates have run, waiting up to ``wait_s`` for the others)."""
         info = s.info()
         if not s.learn:
             return info
-        progress = self.learner.progress(s.robot_id)
+        progress = self.learner.progress(s.robot_id, wait_s)
         if progress is None:
             return info
         exp_id, st = progress

@@ -256,7 +256,8 @@ async def list_sessions(service: ServiceDep) -> list[SessionInfo]:
 @api_router.get("/sessions/{robot_id}", tags=["sessions"])
 async def get_session(robot_id: RobotId, service: ServiceDep) -> SessionInfo:
     """One session, with its last estimate."""
-    return service.session_info(robot_id)
+    # a learning session's progress waits (briefly) for its gates: off the event loop
+    return await anyio.to_thread.run_sync(service.session_info, robot_id)
 
 
 @api_router.delete("/sessions/{robot_id}", tags=["sessions"], status_code=204)
