@@ -245,3 +245,26 @@ def test_zenoh_frames_carry_odometry_and_bad_odometry_is_refused(server, sunny2)
         for robot in ("zodom", "ztwin"):
             z.delete_session(robot)
         z.close()
+
+
+def test_zenoh_get_shows_a_learning_session_s_progress(server, sunny2) -> None:
+    """Zenoh's control ``get`` answers as ``GET /sessions/{id}``: a learning session's
+    ``learning`` counts the frame it sent (a session's first frame is stopped by the path
+    gate, so the shared map learns nothing here); a session that does not learn shows none."""
+    z = ZenohClient([server["zenoh"]], mode="peer")
+    try:
+        z.create_session("zlearn", "small", learn=True, condition="sunny")
+        z.create_session("zplain", "small")
+        for robot in ("zlearn", "zplain"):
+            z.localize(robot, sunny2.image_path(3).read_bytes(), t=0.0)
+        lr = z.session("zlearn").learning
+        assert lr is not None and lr.frames == 1 and lr.taught == 0, lr
+        assert sum(lr.stopped.values()) == 1
+        http = HttpClient(server["url"])
+        assert http.session("zlearn").learning == lr
+        http.close()
+        assert z.session("zplain").learning is None
+    finally:
+        for robot in ("zlearn", "zplain"):
+            z.delete_session(robot)
+        z.close()
