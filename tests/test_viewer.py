@@ -66,6 +66,33 @@ def test_viewer_needs_the_token(viewer_server) -> None:
     assert httpx.get(f"{url}/maps", params={"token": TOKEN}).status_code == 401
 
 
+def test_the_panel_shows_what_a_learning_robot_taught(viewer_server, sunny2) -> None:
+    """A learning robot's entry shows its frames taught of those judged (GET /sessions'
+    ``learning``); another robot shows none. Two frames: both stopped by the path gate, so
+    the shared map learns nothing."""
+    url = viewer_server["url"]
+    api = HttpClient(url, token=TOKEN)
+    try:
+        api.create_session("robot-learn", "small", learn=True, condition="sunny")
+        api.create_session("robot-plain", "small")
+        for i in range(2):
+            for robot in ("robot-learn", "robot-plain"):
+                api.localize(robot, sunny2.image_path(5 + i).read_bytes(), t=0.5 * i)
+        with browser_page() as page:
+            page.goto(f"{url}/viewer?token={TOKEN}")
+            page.wait_for_selector('#conn[data-state="live"]')
+            learner = page.locator('li.robot[data-robot="robot-learn"]')
+            page.wait_for_selector('li.robot[data-robot="robot-learn"][data-taught="0"]')
+            assert learner.locator(".taught").inner_text() == "0 of 2"
+            plain = page.locator('li.robot[data-robot="robot-plain"]')
+            assert plain.get_attribute("data-taught") == ""
+            assert plain.locator(".taught").inner_text() == "–"
+    finally:
+        for robot in ("robot-learn", "robot-plain"):
+            api.delete_session(robot)
+        api.close()
+
+
 def test_two_robots_live_and_one_gets_lost(viewer_server, sunny2) -> None:
     url = viewer_server["url"]
     api = HttpClient(url, token=TOKEN)

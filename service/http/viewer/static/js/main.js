@@ -7,6 +7,7 @@ import { Scene } from "./scene.js";
 import { openStream } from "./stream.js";
 
 const PANEL_MS = 250; // side panel refresh (the time since the last frame keeps moving)
+const LEARNING_MS = 3000; // learning robots' progress (GET /sessions)
 
 const params = new URLSearchParams(location.search);
 const token = params.get("token") ?? sessionStorage.getItem("swarmloc-token");
@@ -17,6 +18,7 @@ const fleet = new Fleet();
 const scene = new Scene($("scene"));
 const watched = new Set(); // robots whose particles are streamed, or "*"
 let selected = null;
+let learning = new Map(); // robot -> its session's learning progress (learning robots only)
 let mapName = null;
 let stream = null;
 const stats = { draws: 0, drawMs: 0, lastDrawMs: 0, drawTimes: [] }; // for benchmarks
@@ -93,7 +95,14 @@ async function main() {
     selected = id; scene.selected = id; scene.changed = true;
   });
   window.addEventListener("resize", () => { scene.changed = true; });
-  setInterval(() => panel.update(fleet, selected, watched), PANEL_MS);
+  setInterval(() => panel.update(fleet, selected, watched, learning), PANEL_MS);
+  const pollLearning = () => api("sessions")
+    .then((sessions) => {
+      learning = new Map(sessions.filter((s) => s.learning).map((s) => [s.robot_id, s.learning]));
+    })
+    .catch(() => {}); // the stream's state already shows a broken connection
+  pollLearning();
+  setInterval(pollLearning, LEARNING_MS);
   requestAnimationFrame(frame);
   try {
     const maps = await api("maps");

@@ -29,7 +29,8 @@ export class Panel {
       <dl><dt>speed</dt><dd class="speed"></dd><dt>score</dt><dd class="score"></dd>
       <dt>comp.</dt><dd class="comparisons"></dd><dt>rate</dt><dd class="fps"></dd>
       <dt>latency</dt><dd class="latency"></dd><dt>last</dt><dd class="age"></dd>
-      <dt>layer</dt><dd class="experience"></dd></dl>`;
+      <dt>layer</dt><dd class="experience"></dd>
+      <dt>taught</dt><dd class="taught"></dd></dl>`;
     li.querySelector(".name").textContent = id;
     li.addEventListener("click", (e) => {
       if (!e.target.closest("label")) this.onSelect(id);
@@ -41,7 +42,7 @@ export class Panel {
     return li;
   }
 
-  update(fleet, selected, watched) {
+  update(fleet, selected, watched, learning = new Map()) {
     const ids = [...fleet.robots.keys()].sort();
     for (const [id, li] of this.items) {
       if (!fleet.robots.has(id)) { li.remove(); this.items.delete(id); }
@@ -74,6 +75,11 @@ export class Panel {
       // the experience (learned layer) the frame was matched with; "map": the map's own images
       q(".experience").textContent = e.experience ?? "map";
       li.dataset.experience = e.experience ?? "";
+      // a learning robot's frames taught (and bridged by the wheels) of those judged
+      const lr = learning.get(id);
+      q(".taught").textContent = lr
+        ? `${lr.taught}${lr.bridged ? ` + ${lr.bridged}` : ""} of ${lr.frames}` : "–";
+      li.dataset.taught = lr ? lr.taught + lr.bridged : "";
       q(".fps").textContent = fmt(r.fps, 1, "/s");
       q(".latency").textContent = fmt(e.latency_ms, 0, " ms");
       q(".age").textContent = age < 60 ? `${Math.max(0, age).toFixed(1)} s` : `${(age / 60).toFixed(0)} min`;
