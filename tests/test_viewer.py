@@ -67,9 +67,9 @@ def test_viewer_needs_the_token(viewer_server) -> None:
 
 
 def test_the_panel_shows_what_a_learning_robot_taught(viewer_server, sunny2) -> None:
-    """A learning robot's entry shows its frames taught of those judged (GET /sessions'
-    ``learning``); another robot shows none. Two frames: both stopped by the path gate, so
-    the shared map learns nothing."""
+    """The selected robot's entry shows, where it learns, its frames taught of those judged
+    (its GET /sessions/{id}'s ``learning``); another robot shows none. Two frames: both
+    stopped by the path gate, so the shared map learns nothing."""
     url = viewer_server["url"]
     api = HttpClient(url, token=TOKEN)
     try:
@@ -82,9 +82,14 @@ def test_the_panel_shows_what_a_learning_robot_taught(viewer_server, sunny2) -> 
             page.goto(f"{url}/viewer?token={TOKEN}")
             page.wait_for_selector('#conn[data-state="live"]')
             learner = page.locator('li.robot[data-robot="robot-learn"]')
+            plain = page.locator('li.robot[data-robot="robot-plain"]')
+            page.wait_for_selector('li.robot[data-robot="robot-learn"]')
+            assert learner.locator(".taught").inner_text() == "–"  # not selected yet
+            learner.locator(".name").click()  # selected: its session is read
             page.wait_for_selector('li.robot[data-robot="robot-learn"][data-taught="0"]')
             assert learner.locator(".taught").inner_text() == "0 of 2"
-            plain = page.locator('li.robot[data-robot="robot-plain"]')
+            plain.locator(".name").click()  # another robot selected: it does not learn
+            page.wait_for_selector('li.robot[data-robot="robot-learn"][data-taught=""]')
             assert plain.get_attribute("data-taught") == ""
             assert plain.locator(".taught").inner_text() == "–"
     finally:

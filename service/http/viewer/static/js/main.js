@@ -7,7 +7,7 @@ import { Scene } from "./scene.js";
 import { openStream } from "./stream.js";
 
 const PANEL_MS = 250; // side panel refresh (the time since the last frame keeps moving)
-const LEARNING_MS = 3000; // learning robots' progress (GET /sessions)
+const LEARNING_MS = 3000; // the selected robot's learning progress (GET /sessions/{id})
 
 const params = new URLSearchParams(location.search);
 const token = params.get("token") ?? sessionStorage.getItem("swarmloc-token");
@@ -18,7 +18,7 @@ const fleet = new Fleet();
 const scene = new Scene($("scene"));
 const watched = new Set(); // robots whose particles are streamed, or "*"
 let selected = null;
-let learning = new Map(); // robot -> its session's learning progress (learning robots only)
+let learning = new Map(); // the selected robot -> its session's learning progress, if it learns
 let mapName = null;
 let stream = null;
 const stats = { draws: 0, drawMs: 0, lastDrawMs: 0, drawTimes: [] }; // for benchmarks
@@ -65,9 +65,17 @@ function toggleParticles(id, on) {
   connect();
 }
 
+function pollLearning() {
+  const id = selected;
+  if (id === null) { learning = new Map(); return; }
+  api(`sessions/${encodeURIComponent(id)}`)
+    .then((s) => { if (selected === id) learning = new Map(s.learning ? [[id, s.learning]] : []); })
+    .catch(() => {}); // a session gone meanwhile: its entry goes with the stream
+}
+
 const panel = new Panel($("robots"), $("fleet-summary"), {
   onSelect: (id) => { selected = selected === id ? null : id; scene.selected = selected;
-    scene.changed = true; },
+    scene.changed = true; pollLearning(); },
   onParticles: toggleParticles,
 });
 
@@ -92,17 +100,11 @@ async function main() {
   $("all-particles").addEventListener("change", (e) => toggleParticles("*", e.target.checked));
   $("scene").addEventListener("pick", (e) => {
     const id = scene.pick(fleet, e.detail.x, e.detail.y);
-    selected = id; scene.selected = id; scene.changed = true;
+    selected = id; scene.selected = id; scene.changed = true; pollLearning();
   });
   window.addEventListener("resize", () => { scene.changed = true; });
   setInterval(() => panel.update(fleet, selected, watched, learning), PANEL_MS);
-  const pollLearning = () => api("sessions")
-    .then((sessions) => {
-      learning = new Map(sessions.filter((s) => s.learning).map((s) => [s.robot_id, s.learning]));
-    })
-    .catch(() => {}); // the stream's state already shows a broken connection
-  pollLearning();
-  setInterval(pollLearning, LEARNING_MS);
+  setInterval(pollLearning, LEARNING_MS); // one robot's session, not the fleet's: scales
   requestAnimationFrame(frame);
   try {
     const maps = await api("maps");
