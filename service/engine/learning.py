@@ -305,7 +305,8 @@ class Learner:
         ``path``, ``appearance``, ``located``, ``place``), its frames handed over before
         included."""
         self._queue.drain()
-        return self._snapshot(robot_id)
+        got = self.progress(robot_id)
+        return {} if got is None else got[1]
 
     def progress(self, robot_id: str, wait_s: float = 0.0
                  ) -> tuple[str, dict[str, int]] | None:
@@ -317,11 +318,6 @@ class Learner:
         with self._lock:
             t = self._trails.get(robot_id)
             return None if t is None else (t.exp_id, self._counts(t))
-
-    def _snapshot(self, robot_id: str) -> dict[str, int]:
-        with self._lock:
-            t = self._trails.get(robot_id)
-            return {} if t is None else self._counts(t)
 
     @staticmethod
     def _counts(t: _Trail) -> dict[str, int]:
