@@ -66,7 +66,7 @@ def test_a_full_collection_is_handed_over_not_written_in_the_frame(
     order: list[str] = []
 
     def slow_commit(self: MapAdmin, name: str, exp_id: str, images: list[NewImage],
-                    condition: str | None, robot: str) -> None:
+                    condition: str | None, robot: str, base: str | None = None) -> None:
         started.set()
         release.wait(5)
         order.append(exp_id)

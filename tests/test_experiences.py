@@ -9,6 +9,7 @@ nothing.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import re
 import shutil
 import threading
@@ -387,7 +388,7 @@ def _teach_with_gaps(m: RouteMap, cloudy1: Round, feats: list[Features], gaps: l
     gate 1 (the session not tracking there), each frame sent with ``odometry``."""
     written: list[NewImage] = []
     learner = Learner(LearnGates(accuracy_m=1.5, weak_ratio=0.4, commit_images=1000),
-                      lambda _m, _e, images, _c, _r, out=written: out.extend(images))
+                      lambda _m, _e, images, _c, _r, _b, out=written: out.extend(images))
     for i, f in enumerate(feats):
         x, y = (float(v) for v in cloudy1.reference_xy[i])
         e = Estimate(seq=i + 1, stamp=None, frame_id="m", estimator="dpso", x=x, y=y,
@@ -574,9 +575,11 @@ def test_the_in_process_client_closes_the_engine_it_started(
     client.close()  # a second close changes nothing
 
 
-def _truth(rnd: Round, names: list[str], mask: np.ndarray) -> np.ndarray:
-    seq = [int(n.rsplit("/", 1)[1]) - 1 for n, k in zip(names, mask, strict=True) if k]
-    return rnd.reference_xy[seq]  # frame i was sent with t = i, its estimate has seq i + 1
+def _truth(rnd: Round, names: list[str], mask: np.ndarray, first: int = 0) -> np.ndarray:
+    """Where the images ``mask`` of ``names`` were taken: a session's estimate seq i + 1 is
+    frame ``first + i`` of the round (a new localizer counts from 1)."""
+    seq = [int(n.rsplit("/", 1)[1]) - 1 + first for n, k in zip(names, mask, strict=True) if k]
+    return rnd.reference_xy[seq]
 
 
 def feed_a_wrong_place(service: LocalizationService, map_name: str, sunny1: Round,
@@ -626,6 +629,52 @@ def test_deleting_an_experience_and_unknown_ones(map_copy: RouteMap, tmp_path: P
     summary = service.admin.delete_experience("small", "e1", if_match=f'"{version}"')
     assert summary.experiences == [] and summary.checksum != version
     assert summary.n_images == map_copy.n_images
+
+
+def test_a_collection_is_not_written_into_a_map_rebuilt_meanwhile(
+        camera_maps: Path, tmp_path: Path, cloudy1: Round,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Regression: a map replaced under its name (PUT of a rebuilt map) while a learning
+    session still collected on the old one got the collection written into it, at the old
+    map's positions (another map, another frame). Now the write is refused and logged, and
+    the new map stays as it was; once the robot resets onto the new map it teaches it."""
+    d = tmp_path / "maps"
+    shutil.copytree(camera_maps, d)
+    service = LocalizationService(Settings(maps_dir=d, session_store="memory",
+                                           **{**LEARN, "learn_commit_images": 1000}))
+    service.put_session("r1", SessionConfig(map="route", learn=True, condition="cloudy"))
+
+    def send(frames: range) -> None:
+        for i in frames:
+            service.process_frame("r1", cloudy1.image_path(i).read_bytes(), t=float(i))
+
+    send(range(12))
+    assert service.learner.stats("r1")["waiting"] > 0
+    old = service.get_map("route")  # rebuilt: the same route in another frame, 10 m east
+    east = np.array([10.0, 0.0])
+    rebuilt = save_map(dataclasses.replace(old, positions=old.positions + east),
+                       tmp_path / "up" / "route")
+    staged = service.admin.staging_file("upload")
+    staged.write_bytes(rebuilt.read_bytes())
+    service.admin.install_upload("route", staged)
+    version = service.map_summary("route").checksum
+    with caplog.at_level(logging.ERROR, "swarmloc"):
+        service.learner.flush("r1")
+        assert service.writer.wait(60)
+    assert service.map_summary("route").checksum == version
+    assert service.map_summary("route").experiences == []
+    assert "not written" in caplog.text and "was replaced" in caplog.text
+    service.reset_session("r1")  # onto the rebuilt map: its frames teach it
+    send(range(12, 24))
+    assert service.learner.stats("r1")["waiting"] > 0
+    service.delete_session("r1")
+    assert service.writer.wait(60)
+    (e,) = service.map_summary("route").experiences
+    m = service.get_map("route")
+    mask = m.layers == e.layer  # placed in the new map's frame
+    truth = _truth(cloudy1, m.image_names, mask, first=12) + east
+    assert float(np.max(np.abs(m.positions[mask] - truth))) < 3.0
+    service.close()
 
 
 def test_a_running_session_moves_live_onto_its_map_s_new_experiences(

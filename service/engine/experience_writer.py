@@ -60,13 +60,14 @@ class Batch:
     images: list[NewImage]
     condition: str | None
     robot: str
+    base: str | None = None  # ``base_identity`` of the map they were learned on (None: any)
 
     def describe(self) -> str:
         return f"map {self.map} experience {self.exp_id} ({len(self.images)} images)"
 
     def encode(self) -> bytes:
         return dumps({"map": self.map, "exp_id": self.exp_id, "condition": self.condition,
-                      "robot": self.robot,
+                      "robot": self.robot, "base": self.base,
                       "images": [{"codes": f.codes, "keypoints": f.keypoints,
                                   "xy": np.asarray(f.xy, float), "name": f.name,
                                   **({} if f.codes2 is None else
@@ -81,7 +82,7 @@ class Batch:
             images = [NewImage(i["codes"], i["keypoints"], i["xy"], str(i["name"]),
                                i.get("codes2"), i.get("keypoints2")) for i in d["images"]]
             return Batch(str(d["map"]), str(d["exp_id"]), images, d["condition"],
-                         str(d["robot"]))
+                         str(d["robot"]), d.get("base"))
         except (KeyError, TypeError) as exc:
             raise StateError(f"not a learned batch: {exc}") from None
 
@@ -208,9 +209,10 @@ class ExperienceWriter:
         self._thread.start()
 
     def submit(self, map_name: str, exp_id: str, images: list[NewImage],
-               condition: str | None, robot: str) -> None:
-        """Hand a batch over (the frame path: a queue append, never a write)."""
-        batch = Batch(map_name, exp_id, images, condition, robot)
+               condition: str | None, robot: str, base: str | None = None) -> None:
+        """Hand a batch over (the frame path: a queue append, never a write); ``base``: the
+        ``base_identity`` of the map the images were learned on."""
+        batch = Batch(map_name, exp_id, images, condition, robot, base)
         with self._cond:
             if self._closed:
                 log.warning("%s dropped: the service is shutting down", batch.describe())

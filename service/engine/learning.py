@@ -67,6 +67,7 @@ from service.maps.experiences import (
     PLACE_SPACINGS,
     NewImage,
     Usage,
+    base_identity,
     base_spacing,
     same_light_level,
 )
@@ -90,8 +91,9 @@ OUTCOMES = ("taught", "bridged", "confident", "path", "appearance", "located", "
 LEARN_IDLE_S = 30.0  # a replica writes what it collected of a robot that sent it nothing so long
 
 Context = list[tuple[int, np.ndarray, np.ndarray]]  # a batch's taught frames (seq, xy, odometry)
-Commit = Callable[[str, str, list[NewImage], str | None, str], None]
-# (map name, experience id, images, condition, robot id) -> written (the map admin's)
+Commit = Callable[[str, str, list[NewImage], str | None, str, str | None], None]
+# (map name, experience id, images, condition, robot id, the map's ``base_identity`` where
+# they were learned) -> written (the map admin's)
 
 
 @dataclass(frozen=True)
@@ -108,6 +110,7 @@ class _Trail:
     exp_id: str
     map_name: str
     condition: str | None
+    base: str | None = None  # ``base_identity`` of the map its collection was learned on
     last_seen: float = 0.0  # when the robot's last frame here was observed (time.monotonic)
     pending: list[NewImage] = field(default_factory=list)
     taught: int = 0  # frames that passed the gates
@@ -276,6 +279,7 @@ class Learner:
         self._trails: dict[str, _Trail] = {}
         self._usage: dict[str, Usage] = {}
         self._levels: dict[str, float] = {}  # map version -> same_light_level
+        self._bases: dict[str, str] = {}  # map version -> base_identity
         self._lock = threading.Lock()
         self._queue = LearnQueue()  # ``submit``: the gates off the frame path
 
@@ -345,11 +349,16 @@ class Learner:
         the frames held before it), hand the collection to the writer when it is full (no
         map write here). On a map of two feature types the frame's both sets are kept;
         ``odom``: the odometry pose the robot sent with the frame (``placed`` uses it)."""
+        base = self.identity(m)
         with self._lock:
             t = self._trails.get(robot_id)
             if t is None or t.map_name != m.name:
                 t = self._trails[robot_id] = _Trail(experience_id(robot_id, created), m.name,
                                                     condition)
+            if t.base != base and not t.pending:  # new, or reset onto a rebuilt map: the
+                # frames before were placed in another map's frame
+                t.base, t.context, t.anchor, t.turn, t.gap, t.gap_m = base, [], None, None, \
+                    [], 0.0
             t.seen += 1
             t.last_seen = time.monotonic()
             xy = np.array([est.x, est.y])
@@ -463,6 +472,17 @@ class Learner:
                 t.bridged += 1
                 self._counted("bridged")
 
+    def identity(self, m: RouteMap) -> str:
+        """The map's ``base_identity``, kept per version."""
+        key = str(m.meta.get("checksum"))
+        with self._lock:
+            have = self._bases.get(key)
+        if have is None:
+            have = base_identity(m)
+            with self._lock:
+                self._bases[key] = have
+        return have
+
     def level(self, m: RouteMap) -> float:
         """The map's same-light level, kept per version."""
         key = str(m.meta.get("checksum"))
@@ -532,11 +552,11 @@ class Learner:
             seqs, t.seqs = t.seqs, []
             odometry, t.odometry = t.odometry, []
             known, t.known = t.known, []
-            context = t.context
+            context, base = t.context, t.base
             t.context = located(images, seqs, odometry, known)[-CONTEXT_FRAMES:]
         if images:
             self._commit(t.map_name, t.exp_id, placed(images, seqs, odometry, known, context),
-                         t.condition, robot_id)
+                         t.condition, robot_id, base)
 
     def flush_idle(self, idle_s: float, now: float | None = None) -> None:
         """Write the collections of robots that sent this replica no frame for ``idle_s``

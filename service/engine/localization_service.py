@@ -130,7 +130,7 @@ class LocalizationService:
     def _write_batch(self, batch: Batch) -> None:
         """The background writer's write: one learned batch into its map."""
         self.admin.commit_experience(batch.map, batch.exp_id, batch.images, batch.condition,
-                                     batch.robot)
+                                     batch.robot, batch.base)
 
     def _update_gauge(self) -> None:
         if not self.store.shared:  # Redis: each replica would count the fleet's sessions

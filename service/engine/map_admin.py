@@ -60,6 +60,7 @@ from service.engine.shared_maps import DirectoryFollower
 from service.maps.experiences import (
     NewImage,
     add_experience,
+    base_identity,
     budget_bytes,
     carry_geometry,
     experience_layers,
@@ -529,13 +530,20 @@ class MapAdmin:
                 yield self.refresh(name)
 
     def commit_experience(self, name: str, exp_id: str, images: list[NewImage],
-                          condition: str | None, robot: str) -> None:
+                          condition: str | None, robot: str, base: str | None = None) -> None:
         """Write a learning session's images into experience ``exp_id`` of map ``name``: a new
         version (retiring the least used experiences beyond the budget). Called by the
         background writer (service/engine/experience_writer.py), never on a frame's path;
-        raises when the map cannot take them (the writer logs it, the map keeps serving)."""
+        raises when the map cannot take them (the writer logs it, the map keeps serving).
+        ``base``: the ``base_identity`` of the map they were learned on; a map rebuilt or
+        replaced under the name since (another identity) does not take them (409)."""
         try:
             with self._writer(name) as m:
+                if base is not None and base != base_identity(m):
+                    raise Conflict(f"map '{name}' was replaced (rebuilt or uploaded) since "
+                                   "these images were learned on it: their positions are "
+                                   "not the new map's; the robot's next images after its "
+                                   "reset teach it")
                 new, retired = add_experience(
                     m, self._writable(m), exp_id, images, condition=condition, robot=robot,
                     now=time.time(),

@@ -26,6 +26,7 @@ with different layers meet, an experience's similarities are put on the base lay
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -94,6 +95,20 @@ def base_spacing(m: RouteMap) -> float:
     if len(pos) < 2:
         return 1.0
     return float(np.median(np.linalg.norm(np.diff(pos, axis=0), axis=1)))
+
+
+def base_identity(m: RouteMap) -> str:
+    """What its versions that differ only by experiences share, and a map rebuilt or replaced
+    under the same name does not: a digest of its feature type and its own images' names,
+    positions and numbers of features. Images learned on one version are written only into
+    a version of the same identity (their positions are in its frame)."""
+    ids = base_images(m)
+    h = hashlib.blake2b(digest_size=16)
+    h.update(str((m.meta.get("feature") or {}).get("type")).encode())
+    h.update(np.ascontiguousarray(m.positions[ids], "<f8").tobytes())
+    h.update(np.ascontiguousarray(np.diff(m.offsets)[ids], "<i8").tobytes())
+    h.update("\0".join(m.image_names[int(i)] for i in ids).encode())
+    return h.hexdigest()
 
 
 def same_light_level(m: RouteMap) -> float:
