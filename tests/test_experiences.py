@@ -615,6 +615,37 @@ def test_a_session_confidently_wrong_by_construction_learns_nothing(
     service.close()
 
 
+def test_a_write_that_adds_nothing_keeps_the_experiences_uses(
+        map_copy: RouteMap, cloudy1: Round, cloudy_images: list[NewImage]) -> None:
+    """Regression: the uses counted since the map's last write (which the budget retires
+    experiences by) were taken for every write, and lost where it wrote nothing: a batch
+    whose places the experience already has (a robot's second lap, a batch written twice
+    through Redis) or a write that failed. Now they are kept for the next write."""
+    assert map_copy.path is not None
+    add_experience(map_copy, map_copy.path, "e1", cloudy_images[:30], condition="cloudy",
+                   robot=None, now=1.0, budget_bytes=1 << 30)
+    service = LocalizationService(Settings(maps_dir=map_copy.path.parent,
+                                           session_store="memory"))
+    service.put_session("b", SessionConfig(map="small", seed=3))
+    for i in range(20):
+        service.process_frame("b", cloudy1.image_path(i).read_bytes(), t=float(i))
+
+    def uses() -> int:
+        return next(e.uses for e in service.map_summary("small").experiences if e.id == "e1")
+
+    used = uses()
+    assert used > 0
+    version = service.map_summary("small").checksum
+    service.writer.submit("small", "e1", cloudy_images[:5], "cloudy", "r")  # places it has
+    assert service.writer.wait(60)
+    assert service.map_summary("small").checksum == version  # nothing written ...
+    assert uses() == used  # ... and nothing forgotten
+    service.writer.submit("small", "e2", cloudy_images[30:35], "cloudy", "r")
+    assert service.writer.wait(60)
+    assert uses() == used and service.map_summary("small").checksum != version  # in the file
+    service.close()
+
+
 def test_deleting_an_experience_and_unknown_ones(map_copy: RouteMap, tmp_path: Path,
                                                  cloudy_images: list[NewImage]) -> None:
     assert map_copy.path is not None

@@ -302,6 +302,14 @@ class Learner:
                 self._usage.pop(map_name, None)
             return dict(u)
 
+    def restore_usage(self, map_name: str, usage: Usage) -> None:
+        """Count again the uses ``usage(clear=True)`` took for a write that wrote nothing."""
+        with self._lock:
+            u = self._usage.setdefault(map_name, {})
+            for exp_id, (n, last) in usage.items():
+                have, was = u.get(exp_id, (0, 0.0))
+                u[exp_id] = (have + n, max(last, was))
+
     # ---- learning sessions -----------------------------------------------------------------
     def stats(self, robot_id: str) -> dict[str, int]:
         """A learning robot's frames seen, taught (``odometry``: of them, sent with the

@@ -544,11 +544,17 @@ class MapAdmin:
                                    "these images were learned on it: their positions are "
                                    "not the new map's; the robot's next images after its "
                                    "reset teach it")
-                new, retired = add_experience(
-                    m, self._writable(m), exp_id, images, condition=condition, robot=robot,
-                    now=time.time(),
-                    budget_bytes=budget_bytes(self.settings.experience_budget_mb),
-                    usage=self.service.learner.usage(name, clear=True))
+                usage = self.service.learner.usage(name, clear=True)
+                new, retired = m, list[str]()
+                try:
+                    new, retired = add_experience(
+                        m, self._writable(m), exp_id, images, condition=condition,
+                        robot=robot, now=time.time(),
+                        budget_bytes=budget_bytes(self.settings.experience_budget_mb),
+                        usage=usage)
+                finally:
+                    if new is m:  # nothing written: the uses wait for the next write
+                        self.service.learner.restore_usage(name, usage)
                 if new is not m:
                     assert new.path is not None
                     self._publish(name, new.path, new.meta.get("checksum"),
@@ -568,8 +574,12 @@ class MapAdmin:
             if exp_id not in experience_layers(m):
                 raise NotFound(f"map '{name}' has no experience '{exp_id}'; it has "
                                f"{sorted(experience_layers(m))}")
-            new = remove_experience(m, self._writable(m), exp_id,
-                                    self.service.learner.usage(name, clear=True))
+            usage = self.service.learner.usage(name, clear=True)
+            try:
+                new = remove_experience(m, self._writable(m), exp_id, usage)
+            except BaseException:  # nothing written: the uses wait for the next write
+                self.service.learner.restore_usage(name, usage)
+                raise
             assert new.path is not None
             self._publish(name, new.path, new.meta.get("checksum"), m.meta.get("checksum"))
             self.register(new, "experience")
