@@ -523,6 +523,53 @@ def test_stale_temporaries_go_and_other_maps_files_stay(tmp_path: Path, small_ma
     assert not staged.exists() and service.maps["small"].path == maps / "x.swmap"
 
 
+def test_a_map_write_killed_midway_leaves_the_map_and_no_lasting_temporary(
+        tmp_path: Path, small_map) -> None:
+    """Regression: a process killed (kill -9) while it wrote a map version (an experience, a
+    build's save) left its temporary file (as big as the map) in the maps directory, and no
+    service ever removed it. The map file is untouched; the temporary goes once it is old
+    (a fresh one may be another service's write in progress)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    path = save_map(small_map, maps / "small")
+    version = small_map.meta["checksum"]
+    script = (  # writes the map again, and is killed after its first image
+        "import sys, time\n"
+        "import numpy as np\n"
+        "from service.maps.route_map import load_map, write_map\n"
+        "m = load_map(sys.argv[1])\n"
+        "counts = np.diff(m.offsets)\n"
+        "def chunks():\n"
+        "    yield m.codes[: counts[0]], m.keypoints[: counts[0]], counts[:1]\n"
+        "    print('writing', flush=True)\n"
+        "    time.sleep(60)\n"
+        "write_map(m.path, m.name, m.meta, m.positions, m.image_names, m.layers, counts,\n"
+        "          chunks(), m.place_index)\n")
+    root = Path(__file__).resolve().parent.parent
+    proc = subprocess.Popen([sys.executable, "-c", script, str(path)], cwd=root, text=True,
+                            stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(root)})
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "writing"
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    (left,) = [p for p in maps.iterdir() if p != path]
+    assert left.stat().st_size > 0
+    service = LocalizationService(Settings(maps_dir=maps, zenoh_enabled=False))
+    assert service.get_map("small").meta["checksum"] == version  # the map as it was
+    assert left.exists()  # fresh: maybe a write in progress
+    service.close()
+    os.utime(left, (time.time() - 2 * 86400,) * 2)
+    service = LocalizationService(Settings(maps_dir=maps, zenoh_enabled=False))
+    assert sorted(p.name for p in maps.iterdir()) == ["small.swmap"]
+    service.close()
+
+
 def test_services_on_one_maps_directory_follow_each_others_maps(tmp_path: Path, small_map,
                                                                 map_files, caplog) -> None:
     """Two services on one maps directory (replicas): a map uploaded through one is served by

@@ -69,6 +69,7 @@ from service.maps.experiences import (
 from service.maps.round_archive import ArchiveLimits, UploadedRound, extract_round, remove_tree
 from service.maps.route_map import (
     SUFFIX,
+    WRITE_TEMPS,
     MapError,
     RouteMap,
     build_map_from_rounds,
@@ -172,13 +173,14 @@ class MapAdmin:
         self.remove_stale()
 
     def remove_stale(self, older_than_s: float = STALE_S) -> list[str]:
-        """Remove temporary files and folders a crash left in the maps directory (only old
+        """Remove temporary files and folders a crash left in the maps directory (staged
+        uploads and builds, and map versions a killed write left half-written; only old
         ones: another service on the same directory may be using fresh ones)."""
         gone: list[str] = []
         if not self.directory.is_dir():
             return gone
         limit = time.time() - older_than_s
-        for p in self.directory.glob(f"{TEMP_PREFIX}*"):
+        for p in [*self.directory.glob(f"{TEMP_PREFIX}*"), *self.directory.glob(WRITE_TEMPS)]:
             try:
                 if p.lstat().st_mtime >= limit:
                     continue

@@ -159,6 +159,7 @@ def _dtypes_v6(kind: str) -> dict[str, np.dtype]:
 
 Verify = bool | Literal["lazy"]
 SUFFIX = ".swmap"
+WRITE_TEMPS = f".*{SUFFIX}.tmp-*"  # the temporary files of ``write_map`` (a crash leaves one)
 #: the ``auto`` matcher compares through the inverted file on maps whose median image holds
 #: more RootSIFT features than this: a frame's default cap, so every map built with the
 #: defaults keeps the exact matcher (docs/research/performance.md, "Rich maps")
@@ -1015,7 +1016,7 @@ def write_map(path: str | Path, name: str, meta: dict, positions: np.ndarray,
     start = len(MAGIC) + 8 + head_len
     data_start = start + _pad(start)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")  # WRITE_TEMPS
     try:
         with tmp.open("wb") as fh:
             fh.truncate(data_start + offset)
