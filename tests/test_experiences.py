@@ -943,6 +943,39 @@ def test_a_robot_behind_an_http_round_robin_teaches_its_map(
     assert {q % 2 for q in seqs} == {0, 1}, seqs  # frames served by each replica
 
 
+def test_a_new_learning_session_starts_its_own_collection_on_every_replica(
+        camera_maps: Path, tmp_path: Path, cloudy1: Round, redis_srv, rdb) -> None:
+    """Regression: a replica that had served a learning robot kept the robot's collection
+    after its session ended through another replica, and the robot's next learning session
+    continued it there: the old session's experience, counts and images. Now a new session
+    (a new experience) starts its own collection, and the old one is written into the old
+    experience."""
+    d = tmp_path / "maps"
+    shutil.copytree(camera_maps, d)
+    served, other = (LocalizationService(Settings(
+        maps_dir=d, session_store=redis_srv.url, replica_id=f"r{k}",
+        **{**LEARN, "learn_commit_images": 1000})) for k in (0, 1))
+    try:
+        other.put_session("rb", SessionConfig(map="route", learn=True))
+        for i in range(12):
+            served.process_frame("rb", cloudy1.image_path(i).read_bytes(), t=float(i))
+        first = served.session_info("rb").learning
+        assert first is not None and first.collected > 0
+        other.delete_session("rb")  # ended through the other replica
+        other.put_session("rb", SessionConfig(map="route", learn=True))  # a new session
+        for i in range(12, 16):
+            served.process_frame("rb", cloudy1.image_path(i).read_bytes(), t=float(i))
+        second = served.session_info("rb").learning
+        assert second is not None and second.experience != first.experience
+        assert second.frames == 4 and second.taught <= 4
+        assert served.writer.wait(60)
+        (e,) = served.map_summary("route").experiences  # the first session's collection
+        assert e.id == first.experience and e.images > 0
+    finally:
+        for r in (served, other):
+            r.close()
+
+
 def test_http_lists_and_deletes_experiences(map_copy: RouteMap, cloudy1: Round,
                                             cloudy_images: list[NewImage]) -> None:
     import httpx

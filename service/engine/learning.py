@@ -358,11 +358,17 @@ class Learner:
         map write here). On a map of two feature types the frame's both sets are kept;
         ``odom``: the odometry pose the robot sent with the frame (``placed`` uses it)."""
         base = self.identity(m)
+        exp_id = experience_id(robot_id, created)
         with self._lock:
             t = self._trails.get(robot_id)
-            if t is None or t.map_name != m.name:
-                t = self._trails[robot_id] = _Trail(experience_id(robot_id, created), m.name,
-                                                    condition)
+        if t is not None and (t.map_name != m.name or t.exp_id != exp_id):
+            # the robot's earlier session's collection (it ended through another replica,
+            # or moved to another map): written into its own experience, not continued
+            self.flush(robot_id, end=True)
+        with self._lock:
+            t = self._trails.get(robot_id)
+            if t is None:
+                t = self._trails[robot_id] = _Trail(exp_id, m.name, condition)
             if t.base != base and not t.pending:  # new, or reset onto a rebuilt map: the
                 # frames before were placed in another map's frame
                 t.base, t.context, t.anchor, t.turn, t.gap, t.gap_m = base, [], None, None, \
