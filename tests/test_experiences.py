@@ -819,6 +819,71 @@ def test_a_served_robot_follows_the_version_another_service_wrote(
     writer.close()
 
 
+def test_robots_are_answered_while_a_map_is_written_or_a_learner_drains(
+        map_copy: RouteMap, sunny2: Round, cloudy1: Round,
+        cloudy_images: list[NewImage]) -> None:
+    """Regression: over a real uvicorn server, requests that wait for a learner to drain
+    (DELETE /sessions/{id} of a learning robot) or for the map admin (GET /maps/{name} while
+    an experience is written: the writer holds the admin's lock for the whole write, and
+    waits for another replica's write on the maps directory) ran on the event loop, so every
+    robot's frames waited with them. Now they wait in a thread."""
+    import fcntl
+    import os
+    import time
+
+    import httpx
+
+    from service.server import free_port, running_server
+
+    assert map_copy.path is not None
+    service = LocalizationService(Settings(maps_dir=map_copy.path.parent, port=free_port(),
+                                           session_store="memory"))
+    png = {"content-type": "image/png"}
+    with running_server(service, zenoh=False) as url, httpx.Client(base_url=url,
+                                                                   timeout=10) as http:
+        assert http.put("/sessions/walker", json={"map": "small"}).status_code == 201
+        assert http.put("/sessions/teacher", json={"map": "small", "learn": True}
+                        ).status_code == 201
+
+        def frame(robot: str, i: int, rnd: Round = sunny2) -> int:
+            return http.post(f"/sessions/{robot}/frames", params={"t": float(i)},
+                             content=rnd.image_path(i).read_bytes(), headers=png).status_code
+
+        assert frame("walker", 0) == 200
+        with service.learner._lock:  # the teacher's gates held up: its end waits for them
+            assert frame("teacher", 0, cloudy1) == 200
+            ended = threading.Thread(target=lambda: httpx.delete(f"{url}/sessions/teacher",
+                                                                 timeout=60))
+            ended.start()
+            time.sleep(0.5)
+            assert frame("walker", 1) == 200  # answered meanwhile
+            assert ended.is_alive()
+        ended.join(60)
+
+        # another replica on the maps directory writes the map (holds its file lock) while
+        # this one's writer has a learned batch for it: the writer waits, holding the admin
+        lock = os.open(map_copy.path.with_name(".small.swmap.lock"), os.O_RDWR | os.O_CREAT)
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            service.writer.submit("small", "e1", cloudy_images[:5], "cloudy", "teacher")
+            while service.admin._lock.acquire(blocking=False):  # until the writer holds it
+                service.admin._lock.release()
+                time.sleep(0.01)
+            viewer = threading.Thread(target=lambda: httpx.get(f"{url}/maps/small",
+                                                               timeout=60))
+            viewer.start()
+            time.sleep(0.5)  # the viewer's request waits for the admin
+            assert frame("walker", 2) == 200  # answered meanwhile
+            assert viewer.is_alive()
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+            os.close(lock)
+        viewer.join(60)
+        assert service.writer.wait(60)
+        assert [e.id for e in service.map_summary("small").experiences] == ["e1"]
+    service.close()
+
+
 def test_a_new_version_keeps_the_structures_built_on_the_old_one(
         camera_maps: Path, tmp_path: Path, cloudy_images: list[NewImage]) -> None:
     """The two-view structures built on a version carry over to the next one (a session that

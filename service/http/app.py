@@ -224,13 +224,14 @@ async def head_metrics(service: ServiceDep) -> Response:
 async def list_maps(service: ServiceDep) -> list[MapSummary]:
     """The maps served, by name (with replicas on one maps directory: those any of them
     uploaded, built or learned, less those deleted)."""
-    return service.map_summaries()
+    # the map admin's lock, which a map write holds throughout: off the event loop
+    return await anyio.to_thread.run_sync(service.map_summaries)
 
 
 @api_router.get("/maps/{name}", tags=["maps"])
 async def get_map(name: str, response: Response, service: ServiceDep) -> MapDetail:
     """One map: its images' positions and names, its version as the ETag."""
-    detail = service.map_detail(name)
+    detail = await anyio.to_thread.run_sync(service.map_detail, name)  # as list_maps
     response.headers["ETag"] = f'"{detail.checksum}"'
     return detail
 
@@ -242,7 +243,8 @@ async def get_map(name: str, response: Response, service: ServiceDep) -> MapDeta
 async def create_session(robot_id: RobotId, config: SessionConfig, response: Response,
                          service: ServiceDep) -> SessionInfo:
     """Create (201) or replace (200) the session of a robot."""
-    info, created = service.put_session(robot_id, config)
+    # the map admin's lock, and a replaced learning session's gates: off the event loop
+    info, created = await anyio.to_thread.run_sync(service.put_session, robot_id, config)
     response.status_code = 201 if created else 200
     return info
 
@@ -263,7 +265,8 @@ async def get_session(robot_id: RobotId, service: ServiceDep) -> SessionInfo:
 @api_router.delete("/sessions/{robot_id}", tags=["sessions"], status_code=204)
 async def delete_session(robot_id: RobotId, service: ServiceDep) -> Response:
     """End a session."""
-    service.delete_session(robot_id)
+    # a learning session's end waits for its gates: off the event loop
+    await anyio.to_thread.run_sync(service.delete_session, robot_id)
     return Response(status_code=204)
 
 
@@ -271,7 +274,9 @@ async def delete_session(robot_id: RobotId, service: ServiceDep) -> Response:
 async def reset_session(robot_id: RobotId, service: ServiceDep,
                         body: ResetRequest | None = None) -> SessionInfo:
     """Re-initialise the swarm: globally (no body) or near a pose."""
-    return service.reset_session(robot_id, body.near() if body is not None else None)
+    near = body.near() if body is not None else None
+    # the robot's frame in progress, and a learning session's gates: off the event loop
+    return await anyio.to_thread.run_sync(service.reset_session, robot_id, near)
 
 
 @api_router.post("/sessions/{robot_id}/frames", tags=["frames"], response_model=Estimate,

@@ -99,7 +99,9 @@ async def upload_map(name: str, request: Request, response: Response, service: S
     admin = service.admin
     check_map_name(name)
     _check_type(request, MAP_TYPES, "a map")
-    admin.check_preconditions(name, if_match, if_none_match)  # fail before the upload
+    # fail before the upload; the map admin's lock, which a map write holds throughout: off
+    # the event loop (as every call into the admin here)
+    await anyio.to_thread.run_sync(admin.check_preconditions, name, if_match, if_none_match)
     async with _staged(request, service, "upload", service.settings.max_map_bytes,
                        "map") as path:
         summary, created = await anyio.to_thread.run_sync(
@@ -117,7 +119,7 @@ async def upload_map(name: str, request: Request, response: Response, service: S
 async def download_map(name: str, service: ServiceDep, if_none_match: IfNoneMatch = None
                        ) -> Response:
     """The map's .swmap file (its current version), with its ETag."""
-    fh, etag, size = service.admin.open_file(name)
+    fh, etag, size = await anyio.to_thread.run_sync(service.admin.open_file, name)
     headers = {"ETag": f'"{etag}"'}
     if if_none_match is not None and etag in [t.strip().strip('"')
                                               for t in if_none_match.split(",")]:
@@ -140,7 +142,7 @@ async def delete_map(name: str, service: ServiceDep, force: Annotated[bool, Quer
         description="end the sessions that use the map")] = False,
         if_match: IfMatch = None) -> MapDeleted:
     """Delete a map; 409 names the sessions on it unless ?force=true ends them."""
-    return service.admin.delete(name, force, if_match)
+    return await anyio.to_thread.run_sync(service.admin.delete, name, force, if_match)
 
 
 @map_router.delete("/maps/{name}/experiences/{exp_id}", tags=["maps"])
@@ -181,7 +183,7 @@ async def build_map(name: str, request: Request, response: Response, service: Se
     admin = service.admin
     check_map_name(name)
     _check_type(request, ARCHIVE_TYPES, "a round archive")
-    admin.check_preconditions(name, if_match, if_none_match)
+    await anyio.to_thread.run_sync(admin.check_preconditions, name, if_match, if_none_match)
     async with _staged(request, service, "archive", service.settings.max_archive_bytes,
                        "round archive") as path:
         job = await anyio.to_thread.run_sync(
