@@ -58,6 +58,12 @@ class Unavailable(ServiceError):
     status = 503
 
 
+class InsufficientStorage(ServiceError):
+    """The maps directory's disk (or the service's quota on it) is full."""
+
+    status = 507
+
+
 def describe_errors(errors: Iterable[Mapping[str, Any]]) -> str:
     """pydantic / FastAPI validation errors as one line: ``where: what (got value)``. The
     leading ``body`` of FastAPI's locations is dropped, so HTTP and Zenoh read the same."""

@@ -20,6 +20,7 @@ The map is built in memory, saved atomically and only then registered: never hal
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import logging
 import os
@@ -39,6 +40,7 @@ import numpy as np
 from service.api.errors import (
     BadRequest,
     Conflict,
+    InsufficientStorage,
     InvalidParameters,
     NotFound,
     PayloadTooLarge,
@@ -127,6 +129,40 @@ def _fsync_dir(directory: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+_FULL = (errno.ENOSPC, errno.EDQUOT)
+_NOT_WRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)
+
+
+def storage_error(exc: OSError, name: str, what: str) -> ServiceError | None:
+    """A write into the maps directory that failed as the error a client is told: 507 when
+    the disk (or the service's quota) is full, 503 when the directory is read-only or not
+    the service's to write; None for any other OSError. No path: only the map's name."""
+    reason = os.strerror(exc.errno) if exc.errno is not None else type(exc).__name__
+    if exc.errno in _FULL:
+        return InsufficientStorage(
+            f"map '{name}': {what} failed: no space left in the maps directory ({reason}); "
+            "the map and its sessions are unchanged; retry when space is freed")
+    if exc.errno in _NOT_WRITABLE:
+        return Unavailable(
+            f"map '{name}': {what} failed: the maps directory is not writable by the service "
+            f"({reason}); the map and its sessions are unchanged")
+    return None
+
+
+@contextlib.contextmanager
+def writing(name: str, what: str) -> Iterator[None]:
+    """Writes of map ``name`` into the maps directory: an OSError of a full or unwritable
+    directory becomes ``storage_error`` (one warning line in the log, no traceback)."""
+    try:
+        yield
+    except OSError as exc:
+        err = storage_error(exc, name, what)
+        if err is None:
+            raise
+        log.warning("map %s: %s failed: %s", name, what, exc)
+        raise err from None
 
 
 @dataclass
@@ -380,6 +416,14 @@ class MapAdmin:
                                      f"{current}); replace it with If-Match instead")
         return current if isinstance(current, str) else None
 
+    def probe_writable(self) -> None:
+        """The OSError of a maps directory this service cannot write, if it is one: a hidden
+        temporary file created and removed (``TEMP_PREFIX``: were one ever left behind,
+        ``remove_stale`` removes it)."""
+        fd, path = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}probe-", dir=self.directory)
+        os.close(fd)
+        os.unlink(path)
+
     # ---- uploads ------------------------------------------------------------------------
     def staging_file(self, kind: str) -> Path:
         """A new hidden temporary file in the maps directory (removed by the caller)."""
@@ -407,18 +451,19 @@ class MapAdmin:
                 raise InvalidParameters(
                     f"the uploaded map is named '{m.name}' in its header, not '{name}'; upload "
                     f"it to /maps/{m.name} or rebuild it under the name '{name}'")
-            with staged.open("rb+") as fh:
-                os.fsync(fh.fileno())
-            staged.chmod(0o644)  # mkstemp made it private; maps are readable like save_map's
-            with self._lock:
-                final = self._file_of(name)
-                with self._file_lock(final):
-                    base = self.check_preconditions(name, if_match, if_none_match)
-                    self._publish(name, staged, m.meta.get("checksum"), base)
-                    os.replace(staged, final)
-                    _fsync_dir(final.parent)
-                    m.path = final
-                    created = self.register(m, "upload")
+            with writing(name, "the upload"):
+                with staged.open("rb+") as fh:
+                    os.fsync(fh.fileno())
+                staged.chmod(0o644)  # mkstemp made it private; maps are readable as save_map's
+                with self._lock:
+                    final = self._file_of(name)
+                    with self._file_lock(final):
+                        base = self.check_preconditions(name, if_match, if_none_match)
+                        self._publish(name, staged, m.meta.get("checksum"), base)
+                        os.replace(staged, final)
+                        _fsync_dir(final.parent)
+                        m.path = final
+                        created = self.register(m, "upload")
         except ServiceError:
             metrics.map_uploads.labels("rejected").inc()
             raise
@@ -463,26 +508,34 @@ class MapAdmin:
     # ---- delete -------------------------------------------------------------------------
     def delete(self, name: str, force: bool = False, if_match: str | None = None
                ) -> MapDeleted:
-        with self._lock:
+        """Delete map ``name``: its file first, so that a maps directory the service cannot
+        write (503) leaves the map and its sessions as they were."""
+        with self._lock, contextlib.ExitStack() as held:
             m = self.service.get_map(name)
             own = self.own_file(m)
-            with self._file_lock(own) if own is not None else contextlib.nullcontext():
-                base = self.check_preconditions(name, if_match, None)
-                users = self.service.sessions_on_map(name)
-                if users and not force:
-                    raise Conflict(f"map '{name}' is used by {len(users)} session(s): "
-                                   f"{', '.join(users)}; delete or move them first, or send "
-                                   "?force=true to end them")
-                self._tombstone(name, base)
-                for robot_id in users:
-                    try:
-                        self.service.delete_session(robot_id)
-                    except NotFound:
-                        pass
-                del self.service.maps[name]
-                if own is not None:
+            if own is not None:
+                with writing(name, "the delete"):
+                    held.enter_context(self._file_lock(own))
+            base = self.check_preconditions(name, if_match, None)
+            users = self.service.sessions_on_map(name)
+            if users and not force:
+                raise Conflict(f"map '{name}' is used by {len(users)} session(s): "
+                               f"{', '.join(users)}; delete or move them first, or send "
+                               "?force=true to end them")
+            if own is not None:  # before the delete is published to other replicas
+                with writing(name, "the delete"):
+                    self.probe_writable()
+            self._tombstone(name, base)
+            if own is not None:
+                with writing(name, "the delete"):
                     own.unlink(missing_ok=True)
                     _fsync_dir(self.directory)
+            for robot_id in users:
+                try:
+                    self.service.delete_session(robot_id)
+                except NotFound:
+                    pass
+            del self.service.maps[name]
             self.service.metrics.maps.set(len(self.service.maps))
             self.service.metrics.map_deletes.inc()
         return MapDeleted(map=name, ended_sessions=users)
@@ -571,7 +624,7 @@ class MapAdmin:
     def delete_experience(self, name: str, exp_id: str, if_match: str | None = None
                           ) -> MapSummary:
         """Remove one experience of a map (a new version)."""
-        with self._writer(name) as m:
+        with writing(name, f"removing experience '{exp_id}'"), self._writer(name) as m:
             self.check_preconditions(name, if_match, None)
             if exp_id not in experience_layers(m):
                 raise NotFound(f"map '{name}' has no experience '{exp_id}'; it has "
@@ -610,8 +663,10 @@ class MapAdmin:
                                  f"{', '.join(FEATURE_TYPES)}")
             params = build_params(features, max_features, width, height)
             self.check_preconditions(name, if_match, if_none_match)
-            workdir = Path(tempfile.mkdtemp(prefix=f"{TEMP_PREFIX}build-", dir=self.directory))
-            rnd = extract_round(archive, workdir / "round", self.limits())
+            with writing(name, "unpacking the round archive"):
+                workdir = Path(tempfile.mkdtemp(prefix=f"{TEMP_PREFIX}build-",
+                                                dir=self.directory))
+                rnd = extract_round(archive, workdir / "round", self.limits())
         except ServiceError:
             metrics.map_builds.labels("rejected").inc()
             if workdir is not None:
@@ -676,7 +731,7 @@ class MapAdmin:
             m = build_map_from_rounds([rnd], name=job.map, images=self._paced_images(job),
                                       params=job.params,
                                       source={"name": rnd.name, "uploaded": True, "job": job.id})
-            with self._lock:
+            with self._lock, writing(job.map, "the build"):
                 target = self._file_of(job.map)
                 with self._file_lock(target):
                     base = self.check_preconditions(job.map, job.if_match, job.if_none_match)
@@ -703,17 +758,19 @@ class MapAdmin:
                 metrics.map_builds.labels("failed").inc()
 
 
-def payload_to_file(admin: MapAdmin, data: bytes, kind: str, limit: int) -> Path:
-    """Stage an in-memory payload (Zenoh) like an HTTP body: size limit, hidden temp file."""
+def payload_to_file(admin: MapAdmin, data: bytes, kind: str, limit: int, name: str) -> Path:
+    """Stage an in-memory payload (Zenoh) for map ``name`` like an HTTP body: size limit,
+    hidden temp file, 503 / 507 where the maps directory cannot take it."""
     if len(data) > limit:
         raise PayloadTooLarge(f"{kind} is {len(data)} bytes; the limit is {limit} bytes")
-    path = admin.staging_file(kind)
-    try:
-        with path.open("wb") as fh:
-            fh.write(data)
-    except BaseException:
-        path.unlink(missing_ok=True)
-        raise
+    with writing(name, f"receiving the {'map' if kind == 'upload' else 'round archive'}"):
+        path = admin.staging_file(kind)
+        try:
+            with path.open("wb") as fh:
+                fh.write(data)
+        except BaseException:
+            path.unlink(missing_ok=True)
+            raise
     return path
 
 

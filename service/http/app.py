@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import uuid
 import weakref
 from collections.abc import AsyncIterator
 from typing import Annotated
@@ -17,6 +18,7 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import __version__
 from service.api.errors import PayloadTooLarge, ServiceError, Unavailable, describe_errors
@@ -91,6 +93,7 @@ def create_app(service: LocalizationService, *, expire_every_s: float | None = N
     app.state.service = service
     app.state.frame_workers = FrameWorkers(settings.frame_workers)
     add_error_handlers(app, service)
+    app.add_middleware(InternalErrors)
     app.include_router(health_router)
     app.include_router(docs_router)
     app.include_router(events_router)
@@ -161,6 +164,39 @@ def add_error_handlers(app: FastAPI, service: LocalizationService) -> None:
             message = f"the request body could not be read: {message}"
         return JSONResponse({"error": message}, exc.status_code,
                             headers=getattr(exc, "headers", None))
+
+
+class InternalErrors:
+    """The last resort: an exception no handler answered (a defect) is logged once, with its
+    traceback and an error id, and answered 500 ``{"error": ...}`` with that id, never the
+    traceback. Starlette's own last handler would answer plain text and let uvicorn log the
+    traceback again. A response already under way (a stream) cannot be replaced: its
+    exception goes on to uvicorn, which logs it and closes the connection."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def sending(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, receive, sending)
+        except Exception:
+            if started:
+                raise
+            ref = uuid.uuid4().hex[:12]
+            log.exception("internal error %s in %s %s", ref, scope.get("method"),
+                          scope.get("path"))
+            await JSONResponse({"error": f"internal error; see the service log (error {ref})"},
+                               500)(scope, receive, send)
 
 
 # ---- the probes: always open ------------------------------------------------------------

@@ -29,13 +29,14 @@ from service.api.models import (
     MapSummary,
 )
 from service.engine.localization_service import LocalizationService
-from service.engine.map_admin import check_map_name
+from service.engine.map_admin import check_map_name, writing
 from service.http.auth import require_token
 from service.http.deps import ServiceDep
 from service.http.openapi import API_ERRORS, binary_body
 
 MAP_ERRORS: dict[int | str, dict[str, Any]] = API_ERRORS | {
-    412: {"model": ErrorBody, "description": "If-Match / If-None-Match not met"}}
+    412: {"model": ErrorBody, "description": "If-Match / If-None-Match not met"},
+    507: {"model": ErrorBody, "description": "no space left in the maps directory"}}
 MAP_TYPES = ("application/octet-stream", "application/x-swarmloc-map")
 ARCHIVE_TYPES = ("application/zip", "application/x-zip-compressed", "application/x-tar",
                   "application/gzip", "application/x-gzip", "application/x-compressed-tar",
@@ -70,11 +71,14 @@ async def _stage(request: Request, path: Path, limit: int, what: str) -> None:
 
 @contextlib.asynccontextmanager
 async def _staged(request: Request, service: LocalizationService, kind: str, limit: int,
-                  what: str) -> AsyncIterator[Path]:
-    path = service.admin.staging_file(kind)
+                  what: str, name: str) -> AsyncIterator[Path]:
+    """The body, staged for map ``name``: 503 / 507 where the maps directory cannot take it."""
+    path: Path | None = None
     try:
         try:
-            await _stage(request, path, limit, what)
+            with writing(name, f"receiving the {what}"):
+                path = service.admin.staging_file(kind)
+                await _stage(request, path, limit, what)
         except Exception as exc:
             label = "uploads" if kind == "upload" else "builds"
             getattr(service.metrics, f"map_{label}").labels("rejected").inc()
@@ -82,7 +86,8 @@ async def _staged(request: Request, service: LocalizationService, kind: str, lim
             raise
         yield path
     finally:
-        path.unlink(missing_ok=True)
+        if path is not None:
+            path.unlink(missing_ok=True)
 
 
 map_router = APIRouter(dependencies=[Depends(require_token)], responses=MAP_ERRORS)
@@ -103,7 +108,7 @@ async def upload_map(name: str, request: Request, response: Response, service: S
     # the event loop (as every call into the admin here)
     await anyio.to_thread.run_sync(admin.check_preconditions, name, if_match, if_none_match)
     async with _staged(request, service, "upload", service.settings.max_map_bytes,
-                       "map") as path:
+                       "map", name) as path:
         summary, created = await anyio.to_thread.run_sync(
             admin.install_upload, name, path, if_match, if_none_match)
     response.status_code = 201 if created else 200
@@ -185,7 +190,7 @@ async def build_map(name: str, request: Request, response: Response, service: Se
     _check_type(request, ARCHIVE_TYPES, "a round archive")
     await anyio.to_thread.run_sync(admin.check_preconditions, name, if_match, if_none_match)
     async with _staged(request, service, "archive", service.settings.max_archive_bytes,
-                       "round archive") as path:
+                       "round archive", name) as path:
         job = await anyio.to_thread.run_sync(
             admin.submit_build, name, path, if_match, if_none_match, features, max_features,
             width, height)

@@ -15,7 +15,10 @@ API_ERRORS: dict[int | str, dict[str, Any]] = {
         (400, "the request could not be read"), (401, "missing or wrong bearer token"),
         (404, "no such session, map or route"), (409, "conflict with the current state"),
         (413, "body over the size limit"), (415, "unsupported content type"),
-        (422, "invalid parameters"), (503, "not ready or shutting down"))}
+        (422, "invalid parameters"),
+        (500, "internal error (a defect): the body names the error id in the service log"),
+        (503, "not ready, shutting down, a store unavailable, or the maps directory not "
+              "writable"))}
 
 
 def binary_body(types: tuple[str, ...], description: str) -> dict[str, Any]:

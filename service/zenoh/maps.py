@@ -83,12 +83,12 @@ def declare_map_queryables(session: zenoh.Session, prefix: str, service: Localiz
             return admin.delete(name, bool(opts.get("force")), match_).model_dump(mode="json")
         if action == "put":
             admin.check_preconditions(name, match_, none_match)
-            path = payload_to_file(admin, data, "upload", s.max_map_bytes)
+            path = payload_to_file(admin, data, "upload", s.max_map_bytes, name)
             summary, created = admin.install_upload(name, path, match_, none_match)
             return {**summary.model_dump(mode="json"), "created": created}
         if action == "build":
             admin.check_preconditions(name, match_, none_match)
-            path = payload_to_file(admin, data, "archive", s.max_archive_bytes)
+            path = payload_to_file(admin, data, "archive", s.max_archive_bytes, name)
             job = admin.submit_build(name, path, match_, none_match,
                                      opts.get("features") or DEFAULT_FEATURES,
                                      opts.get("max_features"), opts.get("width"),
