@@ -7,16 +7,19 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import logging
 import os
 import shutil
 import subprocess
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
+import zenoh
 
 from client.dataset import Round
 from service.engine.localization_service import LocalizationService
@@ -25,6 +28,7 @@ from service.maps.route_map import RouteMap, load_map
 from service.server import free_port, running_server
 from service.settings import Settings
 from service.vision.features import extract
+from service.zenoh.config import zenoh_config
 
 PNG = {"content-type": "image/png"}
 MAP = {"content-type": "application/octet-stream"}
@@ -230,4 +234,52 @@ def test_an_unexpected_failure_of_a_route_is_a_json_500_logged_once(
     assert tracebacks[0].exc_info is not None
     assert tracebacks[0].exc_info[0] is FileNotFoundError
     assert "GET /maps/small/file" in tracebacks[0].getMessage()
+    service.close()
+
+
+def test_a_learning_session_is_refused_where_its_map_cannot_be_written(
+        maps_dir: MapsDir, small_map: RouteMap) -> None:
+    """Regression: a session with "learn": true on a maps directory the service cannot write
+    was accepted (HTTP and Zenoh control), and each batch it learned then failed into the
+    log. Now it is refused at creation (503), over both transports alike; a session that only
+    localizes is served as ever."""
+    assert small_map.path is not None
+    shutil.copy(small_map.path, maps_dir.path / "small.swmap")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    service = _service(maps_dir.path, zenoh_listen=[endpoint], zenoh_multicast_scouting=False)
+    learn = {"map": "small", "learn": True}
+
+    def control(peer: zenoh.Session, robot: str, body: dict) -> dict:
+        (reply,) = peer.get(f"swarmloc/{robot}/control", payload=json.dumps(body).encode(),
+                            timeout=20)
+        if reply.err is not None:
+            return {"ok": False, **json.loads(reply.err.payload.to_bytes())}
+        return {"ok": True, **json.loads(reply.ok.payload.to_bytes())}
+
+    with running_server(service) as url, httpx.Client(base_url=url, timeout=60) as http:
+        peer = zenoh.open(zenoh_config(mode="peer", connect=[endpoint]))
+        try:
+            time.sleep(0.5)  # let the peers connect before the first query
+            assert http.put("/sessions/walker", json={"map": "small"}).status_code == 201
+            with maps_dir.read_only():
+                r = http.put("/sessions/teacher", json=learn)
+                err = _json_error(r, 503, "map 'small' cannot learn",
+                                  "maps directory is not writable", "without learn")
+                assert str(maps_dir.path) not in err
+                got = control(peer, "zteacher", {"action": "put", **learn})
+                assert (got["ok"], got["status"], got["error"]) == (False, 503, err)
+                r = http.put("/sessions/walker", json=learn)  # a running session asks to learn
+                _json_error(r, 503, "cannot learn")
+                # sessions that only localize are created (and the refused ones were not)
+                assert http.put("/sessions/second", json={"map": "small"}).status_code == 201
+                assert control(peer, "zsecond", {"action": "put", "map": "small"})["ok"]
+                assert sorted(s["robot_id"] for s in http.get("/sessions").json()) == \
+                    ["second", "walker", "zsecond"]
+                assert http.get("/sessions/walker").json()["learn"] is False
+            # writable again: the same requests are accepted
+            assert http.put("/sessions/teacher", json=learn).status_code == 201
+            assert control(peer, "zteacher", {"action": "put", **learn})["learn"] is True
+        finally:
+            peer.close()
+    assert not [p.name for p in maps_dir.path.iterdir() if p.name.startswith(".swarmloc")]
     service.close()

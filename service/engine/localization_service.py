@@ -283,6 +283,8 @@ class LocalizationService:
         check_robot_id(robot_id)
         map_name = config.map or self.default_map
         route_map = self.admin.refresh(map_name)  # the newest version on disk
+        if config.learn:  # not on a maps directory that cannot take what it teaches
+            self.admin.check_learnable(route_map)
         estimator = config.estimator or self.settings.default_estimator
         n = config.params.get("n_particles") if isinstance(config.params, dict) else None
         if isinstance(n, int) and not isinstance(n, bool) and n > self.settings.max_particles:

@@ -108,6 +108,7 @@ TEMP_PREFIX = ".swarmloc-"  # hidden and without the .swmap suffix: never loaded
 _NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
 _KEEP_JOBS = 100
 STALE_S = 24 * 3600.0
+WRITABLE_TRUST_S = 10.0  # a maps directory found writable is not probed again meanwhile
 
 
 def check_map_name(name: str) -> None:
@@ -135,20 +136,28 @@ _FULL = (errno.ENOSPC, errno.EDQUOT)
 _NOT_WRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)
 
 
+def _storage_fault(exc: OSError) -> tuple[type[ServiceError], str] | None:
+    """The error class and what is wrong, for an OSError of a full (507) or unwritable (503)
+    maps directory; None for any other OSError. No path."""
+    reason = os.strerror(exc.errno) if exc.errno is not None else type(exc).__name__
+    if exc.errno in _FULL:
+        return InsufficientStorage, f"no space left in the maps directory ({reason})"
+    if exc.errno in _NOT_WRITABLE:
+        return Unavailable, f"the maps directory is not writable by the service ({reason})"
+    return None
+
+
 def storage_error(exc: OSError, name: str, what: str) -> ServiceError | None:
     """A write into the maps directory that failed as the error a client is told: 507 when
     the disk (or the service's quota) is full, 503 when the directory is read-only or not
     the service's to write; None for any other OSError. No path: only the map's name."""
-    reason = os.strerror(exc.errno) if exc.errno is not None else type(exc).__name__
-    if exc.errno in _FULL:
-        return InsufficientStorage(
-            f"map '{name}': {what} failed: no space left in the maps directory ({reason}); "
-            "the map and its sessions are unchanged; retry when space is freed")
-    if exc.errno in _NOT_WRITABLE:
-        return Unavailable(
-            f"map '{name}': {what} failed: the maps directory is not writable by the service "
-            f"({reason}); the map and its sessions are unchanged")
-    return None
+    fault = _storage_fault(exc)
+    if fault is None:
+        return None
+    kind, problem = fault
+    retry = "; retry when space is freed" if kind is InsufficientStorage else ""
+    return kind(f"map '{name}': {what} failed: {problem}; the map and its sessions are "
+                f"unchanged{retry}")
 
 
 @contextlib.contextmanager
@@ -206,6 +215,7 @@ class MapAdmin:
         self._worker: threading.Thread | None = None
         self.follower = DirectoryFollower(self)  # maps other services on the directory wrote
         self.mirror: MapMirror | None = None  # maps through Redis (settings.maps_sync)
+        self._writable_until = 0.0  # time.monotonic() until which a probe is trusted
         self.remove_stale()
 
     def remove_stale(self, older_than_s: float = STALE_S) -> list[str]:
@@ -423,6 +433,29 @@ class MapAdmin:
         fd, path = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}probe-", dir=self.directory)
         os.close(fd)
         os.unlink(path)
+
+    def check_learnable(self, m: RouteMap) -> None:
+        """Before a learning session on map ``m`` is created: 503 where the maps directory
+        holding its file is not writable by the service (read-only, not permitted), whose
+        every learned batch would otherwise fail into the log; 507 where it cannot take even
+        an empty file. One probe (``probe_writable``); a success is trusted for
+        ``WRITABLE_TRUST_S``, so a fleet starting its learning sessions writes one temporary
+        file, not one per robot."""
+        name = m.name
+        if self.own_file(m) is None or time.monotonic() < self._writable_until:
+            return
+        try:
+            self.probe_writable()
+        except OSError as exc:
+            fault = _storage_fault(exc)
+            if fault is None:
+                raise
+            kind, problem = fault
+            log.warning("map %s: a learning session refused: %s", name, exc)
+            raise kind(f"map '{name}' cannot learn: {problem}, so what a learning session "
+                       "teaches could not be written; create the session without learn, or "
+                       "make the maps directory writable") from None
+        self._writable_until = time.monotonic() + WRITABLE_TRUST_S
 
     # ---- uploads ------------------------------------------------------------------------
     def staging_file(self, kind: str) -> Path:
