@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 import time
@@ -268,3 +269,55 @@ def test_zenoh_get_shows_a_learning_session_s_progress(server, sunny2) -> None:
         for robot in ("zlearn", "zplain"):
             z.delete_session(robot)
         z.close()
+
+
+def test_a_frame_is_answered_while_a_control_query_waits(server, sunny2) -> None:
+    """Regression: control queries (put, get, reset, delete) were answered on the one thread
+    Zenoh runs the control queryable's callback on, fed by a bounded queue. A learning
+    robot's delete waits for its learner (here: its gates held up), so every other robot's
+    control query waited behind it, and once some 256 had queued, Zenoh's receiving thread
+    blocked: no frame of any robot on the link was answered until the delete was done. Now
+    control queries run on their own workers, and the callback returns at once."""
+    service = server["service"]
+    peer = _peer(server["zenoh"])
+    get = json.dumps({"action": "get"}).encode()
+
+    def control(robot: str, body: dict) -> dict:
+        (reply,) = peer.get(f"swarmloc/{robot}/control", payload=json.dumps(body).encode(),
+                            timeout=20)
+        assert reply.ok is not None, reply.err.payload.to_bytes()
+        return json.loads(reply.ok.payload.to_bytes())
+
+    try:
+        time.sleep(0.5)  # let the peers connect before the first query
+        control("zwalker", {"action": "put", "map": "small"})
+        control("zteacher", {"action": "put", "map": "small", "learn": True})
+        with service.learner._lock:  # the teacher's gates held up: its end waits for them
+            ended = peer.get("swarmloc/zteacher/control",
+                             payload=json.dumps({"action": "delete"}).encode(), timeout=60)
+            time.sleep(0.3)
+            crowd = [peer.get(f"swarmloc/zghost{i}/control", payload=get, timeout=60)
+                     for i in range(300)]  # other robots' control queries meanwhile
+            t0 = time.monotonic()
+            (est,) = peer.get("swarmloc/zwalker/localize",
+                              payload=sunny2.image_path(0).read_bytes(),
+                              attachment=json.dumps({"t": 0.0}).encode(), timeout=20)
+            waited = time.monotonic() - t0
+            assert est.ok is not None, est.err.payload.to_bytes()
+            assert json.loads(est.ok.payload.to_bytes())["robot_id"] == "zwalker"
+            (other,) = peer.get("swarmloc/zwalker/control", payload=get, timeout=20)
+            assert other.ok is not None and json.loads(other.ok.payload.to_bytes())[
+                "robot_id"] == "zwalker"
+            assert ended.try_recv() is None  # the delete is still waiting
+        print(f"frame answered in {waited:.2f} s while a control query waited")
+        (done,) = list(ended)
+        assert done.ok is not None
+        assert json.loads(done.ok.payload.to_bytes()) == {"deleted": "zteacher"}
+        for handler in crowd:  # every one answered: no session (404) or too many (503)
+            (r,) = list(handler)
+            assert r.err is not None
+            assert json.loads(r.err.payload.to_bytes())["status"] in (404, 503)
+    finally:
+        with contextlib.suppress(Exception):
+            control("zwalker", {"action": "delete"})
+        peer.close()

@@ -22,6 +22,12 @@ one-frame slot: a newer frame replaces the waiting one (counted as dropped), so 
 gets the estimate of its newest frame and never a growing backlog. ``localize`` queries share
 the slot: a replaced query is answered at once with 429 (a newer frame of the robot came).
 At most ``max_sessions`` robots have a frame waiting; beyond, a frame is refused with 503.
+
+Control queries run on their own few worker threads, a robot's in the order they came (at most
+``CONTROL_BACKLOG`` waiting per robot; beyond, 503): Zenoh calls each declaration's callback on
+one thread fed by a bounded queue, so a control query answered there (a learning robot's delete
+or reset waits for its learner; a put waits for the map admin through a whole map write) held
+every robot's control queries, and once that queue was full, every frame on the link.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -61,6 +68,8 @@ from service.zenoh.replies import (
 
 log = logging.getLogger("swarmloc")
 __all__ = ["ZenohBridge", "control", "parse_attachment"]
+CONTROL_WORKERS = 4  # threads answering control queries (each robot's one at a time)
+CONTROL_BACKLOG = 16  # a robot's control queries waiting at once; more are refused (503)
 
 
 @dataclass
@@ -136,6 +145,11 @@ class ZenohBridge:
         self._slots: dict[str, _Frame] = {}  # the frame waiting per robot
         self._busy: set[str] = set()
         self._lock = threading.Lock()
+        # control queries, off Zenoh's callback thread: a robot's wait in order in its queue,
+        # which exists while a worker drains it
+        self._control_pool = ThreadPoolExecutor(max_workers=CONTROL_WORKERS,
+                                                thread_name_prefix="zenoh-control")
+        self._controls: dict[str, deque[zenoh.Query]] = {}
 
     # ---- lifecycle ----------------------------------------------------------------------
     def start(self) -> ZenohBridge:
@@ -162,8 +176,14 @@ class ZenohBridge:
             d.undeclare()
         self._decls = []
         self.service.begin_shutdown()
-        for pool in (self._pool, self._heavy_pool):
+        for pool in (self._pool, self._heavy_pool, self._control_pool):
             pool.shutdown(wait=False, cancel_futures=True)
+        with self._lock:  # control queries not started: answered, not left open
+            waiting = [q for queue in self._controls.values() for q in queue]
+            for queue in self._controls.values():
+                queue.clear()
+        for query in waiting:
+            answer(query, error_body(ServiceError("the service is shutting down", 503)))
         if not self.service.wait_idle(self.settings.shutdown_deadline_s):
             log.warning("Zenoh frames still running after the %.1f s shutdown deadline",
                         self.settings.shutdown_deadline_s)
@@ -314,13 +334,53 @@ class ZenohBridge:
         self.submit_frame(robot, data, meta, reply=reply, publish=False)
 
     def _on_control(self, query: zenoh.Query) -> None:
-        """Every control query gets an answer: the reply, or an error reply (from the replica
-        that serves the robot; the others stay silent)."""
+        """Queue a control query for the control workers (the robot's after its earlier ones)
+        and return: Zenoh's callback thread never waits for the service."""
         robot = self._robot(str(query.key_expr))
-        if not self._serves(robot):
-            query.drop()
+        start = False
+        with self._lock:
+            waiting = self._controls.get(robot)
+            refused = (len(self._controls) >= self.settings.max_sessions if waiting is None
+                       else len(waiting) >= CONTROL_BACKLOG)
+            if not refused:
+                start = waiting is None
+                self._controls.setdefault(robot, deque()).append(query)
+        if refused:
+            self.service.metrics.rejected.labels("Unavailable").inc()
+            if self._serves(robot):
+                answer(query, error_body(ServiceError(
+                    "too many control queries waiting; retry when they are answered", 503),
+                    robot))
+            else:
+                query.drop()
+            return
+        if not start:
             return
         try:
+            self._control_pool.submit(self._drain_control, robot)
+        except RuntimeError:  # shutting down: the pool takes no more work
+            with self._lock:
+                left = self._controls.pop(robot, deque())
+            for q in left:
+                answer(q, error_body(ServiceError("the service is shutting down", 503), robot))
+
+    def _drain_control(self, robot: str) -> None:
+        while True:
+            with self._lock:
+                waiting = self._controls.get(robot)
+                if not waiting:
+                    self._controls.pop(robot, None)
+                    return
+                query = waiting.popleft()
+            self._control(robot, query)
+
+    def _control(self, robot: str, query: zenoh.Query) -> None:
+        """Every control query gets an answer: the reply, or an error reply (from the replica
+        that serves the robot; the others stay silent)."""
+        try:
+            if not self._serves(robot):
+                query.drop()
+                return
             raw = query.payload.to_bytes() if query.payload else b""
             body = parse_json(raw, "control payload") if raw else {"action": "get"}
             reply: dict[str, Any] = control(self.service, robot, body)
