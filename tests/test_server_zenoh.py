@@ -321,3 +321,51 @@ def test_a_frame_is_answered_while_a_control_query_waits(server, sunny2) -> None
         with contextlib.suppress(Exception):
             control("zwalker", {"action": "delete"})
         peer.close()
+
+
+def test_a_frame_is_answered_while_map_queries_wait(server, sunny2) -> None:
+    """Regression: ``@maps`` queries ran on the frame workers. Every map query but the list
+    of the maps (a get too: it reads the newest version on disk) waits for the map admin,
+    which a build or a learning session's images hold through a whole map write (here: held
+    up by the test), so a few map queries took every frame worker and no robot's frame was
+    answered until the write was done. Now map queries run on their own workers, and beyond
+    a bounded backlog are answered 503 at once."""
+    service = server["service"]
+    peer = _peer(server["zenoh"])
+    delete = json.dumps({"action": "delete"}).encode()
+
+    def control(robot: str, body: dict) -> dict:
+        (reply,) = peer.get(f"swarmloc/{robot}/control", payload=json.dumps(body).encode(),
+                            timeout=20)
+        assert reply.ok is not None, reply.err.payload.to_bytes()
+        return json.loads(reply.ok.payload.to_bytes())
+
+    try:
+        time.sleep(0.5)  # let the peers connect before the first query
+        control("zmapper", {"action": "put", "map": "small"})
+        with service.admin._lock:  # a map write in progress
+            waiting = [peer.get(f"swarmloc/@maps/zgone{i}", attachment=delete, timeout=60)
+                       for i in range(8)]  # more than the frame workers (4)
+            waiting += [peer.get("swarmloc/@maps/zgone0", attachment=delete, timeout=60)
+                        for _ in range(20)]  # beyond one map's backlog
+            time.sleep(0.3)
+            t0 = time.monotonic()
+            (est,) = peer.get("swarmloc/zmapper/localize",
+                              payload=sunny2.image_path(0).read_bytes(),
+                              attachment=json.dumps({"t": 0.0}).encode(), timeout=20)
+            waited = time.monotonic() - t0
+            assert est.ok is not None, est.err.payload.to_bytes()
+            assert json.loads(est.ok.payload.to_bytes())["robot_id"] == "zmapper"
+            early = [r for r in (h.try_recv() for h in waiting) if r is not None]
+            assert early and all(json.loads(r.err.payload.to_bytes())["status"] == 503
+                                 for r in early)  # refused at once, not held
+            assert len(early) < len(waiting)  # the others still wait for the map admin
+        print(f"frame answered in {waited:.2f} s while map queries waited")
+        for handler in waiting:  # every one answered: no such map (404) or too many (503)
+            for r in handler:
+                assert r.err is not None
+                assert json.loads(r.err.payload.to_bytes())["status"] in (404, 503)
+    finally:
+        with contextlib.suppress(Exception):
+            control("zmapper", {"action": "delete"})
+        peer.close()

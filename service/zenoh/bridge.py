@@ -27,7 +27,9 @@ Control queries run on their own few worker threads, a robot's in the order they
 ``CONTROL_BACKLOG`` waiting per robot; beyond, 503): Zenoh calls each declaration's callback on
 one thread fed by a bounded queue, so a control query answered there (a learning robot's delete
 or reset waits for its learner; a put waits for the map admin through a whole map write) held
-every robot's control queries, and once that queue was full, every frame on the link.
+every robot's control queries, and once that queue was full, every frame on the link. Map
+queries (service/zenoh/maps.py) have workers of their own for the same reason, not the frame
+workers: they wait for the map admin (service/zenoh/workers.py).
 """
 
 from __future__ import annotations
@@ -35,7 +37,6 @@ from __future__ import annotations
 import json
 import logging
 import threading
-from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -57,7 +58,7 @@ from service.api.models import (
 from service.engine.localization_service import LocalizationService
 from service.settings import Settings
 from service.zenoh.config import check_security, service_zenoh_config
-from service.zenoh.maps import declare_map_queryables
+from service.zenoh.maps import MAP_BACKLOG, MAP_NAMES, MAP_WORKERS, declare_map_queryables
 from service.zenoh.replies import (
     answer,
     error_body,
@@ -65,6 +66,7 @@ from service.zenoh.replies import (
     parse_json,
     parse_json_object,
 )
+from service.zenoh.workers import KeyedWorkers
 
 log = logging.getLogger("swarmloc")
 __all__ = ["ZenohBridge", "control", "parse_attachment"]
@@ -145,11 +147,14 @@ class ZenohBridge:
         self._slots: dict[str, _Frame] = {}  # the frame waiting per robot
         self._busy: set[str] = set()
         self._lock = threading.Lock()
-        # control queries, off Zenoh's callback thread: a robot's wait in order in its queue,
-        # which exists while a worker drains it
-        self._control_pool = ThreadPoolExecutor(max_workers=CONTROL_WORKERS,
-                                                thread_name_prefix="zenoh-control")
-        self._controls: dict[str, deque[zenoh.Query]] = {}
+        unavailable = self.service.metrics.rejected.labels("Unavailable").inc
+        # control queries, off Zenoh's callback thread, a robot's in order
+        self._controls = KeyedWorkers("zenoh-control", CONTROL_WORKERS, CONTROL_BACKLOG,
+                                      self.settings.max_sessions, "control queries",
+                                      unavailable)
+        # map queries wait for the map admin: neither on a frame worker nor a control worker
+        self._maps = KeyedWorkers("zenoh-maps", MAP_WORKERS, MAP_BACKLOG, MAP_NAMES,
+                                  "map queries", unavailable)
 
     # ---- lifecycle ----------------------------------------------------------------------
     def start(self) -> ZenohBridge:
@@ -161,7 +166,7 @@ class ZenohBridge:
             s.declare_subscriber(f"{p}/*/frame", self._on_frame),
             s.declare_queryable(f"{p}/*/localize", self._on_localize),
             s.declare_queryable(f"{p}/*/control", self._on_control),
-            *declare_map_queryables(s, p, self.service, self._pool),  # {p}/@maps, {p}/@jobs
+            *declare_map_queryables(s, p, self.service, self._maps),  # {p}/@maps, {p}/@jobs
         ]
         if self.settings.ros2_enabled:
             from service.zenoh.ros2 import Ros2Endpoints
@@ -176,14 +181,10 @@ class ZenohBridge:
             d.undeclare()
         self._decls = []
         self.service.begin_shutdown()
-        for pool in (self._pool, self._heavy_pool, self._control_pool):
+        for pool in (self._pool, self._heavy_pool):
             pool.shutdown(wait=False, cancel_futures=True)
-        with self._lock:  # control queries not started: answered, not left open
-            waiting = [q for queue in self._controls.values() for q in queue]
-            for queue in self._controls.values():
-                queue.clear()
-        for query in waiting:
-            answer(query, error_body(ServiceError("the service is shutting down", 503)))
+        for workers in (self._controls, self._maps):  # queries not started: answered 503
+            workers.close()
         if not self.service.wait_idle(self.settings.shutdown_deadline_s):
             log.warning("Zenoh frames still running after the %.1f s shutdown deadline",
                         self.settings.shutdown_deadline_s)
@@ -337,42 +338,14 @@ class ZenohBridge:
         """Queue a control query for the control workers (the robot's after its earlier ones)
         and return: Zenoh's callback thread never waits for the service."""
         robot = self._robot(str(query.key_expr))
-        start = False
-        with self._lock:
-            waiting = self._controls.get(robot)
-            refused = (len(self._controls) >= self.settings.max_sessions if waiting is None
-                       else len(waiting) >= CONTROL_BACKLOG)
-            if not refused:
-                start = waiting is None
-                self._controls.setdefault(robot, deque()).append(query)
-        if refused:
-            self.service.metrics.rejected.labels("Unavailable").inc()
+
+        def refuse(exc: ServiceError) -> None:
             if self._serves(robot):
-                answer(query, error_body(ServiceError(
-                    "too many control queries waiting; retry when they are answered", 503),
-                    robot))
+                answer(query, error_body(exc, robot))
             else:
                 query.drop()
-            return
-        if not start:
-            return
-        try:
-            self._control_pool.submit(self._drain_control, robot)
-        except RuntimeError:  # shutting down: the pool takes no more work
-            with self._lock:
-                left = self._controls.pop(robot, deque())
-            for q in left:
-                answer(q, error_body(ServiceError("the service is shutting down", 503), robot))
 
-    def _drain_control(self, robot: str) -> None:
-        while True:
-            with self._lock:
-                waiting = self._controls.get(robot)
-                if not waiting:
-                    self._controls.pop(robot, None)
-                    return
-                query = waiting.popleft()
-            self._control(robot, query)
+        self._controls.submit(robot, lambda: self._control(robot, query), refuse)
 
     def _control(self, robot: str, query: zenoh.Query) -> None:
         """Every control query gets an answer: the reply, or an error reply (from the replica

@@ -12,13 +12,19 @@ robot may even be called "maps"):
 - ``{prefix}/@jobs``          query: every build job; ``{prefix}/@jobs/{id}``: one JobInfo.
 
 Errors are reply_err with ``{"error", "status"}``, the HTTP message and status code.
+
+Map queries are answered on ``MAP_WORKERS`` threads of their own, a map's in the order they
+came (service/zenoh/workers.py): all but the job queries wait for the map admin, which a build
+or a learning session's images hold through a whole map write, so answered on the frame
+workers they took the workers robots' frames need. At most ``MAP_BACKLOG`` wait per map and
+``MAP_NAMES`` maps have queries waiting; beyond, 503 at once. Job queries wait for nothing and
+are answered at once.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from concurrent.futures import Executor
 from typing import Any
 
 import zenoh
@@ -28,8 +34,12 @@ from service.api.models import DEFAULT_FEATURES
 from service.engine.localization_service import LocalizationService
 from service.engine.map_admin import payload_to_file
 from service.zenoh.replies import answer, error_body, internal_error, parse_json_object
+from service.zenoh.workers import KeyedWorkers
 
 log = logging.getLogger("swarmloc.zenoh")
+MAP_WORKERS = 2  # threads answering map queries (each map's one at a time)
+MAP_BACKLOG = 8  # a map's queries waiting at once; more are refused (503)
+MAP_NAMES = 16  # maps with queries waiting at once; a query for another is refused (503)
 
 
 def _reply(query: zenoh.Query, fn: Callable[[], Any]) -> None:
@@ -68,7 +78,7 @@ def _options(raw: bytes) -> dict[str, Any]:
 
 
 def declare_map_queryables(session: zenoh.Session, prefix: str, service: LocalizationService,
-                           pool: Executor) -> list[Any]:
+                           workers: KeyedWorkers) -> list[Any]:
     admin = service.admin
     s = service.settings
 
@@ -100,7 +110,8 @@ def declare_map_queryables(session: zenoh.Session, prefix: str, service: Localiz
         tail = str(query.key_expr).split("/@maps", 1)[1].strip("/")
         data = query.payload.to_bytes() if query.payload else b""
         raw = query.attachment.to_bytes() if query.attachment else b""
-        pool.submit(_reply, query, lambda: maps(tail, data, _options(raw)))
+        workers.submit(tail, lambda: _reply(query, lambda: maps(tail, data, _options(raw))),
+                       lambda exc: answer(query, error_body(exc)))
 
     def on_jobs(query: zenoh.Query) -> None:
         tail = str(query.key_expr).split("/@jobs", 1)[1].strip("/")
