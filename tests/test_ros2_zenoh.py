@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import queue
@@ -308,6 +309,58 @@ def test_initialpose_resets_the_session_near_the_pose(ros_server, peer, sunny2) 
         z.close()
 
 
+def test_a_frame_and_another_robot_s_reset_are_answered_while_a_reset_waits(
+        ros_server, peer, sunny2) -> None:
+    """Regression: initial poses were answered on the one thread Zenoh runs the initialpose
+    subscriber's callback on, fed by a bounded queue. A reset that waits (here: its robot's
+    session held, as its frame in flight or another replica holding a shared session does)
+    held every other robot's reset, and once some 256 initial poses had queued, Zenoh's
+    receiving thread blocked: no frame of any robot on the link arrived until the reset was
+    done. Now resets queue to the control workers, the callback returns at once."""
+    service = ros_server["service"]
+    x, y = (float(v) for v in sunny2.truth_xy[90])
+    slow_l, quick_l, json_l = _listen(peer, "zslow/swarmloc/status", "zquick/swarmloc/status",
+                                      "swarmloc/zcam/estimate")
+    z = ZenohClient([ros_server["zenoh"]], mode="peer")
+    try:
+        for robot in ("zslow", "zquick", "zcam"):
+            z.create_session(robot, "small")
+        with service.store.locked("zslow"):  # zslow's reset waits for its session
+            peer.put("zslow/initialpose", initialpose(x, y, 0.25))
+            time.sleep(0.3)
+            for _ in range(300):  # zslow keeps sending its initial pose meanwhile
+                peer.put("zslow/initialpose", initialpose(x, y, 0.25))
+            time.sleep(0.3)
+            t0 = time.monotonic()
+            peer.put("zquick/initialpose", initialpose(x, y, 0.25))
+            diag = TS.deserialize_cdr(quick_l.q.get(timeout=10)[0], STATUS)
+            assert diag.level == 0 and "reset near" in diag.message
+            reset_s = time.monotonic() - t0
+            peer.put("zcam/camera/image_raw/compressed", compressed(_jpeg(sunny2, 90), 1.0))
+            est = json.loads(json_l.q.get(timeout=10)[0])
+            assert est["robot_id"] == "zcam" and "error" not in est
+            frame_s = time.monotonic() - t0 - reset_s
+            refused = [TS.deserialize_cdr(slow_l.q.get(timeout=10)[0], STATUS)
+                       for _ in range(3)]  # beyond zslow's backlog: 503 at once
+            assert all(d.level == 2 and _values(d)["http_status"] == "503" for d in refused)
+        print(f"another robot's reset answered in {reset_s:.2f} s, a frame in {frame_s:.2f} s "
+              "while a reset waited")
+        deadline = time.monotonic() + WAIT_S
+        while time.monotonic() < deadline:  # zslow's first reset, answered once released
+            diag = TS.deserialize_cdr(slow_l.get()[0], STATUS)
+            if "reset near" in diag.message:
+                break
+        else:
+            raise AssertionError("zslow's reset was never answered")
+    finally:
+        for listener in (slow_l, quick_l, json_l):
+            listener.close()
+        for robot in ("zslow", "zquick", "zcam"):
+            with contextlib.suppress(Exception):
+                z.delete_session(robot)
+        z.close()
+
+
 # ---- codecs and keys ------------------------------------------------------------------------
 def test_codec_units() -> None:
     assert yaw_variance(0.0, 0.3) == pytest.approx(math.pi**2 / 3)
@@ -351,7 +404,7 @@ def test_rmw_zenoh_keys_and_attachment_follow_its_design_document() -> None:
     # Humble's rmw_zenoh has no type hashes: its keys end in TypeHashNotSupported
     for distro, tail in (("humble", "TypeHashNotSupported"), ("jazzy", codec.type_hash(POSE))):
         ends = Ros2Endpoints(Settings(ros2_key_format="rmw_zenoh", ros2_distro=distro),
-                             None, None, None)
+                             None, None, None, None)
         assert ends.pose_key.key("r1") == ("0/r1/swarmloc/pose/geometry_msgs::msg::dds_::"
                                            f"PoseWithCovarianceStamped_/{tail}")
 

@@ -27,7 +27,8 @@ Control queries run on their own few worker threads, a robot's in the order they
 ``CONTROL_BACKLOG`` waiting per robot; beyond, 503): Zenoh calls each declaration's callback on
 one thread fed by a bounded queue, so a control query answered there (a learning robot's delete
 or reset waits for its learner; a put waits for the map admin through a whole map write) held
-every robot's control queries, and once that queue was full, every frame on the link. Map
+every robot's control queries, and once that queue was full, every frame on the link. ROS 2
+initial poses' resets queue to the same workers, after the robot's control queries. Map
 queries (service/zenoh/maps.py) have workers of their own for the same reason, not the frame
 workers: they wait for the map admin (service/zenoh/workers.py).
 """
@@ -171,7 +172,8 @@ class ZenohBridge:
         if self.settings.ros2_enabled:
             from service.zenoh.ros2 import Ros2Endpoints
 
-            ros2 = Ros2Endpoints(self.settings, self.service, self.submit_frame, self._publish)
+            ros2 = Ros2Endpoints(self.settings, self.service, self.submit_frame, self._publish,
+                                 self._controls.submit)
             self._decls += ros2.declare(s)
         return self
 

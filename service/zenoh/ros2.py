@@ -24,6 +24,7 @@ service session. Nothing here knows the estimator; the bridge hands frames to th
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import os
 import struct
@@ -43,11 +44,18 @@ except ImportError as _exc:  # the service imports this module only when ROS 2 i
     raise ImportError("ROS 2 support needs the 'ros' extra: pip install 'swarmloc[ros]'"
                       ) from _exc
 
-from service.api.errors import BadRequest, InvalidParameters, PayloadTooLarge, UnsupportedMediaType
+from service.api.errors import (
+    BadRequest,
+    InvalidParameters,
+    PayloadTooLarge,
+    ServiceError,
+    UnsupportedMediaType,
+)
 from service.api.models import Estimate, PosePrior, check_robot_id, validated
 from service.settings import Settings
 from service.vision.imaging import check_size
 
+log = logging.getLogger("swarmloc.zenoh")
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMAGE = "sensor_msgs/msg/Image"
 POSE = "geometry_msgs/msg/PoseWithCovarianceStamped"
@@ -394,6 +402,8 @@ def parse_rmw_attachment(raw: bytes | None) -> tuple[int, int, bytes] | None:
 # ---- the endpoints the Zenoh bridge declares ----------------------------------------------
 SubmitFrame = Callable[[str, "bytes | np.ndarray", dict[str, Any], str | None,
                         Callable[[dict[str, Any]], None]], None]
+# the bridge's control workers (service/zenoh/workers.py): (robot, run, refuse)
+SubmitControl = Callable[[str, Callable[[], None], Callable[[ServiceError], None]], None]
 
 
 class Ros2Endpoints:
@@ -403,15 +413,21 @@ class Ros2Endpoints:
     newest-wins slot; ``reply(body)`` is called with the bridge's JSON answer (an Estimate
     or an error body), which is then also published here as ROS messages.
     ``publish_json(robot, body)`` publishes on the JSON estimate key (errors go there too,
-    exactly as on the JSON path).
+    exactly as on the JSON path). ``control(robot, run, refuse)`` queues an initial pose's
+    reset to the bridge's control workers, after the robot's control queries: Zenoh runs the
+    initialpose subscriber's callback on one thread for every robot, fed by a bounded queue,
+    so a reset that waits there (its session held, the learner draining its queue) held every
+    other robot's reset, and once that queue was full, every frame on the link.
     """
 
     def __init__(self, settings: Settings, service: Any, submit: SubmitFrame,
-                 publish_json: Callable[[str, dict[str, Any]], None]) -> None:
+                 publish_json: Callable[[str, dict[str, Any]], None],
+                 control: SubmitControl) -> None:
         self.settings = settings
         self.service = service
         self.submit = submit
         self.publish_json = publish_json
+        self.control = control
         self.codec = Codec()
         s = settings
 
@@ -477,17 +493,19 @@ class Ros2Endpoints:
         self._put(self.status_key.key(robot), self.codec.status(robot, body))
 
     def _reject(self, robot: str, exc: Any, seq: int | None = None) -> None:
+        self.service.metrics.rejected.labels(type(exc).__name__).inc()
+        self._report(robot, exc, seq)
+
+    def _report(self, robot: str, exc: Any, seq: int | None = None) -> None:
+        """Publish an error: on the JSON estimate key and as the status."""
         from service.zenoh.replies import error_body
 
-        self.service.metrics.rejected.labels(type(exc).__name__).inc()
         body = error_body(exc, robot, seq)
         self.publish_json(robot, body)
         self.publish(robot, body, None)
 
     # ---- subscribers --------------------------------------------------------------------
     def _frame_handler(self, topic: TopicKey) -> Callable[[Any], None]:
-        from service.api.errors import ServiceError
-
         def on_frame(sample: Any) -> None:
             robot = topic.robot(str(sample.key_expr))
             att = parse_rmw_attachment(sample.attachment.to_bytes()
@@ -512,8 +530,6 @@ class Ros2Endpoints:
         return on_frame
 
     def _on_odometry(self, sample: Any) -> None:
-        from service.api.errors import ServiceError
-
         assert self.odom_key is not None
         robot = self.odom_key.robot(str(sample.key_expr))
         try:
@@ -525,13 +541,23 @@ class Ros2Endpoints:
         self.odometry.add(robot, t, pose, frame)
 
     def _on_initialpose(self, sample: Any) -> None:
-        from service.api.errors import ServiceError
-
+        """Decode an initial pose and queue its reset to the control workers (the robot's
+        after its earlier ones): this callback thread never waits for the service."""
         assert self.initialpose is not None
         robot = self.initialpose.robot(str(sample.key_expr))
         try:
             check_robot_id(robot)
             prior, frame_id = self.codec.initial_pose(sample.payload.to_bytes())
+        except ServiceError as exc:
+            self._reject(robot, exc)
+            return
+        self.control(robot, lambda: self._reset(robot, prior, frame_id),
+                     lambda exc: self._report(robot, exc))  # 503: too many wait, shutdown
+
+    def _reset(self, robot: str, prior: PosePrior, frame_id: str) -> None:
+        from service.zenoh.replies import internal_error
+
+        try:
             session = (self.service.ensure_session(robot)
                        if self.settings.zenoh_creates_sessions
                        else self.service.session(robot))
@@ -542,6 +568,10 @@ class Ros2Endpoints:
             info = self.service.reset_session(robot, prior)
         except ServiceError as exc:
             self._reject(robot, exc)
+            return
+        except Exception as exc:  # never leave the robot without an answer
+            log.exception("the initial pose of robot %s failed", robot)
+            self._reject(robot, internal_error(exc))
             return
         msg = (f"reset near ({prior.x:.2f}, {prior.y:.2f}) within {prior.radius:.2f} m "
                f"on map {info.map}")
