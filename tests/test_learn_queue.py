@@ -51,6 +51,28 @@ def test_another_robot_s_jobs_are_not_held_up() -> None:
     q.close()
 
 
+def test_a_robot_s_drain_waits_for_its_own_jobs_only() -> None:
+    """A robot's session end or reset (``drain(key=...)``) waits for its own frames, not for
+    another robot's backlog; ``drain()`` still waits for every robot's."""
+    q = LearnQueue(threads=2)
+    a, b = _keys_on_two_threads(2)
+    gate_a, gate_b = threading.Event(), threading.Event()
+    ran_b: list[int] = []
+    q.submit(a, lambda: gate_a.wait(60))
+    assert q.drain(timeout=5, key=b)  # b handed nothing over: at once
+    q.submit(b, lambda: gate_b.wait(60))
+    q.submit(b, lambda: ran_b.append(1))
+    assert not q.drain(timeout=0.05, key=b)  # b's own job holds it
+    gate_b.set()
+    assert q.drain(timeout=60, key=b) and ran_b == [1]  # while a's job still waits
+    assert not q.drain(timeout=0.05) and not q.drain(timeout=0.05, key=a)
+    q.submit(b, lambda: ran_b.append(2))  # b again, after its jobs had all run
+    assert q.drain(timeout=60, key=b) and ran_b == [1, 2]
+    gate_a.set()
+    assert q.drain(timeout=60, key=a) and q.drain(timeout=60)
+    q.close()
+
+
 def test_a_full_queue_holds_the_next_job_back_until_a_place_frees() -> None:
     q = LearnQueue(maxsize=2, threads=1)
     gate = threading.Event()
@@ -108,12 +130,14 @@ def test_close_waits_for_a_job_counted_before_it_and_handed_over_after() -> None
     assert q.drain(5)
     with q._cond:
         q._submitted += 1
-    late = threading.Timer(0.3, q._jobs[0].put, args=(lambda: ran.append(2),))
+        counts = q._keys.setdefault("r", [0, 0])
+        counts[0] += 1
+    late = threading.Timer(0.3, q._jobs[0].put, args=(("r", counts, lambda: ran.append(2)),))
     late.start()
     q.close()
     late.join()
     assert ran == [1, 2] and not q.running
-    assert q.drain(1)
+    assert q.drain(1) and q.drain(1, key="r")
 
 
 def test_the_learner_needs_a_thread() -> None:

@@ -8,7 +8,8 @@ in the order they were handed over, so that its collection is the one the gates 
 by frame; several robots spread over ``LEARN_THREADS`` threads. Each thread's queue is
 bounded (``LEARN_QUEUE_FRAMES``): where a thread falls behind, the next learning frame waits
 for a place, so the learner never drops a frame, and only learning robots wait. ``drain``
-waits for what was handed over before it (a session's end or reset, the statistics);
+waits for what was handed over before it: a robot's own frames for its session's end, reset
+or statistics (``key``: another robot's backlog does not hold them), every robot's otherwise;
 ``close`` drains and stops the threads (a job handed over after it runs at once). A job that
 fails is logged, and the next one runs.
 """
@@ -28,6 +29,7 @@ LEARN_QUEUE_FRAMES = 64  # learning frames waiting for their gates, per thread (
 LEARN_THREADS = max(1, min(4, os.cpu_count() or 1))  # threads running the gates
 
 Job = Callable[[], None]
+_Item = tuple[str, list[int], Job]  # (key, the key's counts [handed over, run], the job)
 
 
 class LearnQueue:
@@ -37,12 +39,15 @@ class LearnQueue:
                  ) -> None:
         if threads < 1:
             raise ValueError(f"the learner needs at least one thread, got {threads}")
-        self._jobs: list[queue.Queue[Job | None]] = [queue.Queue(maxsize)
-                                                     for _ in range(threads)]
+        self._jobs: list[queue.Queue[_Item | None]] = [queue.Queue(maxsize)
+                                                       for _ in range(threads)]
         self._threads: list[threading.Thread | None] = [None] * threads
         self._cond = threading.Condition()
         self._submitted = 0
         self._done = 0
+        # per key with jobs not yet run: [handed over, run] (a drained key's entry goes; a
+        # drain holds its own entry's list, so a key handed jobs again starts a new one)
+        self._keys: dict[str, list[int]] = {}
         self._closed = False
         self.failed = 0  # jobs that raised
 
@@ -60,19 +65,28 @@ class LearnQueue:
                     self._threads[k] = t
                     t.start()
                 self._submitted += 1
+                counts = self._keys.setdefault(key, [0, 0])
+                counts[0] += 1
         if closed:
             self._call(job)
         else:
-            self._jobs[k].put(job)
+            self._jobs[k].put((key, counts, job))
 
-    def drain(self, timeout: float | None = None) -> bool:
-        """Wait until every job handed over before this call has run (at once on one of the
-        threads: a job may drain); False where ``timeout`` passed first."""
+    def drain(self, timeout: float | None = None, key: str | None = None) -> bool:
+        """Wait until every job handed over before this call has run, or only ``key``'s (at
+        once on one of the threads: a job may drain); False where ``timeout`` passed
+        first."""
         if threading.current_thread() in self._threads:
             return True
         with self._cond:
-            target = self._submitted
-            return self._cond.wait_for(lambda: self._done >= target, timeout)
+            if key is None:
+                target = self._submitted
+                return self._cond.wait_for(lambda: self._done >= target, timeout)
+            counts = self._keys.get(key)
+            if counts is None:
+                return True
+            handed = counts[0]
+            return self._cond.wait_for(lambda: counts[1] >= handed, timeout)
 
     def close(self) -> None:
         """Run what is queued and stop the threads."""
@@ -91,12 +105,12 @@ class LearnQueue:
                     return
             for q in self._jobs:
                 try:
-                    job = q.get(timeout=0.01)
+                    item = q.get(timeout=0.01)
                 except queue.Empty:
                     continue
-                if job is not None:
-                    self._call(job)
-                    self._ran()
+                if item is not None:
+                    self._call(item[2])
+                    self._ran(item[0], item[1])
 
     @property
     def running(self) -> bool:
@@ -110,15 +124,18 @@ class LearnQueue:
                 self.failed += 1
             log.exception("learning: a frame's gates failed; the session goes on")
 
-    def _ran(self) -> None:
+    def _ran(self, key: str, counts: list[int]) -> None:
         with self._cond:
             self._done += 1
+            counts[1] += 1
+            if counts[1] >= counts[0] and self._keys.get(key) is counts:  # all of key's ran
+                del self._keys[key]
             self._cond.notify_all()
 
-    def _run(self, jobs: queue.Queue[Job | None]) -> None:
+    def _run(self, jobs: queue.Queue[_Item | None]) -> None:
         while True:
-            job = jobs.get()
-            if job is None:
+            item = jobs.get()
+            if item is None:
                 return
-            self._call(job)
-            self._ran()
+            self._call(item[2])
+            self._ran(item[0], item[1])

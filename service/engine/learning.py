@@ -316,7 +316,7 @@ class Learner:
         robot's odometry), images waiting, and frames stopped by each gate (``confident``,
         ``path``, ``appearance``, ``located``, ``place``), its frames handed over before
         included."""
-        self._queue.drain()
+        self._queue.drain(key=robot_id)
         got = self.progress(robot_id)
         return {} if got is None else got[1]
 
@@ -326,7 +326,7 @@ class Learner:
         over before included where their gates run within ``wait_s`` (0: those that have
         run); None where it has no collection here."""
         if wait_s > 0:
-            self._queue.drain(wait_s)
+            self._queue.drain(wait_s, key=robot_id)
         with self._lock:
             t = self._trails.get(robot_id)
             return None if t is None else (t.exp_id, self._counts(t))
@@ -556,8 +556,9 @@ class Learner:
 
     def flush(self, robot_id: str, end: bool = False) -> None:
         """Hand the robot's collected images to the writer (and with ``end`` forget it), its
-        frames handed over before included."""
-        self._queue.drain()
+        frames handed over before included (not other robots': their backlog does not hold up
+        this robot's reset or end)."""
+        self._queue.drain(key=robot_id)
         with self._lock:
             t = self._trails.pop(robot_id, None) if end else self._trails.get(robot_id)
             if t is None:
