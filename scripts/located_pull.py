@@ -13,6 +13,10 @@ precision of its keypoints. Nothing is asserted.
 
     PYTHONPATH=. python scripts/located_pull.py /work/expd/w23 cloudy --step 4
     PYTHONPATH=. python scripts/located_pull.py /work/expd/w23 cloudy2 --map cloudy1
+    PYTHONPATH=. python scripts/located_pull.py /work/expd/w23 cloudy --min-views 0
+
+``--min-views 0``: each map image's structure from its partner alone (two views), as before
+the structure was triangulated from several neighbours.
 """
 
 from __future__ import annotations
@@ -66,13 +70,18 @@ def main() -> None:
     ap.add_argument("--step", type=int, default=4)
     ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--features", default="clahe-rootsift+xfeat")
+    ap.add_argument("--min-views", type=int, default=GeometryParams().min_views,
+                    help="neighbours that must see a structure point (0: the partner alone)")
+    ap.add_argument("--views-m", default=",".join(f"{d:g}" for d in GeometryParams().views_m),
+                    help="the neighbours' distances ahead and behind (m, comma-separated)")
     a = ap.parse_args()
     name = a.round if a.round[-1].isdigit() else f"{a.round}1"
     rnd = read_round(a.world / name)
     m = map_for(a.world, a.map, papers=False, features=a.features)
     map_ref = read_round(a.world / a.map).reference_xy
     spacing = base_spacing(m)
-    p = GeometryParams()
+    p = GeometryParams(min_views=a.min_views,
+                       views_m=tuple(float(d) for d in a.views_m.split(",")))
     types = [(t, g) for t, g in (("rootsift", m.geometry), ("xfeat", m.second_geometry))
              if g is not None]
     rows: dict[str, list[tuple[float, ...]]] = {t: [] for t, _ in types}

@@ -711,3 +711,121 @@ def test_a_frame_located_far_from_the_images_estimate_is_reported_recovering(
     assert [r.status for k, r in enumerate(on) if k != far] == \
         [r.status for k, r in enumerate(off) if k != far]
     assert all(np.array_equal(a.position, b.position) for a, b in zip(on, off, strict=True))
+
+
+def _project(points: np.ndarray, rot: np.ndarray, t: np.ndarray, k: np.ndarray) -> np.ndarray:
+    cam = points @ rot.T + t
+    uv = cam @ k.T
+    return uv[:, :2] / uv[:, 2:]
+
+
+def _yawed(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+
+
+def test_a_point_seen_from_several_neighbours_is_triangulated_from_all_of_them() -> None:
+    """``triangulate_views``: exact rays give the points exactly; with keypoints' noise, the
+    neighbours ahead and behind give depths far nearer the truth than one neighbour; a point
+    fewer than ``min_views`` neighbours hold is left out."""
+    from service.vision.metric_pose import PairPose, triangulate_views
+
+    rng = np.random.default_rng(3)
+    k = Camera(0.78, 1.05, 0.5, 0.5).matrix(320, 240)
+    n = 300
+    pts = np.column_stack([rng.uniform(-6, 6, n), rng.uniform(-2, 1, n), rng.uniform(4, 30, n)])
+    kp_i = _project(pts, np.eye(3), np.zeros(3), k)
+    views_true = []
+    for ahead in (-4.8, -2.4, -1.2, 1.2, 2.4, 4.8):
+        rot = _yawed(rng.normal(0, 0.03))
+        centre = np.array([rng.normal(0, 0.1), 0.0, ahead])
+        views_true.append((rot, -rot @ centre))
+    ids = np.arange(n)
+
+    def views(noise_px: float, every: int = 1) -> list[tuple[PairPose, np.ndarray]]:
+        out = []
+        for v, (rot, t) in enumerate(views_true):
+            kp_j = _project(pts, rot, t, k) + rng.normal(0, noise_px, (n, 2))
+            seen = ids[(ids + v) % every == 0]
+            out.append((PairPose(rot, t, seen, seen), kp_j))
+        return out
+
+    exact = triangulate_views(kp_i, views(0.0), k, 2, 8)
+    assert exact is not None
+    np.testing.assert_array_equal(exact.feature_ids, ids)
+    np.testing.assert_allclose(exact.points, pts, rtol=1e-6)
+
+    noisy_i = kp_i + rng.normal(0, 0.8, (n, 2))
+    all_views = views(0.8)
+    one = triangulate_views(noisy_i, all_views[4:5], k, 1, 8)  # 2.4 m ahead alone
+    several = triangulate_views(noisy_i, all_views, k, 2, 8)
+    assert one is not None and several is not None
+    err_one = np.abs(one.points[:, 2] - pts[one.feature_ids, 2]) / pts[one.feature_ids, 2]
+    err_several = np.abs(several.points[:, 2] - pts[several.feature_ids, 2]) \
+        / pts[several.feature_ids, 2]
+    assert np.median(err_several) < 0.5 * np.median(err_one)
+
+    # each neighbour holds every third point, shifted by one per neighbour: every point is
+    # held by two of the six, and none by three
+    sparse = triangulate_views(kp_i, views(0.0, every=3), k, 2, 8)
+    assert sparse is not None and len(sparse.feature_ids) == n
+    assert triangulate_views(kp_i, views(0.0, every=3), k, 3, 8) is None
+
+
+def test_a_pair_s_pose_is_computed_once_for_both_of_its_images(
+        camera_map: RouteMap, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Image ``i``'s structure and its neighbour ``j``'s use one pose of the pair (its
+    inverse from ``j``); an image's structure has points its partner alone does not give."""
+    import service.vision.map_geometry as mg
+    from service.vision.metric_pose import PairPose
+
+    fresh = _geometry(load_map(camera_map.path)) if camera_map.path else None
+    assert fresh is not None
+    p = GeometryParams()
+    calls: list[tuple[int, int]] = []
+    real = mg.relative_pose
+
+    def counted(kp_i: np.ndarray, kp_j: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
+                baseline_m: float, k: np.ndarray, min_points: int) -> PairPose | None:
+        calls.append((len(kp_i), len(kp_j)))
+        return real(kp_i, kp_j, pairs, baseline_m, k, min_points)
+
+    monkeypatch.setattr(mg, "relative_pose", counted)
+    j = fresh.neighbours(40, p)[0]
+    assert fresh.structure(40, p) is not None and fresh.structure(j, p) is not None
+    want = len({(min(a, b), max(a, b)) for a in (40, j) for b in fresh.neighbours(a, p)})
+    assert len(calls) == want < len(fresh.neighbours(40, p)) + len(fresh.neighbours(j, p))
+    there, back = fresh.pair_pose(40, j, p), fresh.pair_pose(j, 40, p)
+    assert there is not None and back is not None
+    np.testing.assert_allclose(back.rot, there.rot.T, atol=1e-12)
+    np.testing.assert_allclose(back.t, -there.rot.T @ there.t, atol=1e-12)
+    np.testing.assert_array_equal(back.ids_i, there.ids_j)
+    two = fresh.structure(40, replace(p, min_views=0))
+    several = fresh.structure(40, p)
+    assert two is not None and several is not None
+    assert len(set(several.feature_ids) - set(two.feature_ids)) > 0
+
+
+def test_several_neighbours_locate_frames_nearer_the_truth_than_one(
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+    """Located at the map image nearest the robot, frames of another round come out nearer
+    the truth with each image's structure from several neighbours than from its partner
+    alone, and as many or more are located."""
+    truth, pos = sunny2.reference_xy, camera_map.positions
+    errors = {}
+    for views in (0, 2):
+        geo = _geometry(load_map(camera_map.path)) if camera_map.path else None
+        assert geo is not None
+        p = GeometryParams(min_views=views)
+        err = []
+        for k in range(6, len(sunny2) - 6, 2):
+            i = int(camera_map.nearest(truth[k][None, :])[0][0])
+            off = geo.locate(sunny2_features[k], i, p)
+            if off is None:
+                continue
+            ahead, right = _frame_axes(pos, i)
+            err.append(np.linalg.norm(truth[k] - pos[i] - off.right_m * right
+                                      - off.ahead_m * ahead))
+        errors[views] = err
+    assert len(errors[2]) >= len(errors[0])
+    assert np.mean(errors[2]) < np.mean(errors[0])

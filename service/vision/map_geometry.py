@@ -1,8 +1,11 @@
 """A map's two-view geometry: the structure of its images, kept, and a frame located at one.
 
 ``MapGeometry.locate(features, i)`` answers where the frame's camera stands relative to map
-image ``i`` (service/vision/metric_pose.py). The structure of ``i`` (its features' 3-D points, from
-``i`` and a neighbour of its traversal ``baseline_m`` away) depends on the map alone, so it is
+image ``i`` (service/vision/metric_pose.py). The structure of ``i`` (its features' 3-D points)
+comes from the neighbours of its traversal ahead and behind (``views_m``): each pair's pose
+from its essential matrix, computed once for both of its images, and each point triangulated
+from every neighbour that holds it, where at least ``min_views`` do; where they give too few
+points, from the partner ``baseline_m`` away alone. It depends on the map alone, so it is
 computed once per image and kept, bounded, for every session on the map. The frame's own
 matches with ``i`` come from its similarity's pass where that kept them (``FramePairs``), so
 locating the frame matches nothing again.
@@ -34,11 +37,22 @@ import numpy as np
 from service.api.geo import wrap_angle
 from service.vision.features import Features
 from service.vision.matcher import Pairs
-from service.vision.metric_pose import Camera, Offset, Structure, locate, triangulate
+from service.vision.metric_pose import (
+    Camera,
+    Offset,
+    PairPose,
+    Structure,
+    locate,
+    relative_pose,
+    relative_yaw,
+    triangulate,
+    triangulate_views,
+)
 
 # std (rad) of a located frame's heading, 2.9°: near the spread measured on the located,
 # tracked frames of the rendered worlds (median 2.19°, p90 5.2°; docs/research/odometry.md)
 LOCATED_HEADING_SIGMA = 0.05
+POSES_KEPT = 1024  # neighbouring pairs' poses kept: those of the structures built lately
 
 
 class _Images(Protocol):  # what this module needs of a RouteMap (service/maps/route_map.py)
@@ -62,7 +76,12 @@ class GeometryParams:
 
     delta: float = 0.9  # ratio threshold of the matches used for geometry (looser than m's)
     min_inliers: int = 8  # RANSAC inliers needed, for the structure and for the frame
-    baseline_m: float = 2.4  # distance to the neighbour that gives an image its structure
+    baseline_m: float = 2.4  # the partner: the neighbour that gives an image's structure
+    # with two views, and the next link of its heading's chain; with ``views_m``, the
+    # neighbours ahead and behind at each of these distances give it, a point where
+    # ``min_views`` of them see it
+    views_m: tuple[float, ...] = (1.2, 2.4)
+    min_views: int = 2  # 0: two views, the partner's alone
     heading_window_m: float = 6.0  # reach of the path's direction at a map image, each way
     heading_hops: int = 3  # partners beyond a map image whose directions its heading averages
 
@@ -94,26 +113,74 @@ class MapGeometry:
         self.max_cached = max_cached
         self._cache: OrderedDict[tuple[int, GeometryParams], Structure | None] = OrderedDict()
         self._headings: OrderedDict[tuple[int, GeometryParams], float | None] = OrderedDict()
+        # the poses of neighbouring pairs, each computed once for both of its images' structures
+        self._poses: OrderedDict[tuple[int, int, GeometryParams], PairPose | None] = \
+            OrderedDict()
         self._lock = threading.Lock()
+
+    def _along(self, image_id: int, step: int, distance_m: float) -> int | None:
+        """The image of ``image_id``'s traversal nearest to ``distance_m`` away along the id
+        order in direction ``step`` (1: ahead, -1: behind), between half and twice that
+        distance; None if none."""
+        pos = self.images.positions
+        layers = self.images.layers
+        here = pos[image_id]
+        j, best, best_gap = image_id + step, None, np.inf
+        while 0 <= j < len(pos) and (layers is None or layers[j] == layers[image_id]):
+            d = float(np.linalg.norm(pos[j] - here))
+            if d > 2.0 * distance_m:
+                break
+            if d >= 0.5 * distance_m and abs(d - distance_m) < best_gap:
+                best, best_gap = j, abs(d - distance_m)
+            j += step
+        return best
 
     def partner(self, image_id: int, baseline_m: float) -> int | None:
         """The image of ``image_id``'s traversal nearest to ``baseline_m`` away along the id
         order (ahead, else behind), between half and twice that distance; None if none."""
-        pos = self.images.positions
-        layers = self.images.layers
-        here = pos[image_id]
-        for step in (1, -1):
-            j, best, best_gap = image_id + step, None, np.inf
-            while 0 <= j < len(pos) and (layers is None or layers[j] == layers[image_id]):
-                d = float(np.linalg.norm(pos[j] - here))
-                if d > 2.0 * baseline_m:
-                    break
-                if d >= 0.5 * baseline_m and abs(d - baseline_m) < best_gap:
-                    best, best_gap = j, abs(d - baseline_m)
-                j += step
-            if best is not None:
-                return best
-        return None
+        ahead = self._along(image_id, 1, baseline_m)
+        return ahead if ahead is not None else self._along(image_id, -1, baseline_m)
+
+    def neighbours(self, image_id: int, p: GeometryParams) -> list[int]:
+        """The images whose poses give ``image_id``'s structure: with ``p.min_views``, those
+        of its traversal nearest to each of ``p.views_m`` ahead and behind; else its partner."""
+        if p.min_views <= 0:
+            j = self.partner(image_id, p.baseline_m)
+            return [] if j is None else [j]
+        out: list[int] = []
+        for d in p.views_m:
+            for step in (1, -1):
+                j = self._along(image_id, step, d)
+                if j is not None and j not in out:
+                    out.append(j)
+        return out
+
+    def pair_pose(self, i: int, j: int, p: GeometryParams) -> PairPose | None:
+        """The pose of map image ``j`` seen from image ``i`` (``relative_pose``), computed
+        once per pair in id order and kept, bounded."""
+        a, b = min(i, j), max(i, j)
+        key = (a, b, p)
+        with self._lock:
+            hit = key in self._poses
+            pose = self._poses.get(key)
+            if hit:
+                self._poses.move_to_end(key)
+        if not hit:
+            pos = self.images.positions
+            try:
+                pose = relative_pose(self.images.keypoints_of(a), self.images.keypoints_of(b),
+                                     self.images.image_pairs(a, b, p.delta),
+                                     float(np.linalg.norm(pos[b] - pos[a])), self.k,
+                                     p.min_inliers)
+            except cv2.error:  # a degenerate configuration: no pose
+                pose = None
+            with self._lock:
+                self._poses[key] = pose
+                while len(self._poses) > POSES_KEPT:
+                    self._poses.popitem(last=False)
+        if pose is None or i == a:
+            return pose
+        return pose.inverse()
 
     def path_heading(self, image_id: int, window_m: float) -> float | None:
         """Direction (rad counter-clockwise from east) of ``image_id``'s traversal there: the
@@ -154,11 +221,11 @@ class MapGeometry:
             direction = self.path_heading(image, p.heading_window_m)
             if direction is not None:
                 votes.append(direction - turned)
-            st = self.structure(image, p) if hop < p.heading_hops else None
-            j = self.partner(image, p.baseline_m) if st is not None else None
-            if st is None or j is None or j in seen:
+            j = self.partner(image, p.baseline_m) if hop < p.heading_hops else None
+            pose = self.pair_pose(image, j, p) if j is not None and j not in seen else None
+            if j is None or pose is None:
                 break
-            turned += st.partner_yaw
+            turned += relative_yaw(pose.rot)
             image = j
             seen.add(j)
         heading = float(np.angle(np.exp(1j * np.asarray(votes)).sum())) if votes else None
@@ -169,14 +236,17 @@ class MapGeometry:
         return heading
 
     def structure(self, image_id: int, p: GeometryParams) -> Structure | None:
+        """Image ``image_id``'s features' 3-D points (``triangulate_views`` over its
+        ``neighbours``; where they give too few, ``triangulate`` with its partner alone),
+        computed once and kept, bounded."""
         key = (int(image_id), p)
         with self._lock:
             if key in self._cache:
                 self._cache.move_to_end(key)
                 return self._cache[key]
         j = self.partner(image_id, p.baseline_m)
-        st = None
-        if j is not None:
+        st = self._views(int(image_id), p) if p.min_views > 0 else None
+        if st is None and j is not None:
             baseline = float(np.linalg.norm(self.images.positions[j]
                                              - self.images.positions[image_id]))
             pairs = self.images.image_pairs(image_id, j, p.delta)
@@ -192,13 +262,25 @@ class MapGeometry:
                 self._cache.popitem(last=False)
         return st
 
+    def _views(self, i: int, p: GeometryParams) -> Structure | None:
+        views = []
+        for j in self.neighbours(i, p):
+            pose = self.pair_pose(i, j, p)
+            if pose is not None:
+                views.append((pose, self.images.keypoints_of(j)))
+        try:
+            return triangulate_views(self.images.keypoints_of(i), views, self.k, p.min_views,
+                                     p.min_inliers)
+        except np.linalg.LinAlgError:  # SVD did not converge: no structure from these views
+            return None
+
     def carry(self, old: MapGeometry, ids: np.ndarray) -> int:
         """Keep the structures ``old`` (the geometry of another version of the same map, the
         same camera) has built, for the images this version holds unchanged: ``ids[i]`` is
         this version's id of ``old``'s image ``i`` (-1: not here). A structure is carried
-        where its image's partner is the same image in both versions (a new image of the same
-        traversal can be the nearer partner now); returns how many were. The robots on the
-        new version then find them built, as on the old one."""
+        where its image's partner and neighbours are the same images in both versions (a new
+        image of the same traversal can be the nearer one now); returns how many were. The
+        robots on the new version then find them built, as on the old one."""
         if not np.array_equal(old.k, self.k):
             return 0
         with old._lock:
@@ -208,9 +290,9 @@ class MapGeometry:
             j = int(ids[i]) if i < len(ids) else -1
             if j < 0:
                 continue
-            was, now = old.partner(i, p.baseline_m), self.partner(j, p.baseline_m)
-            if (now is None) != (was is None) or \
-                    (was is not None and int(ids[was]) != now):
+            was = [old.partner(i, p.baseline_m), *old.neighbours(i, p)]
+            now = [self.partner(j, p.baseline_m), *self.neighbours(j, p)]
+            if [None if w is None else int(ids[w]) for w in was] != now:
                 continue
             with self._lock:
                 self._cache.setdefault((j, p), st)

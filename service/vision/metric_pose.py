@@ -2,10 +2,11 @@
 
 Image retrieval places the robot *at* a map image; it cannot tell how far the robot is beside
 or ahead of it (two traversals of a street differ by a lane position, neighbouring images look
-alike). The features matched with a map image can. The map image ``i`` and a neighbour ``j``
-of the same traversal, a known distance apart, give the 3-D points of ``i``'s features (the
-essential matrix of the pair, its translation scaled to the distance between their recorded
-positions, then triangulation); the frame's features matched with ``i``'s give the frame's
+alike). The features matched with a map image can. The map image ``i`` and neighbours ``j``
+of the same traversal, known distances apart, give the 3-D points of ``i``'s features (each
+pair's essential matrix, its translation scaled to the distance between their recorded
+positions, then triangulation: from one neighbour, ``triangulate``, or from several at once,
+``triangulate_views``); the frame's features matched with ``i``'s give the frame's
 camera pose against those points (PnP with RANSAC). The result is the camera centre in the
 frame of ``i``'s camera: metres to the right and ahead, and the camera's yaw relative to
 ``i``'s (its turn about the vertical axis, counter-clockwise seen from above, as the map's
@@ -56,13 +57,10 @@ class Camera:
 @dataclass(frozen=True)
 class Structure:
     """3-D points (n, 3) of some of a map image's features, in that image's camera frame
-    (x right, y down, z ahead; metres), and the features' indices in the image; the yaw of
-    the partner image that gave them relative to this image's camera (rad, counter-clockwise
-    seen from above: the pair's rotation, far sharper than its translation's direction)."""
+    (x right, y down, z ahead; metres), and the features' indices in the image."""
 
     feature_ids: np.ndarray
     points: np.ndarray
-    partner_yaw: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -94,11 +92,28 @@ def match_pairs(a: np.ndarray, b: np.ndarray | PreparedSet, delta: float
     return match_batch_u8_pairs(a, [b], delta, delta)[1][0]
 
 
-def triangulate(kp_i: np.ndarray, kp_j: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
-                baseline_m: float, k: np.ndarray, min_points: int,
-                max_depth_m: float = 100.0) -> Structure | None:
-    """Structure of image ``i`` from its matches with image ``j`` taken ``baseline_m`` away:
-    None when the pair gives no reliable geometry (too few matches or inliers)."""
+@dataclass(frozen=True)
+class PairPose:
+    """Where a neighbour ``j`` of map image ``i`` stands: ``x_j = rot @ x_i + t`` in camera
+    frames (x right, y down, z ahead), ``t`` in metres (the essential matrix's translation
+    scaled to the distance between their recorded positions), and the matches that are
+    inliers of it (feature ids in ``i`` and in ``j``)."""
+
+    rot: np.ndarray
+    t: np.ndarray
+    ids_i: np.ndarray
+    ids_j: np.ndarray
+
+    def inverse(self) -> PairPose:
+        """The same pair seen from ``j``."""
+        back = self.rot.T
+        return PairPose(back, -back @ self.t, self.ids_j, self.ids_i)
+
+
+def relative_pose(kp_i: np.ndarray, kp_j: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
+                  baseline_m: float, k: np.ndarray, min_points: int) -> PairPose | None:
+    """The pose of image ``j`` taken ``baseline_m`` from image ``i``, from their matches
+    ``pairs``; None when they give no reliable geometry (too few matches or inliers)."""
     ia, ib = pairs
     if len(ia) < max(min_points, 8) or baseline_m <= 0:
         return None
@@ -111,15 +126,71 @@ def triangulate(kp_i: np.ndarray, kp_j: np.ndarray, pairs: tuple[np.ndarray, np.
     ok = mask.ravel() > 0
     if ok.sum() < min_points:
         return None
+    return PairPose(r, t.ravel() * baseline_m, ia[ok], ib[ok])
+
+
+def triangulate(kp_i: np.ndarray, kp_j: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
+                baseline_m: float, k: np.ndarray, min_points: int,
+                max_depth_m: float = 100.0) -> Structure | None:
+    """Structure of image ``i`` from its matches with image ``j`` taken ``baseline_m`` away:
+    None when the pair gives no reliable geometry (too few matches or inliers)."""
+    pose = relative_pose(kp_i, kp_j, pairs, baseline_m, k, min_points)
+    if pose is None:
+        return None
+    p1 = np.ascontiguousarray(kp_i[pose.ids_i], np.float64)
+    p2 = np.ascontiguousarray(kp_j[pose.ids_j], np.float64)
     proj_i = k @ np.hstack([np.eye(3), np.zeros((3, 1))])
-    proj_j = k @ np.hstack([r, t * baseline_m])
-    xh = cv2.triangulatePoints(proj_i, proj_j, p1[ok].T, p2[ok].T)
+    proj_j = k @ np.hstack([pose.rot, pose.t[:, None]])
+    xh = cv2.triangulatePoints(proj_i, proj_j, p1.T, p2.T)
     with np.errstate(divide="ignore", invalid="ignore"):
         x = (xh[:3] / xh[3]).T
     good = np.isfinite(x).all(axis=1) & (x[:, 2] > 0.5) & (x[:, 2] < max_depth_m)
     if good.sum() < min_points:
         return None
-    return Structure(ia[ok][good].astype(np.int64), x[good], relative_yaw(r))
+    return Structure(pose.ids_i[good].astype(np.int64), x[good])
+
+
+def triangulate_views(kp_i: np.ndarray, views: list[tuple[PairPose, np.ndarray]],
+                      k: np.ndarray, min_views: int, min_points: int,
+                      max_depth_m: float = 100.0) -> Structure | None:
+    """Structure of image ``i`` from several neighbours at once: ``views`` holds each
+    neighbour's pose and keypoints. A feature of ``i`` that the poses of at least
+    ``min_views`` neighbours hold as an inlier is triangulated from all the images that see
+    it (the linear least-squares point of their rays, in normalised image coordinates); the
+    others are left out, as a match that only one pair explains is more often wrong. The
+    depth noise of two views (a neighbour straight ahead sees little parallax) averages over
+    the views: docs/research/lighting.md has the fixes it gives. None with fewer than
+    ``min_points`` points."""
+    if not views:
+        return None
+    kinv = np.linalg.inv(k)
+
+    def normalised(kp: np.ndarray) -> np.ndarray:
+        return np.asarray(kp, np.float64) @ kinv[:2, :2].T + kinv[:2, 2]
+
+    ids = np.unique(np.concatenate([pose.ids_i for pose, _ in views]))
+    rows = np.zeros((len(ids), 2 * (len(views) + 1), 4))
+    xi = normalised(kp_i[ids])
+    rows[:, 0, 0], rows[:, 0, 2] = -1.0, xi[:, 0]  # image i: P = [I | 0]
+    rows[:, 1, 1], rows[:, 1, 2] = -1.0, xi[:, 1]
+    seen = np.zeros(len(ids), np.int64)
+    for v, (pose, kp_j) in enumerate(views):
+        at = np.searchsorted(ids, pose.ids_i)
+        proj = np.hstack([pose.rot, pose.t[:, None]])
+        xj = normalised(kp_j[pose.ids_j])
+        rows[at, 2 + 2 * v] = xj[:, :1] * proj[2] - proj[0]
+        rows[at, 3 + 2 * v] = xj[:, 1:] * proj[2] - proj[1]
+        seen[at] += 1
+    keep = seen >= min_views
+    if keep.sum() < min_points:
+        return None
+    xh = np.linalg.svd(rows[keep])[2][:, -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = xh[:, :3] / xh[:, 3:]
+    good = np.isfinite(x).all(axis=1) & (x[:, 2] > 0.5) & (x[:, 2] < max_depth_m)
+    if good.sum() < min_points:
+        return None
+    return Structure(ids[keep][good].astype(np.int64), x[good])
 
 
 def locate(kp_q: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], structure: Structure,
