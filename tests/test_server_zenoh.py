@@ -7,6 +7,7 @@ import json
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import httpx
 import numpy as np
@@ -21,6 +22,14 @@ from service.zenoh.config import zenoh_config
 
 def _peer(endpoint: str) -> zenoh.Session:
     return zenoh.open(zenoh_config(mode="peer", connect=[endpoint]))
+
+
+def _control(peer: zenoh.Session, robot: str, body: dict) -> dict:
+    """A control query's reply (it must not be an error)."""
+    (reply,) = peer.get(f"swarmloc/{robot}/control", payload=json.dumps(body).encode(),
+                        timeout=20)
+    assert reply.ok is not None, reply.err.payload.to_bytes()
+    return json.loads(reply.ok.payload.to_bytes())
 
 
 def _replay(client, robot: str, rnd, frames: range, seed: int) -> list[tuple]:
@@ -282,12 +291,7 @@ def test_a_frame_is_answered_while_a_control_query_waits(server, sunny2) -> None
     peer = _peer(server["zenoh"])
     get = json.dumps({"action": "get"}).encode()
 
-    def control(robot: str, body: dict) -> dict:
-        (reply,) = peer.get(f"swarmloc/{robot}/control", payload=json.dumps(body).encode(),
-                            timeout=20)
-        assert reply.ok is not None, reply.err.payload.to_bytes()
-        return json.loads(reply.ok.payload.to_bytes())
-
+    control = partial(_control, peer)
     try:
         time.sleep(0.5)  # let the peers connect before the first query
         control("zwalker", {"action": "put", "map": "small"})
@@ -334,12 +338,7 @@ def test_a_frame_is_answered_while_map_queries_wait(server, sunny2) -> None:
     peer = _peer(server["zenoh"])
     delete = json.dumps({"action": "delete"}).encode()
 
-    def control(robot: str, body: dict) -> dict:
-        (reply,) = peer.get(f"swarmloc/{robot}/control", payload=json.dumps(body).encode(),
-                            timeout=20)
-        assert reply.ok is not None, reply.err.payload.to_bytes()
-        return json.loads(reply.ok.payload.to_bytes())
-
+    control = partial(_control, peer)
     try:
         time.sleep(0.5)  # let the peers connect before the first query
         control("zmapper", {"action": "put", "map": "small"})

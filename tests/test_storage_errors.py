@@ -115,6 +115,23 @@ def _map_with_experience(small_map: RouteMap, cloudy1: Round, directory: Path) -
                    budget_bytes=1 << 30)
 
 
+@contextlib.contextmanager
+def _serving_a_map_with_experience(maps_dir: MapsDir, small_map: RouteMap, cloudy1: Round
+                                   ) -> Iterator[tuple[httpx.Client, bytes]]:
+    """A real server on ``maps_dir`` with map ``small`` (experience ``e1``) and robot
+    ``walker`` on it: its HTTP client and the map file's bytes (an upload to send back)."""
+    _map_with_experience(small_map, cloudy1, maps_dir.path)
+    upload = (maps_dir.path / "small.swmap").read_bytes()
+    service = _service(maps_dir.path)
+    try:
+        with running_server(service, zenoh=False) as url, \
+                httpx.Client(base_url=url, timeout=60) as http:
+            assert http.put("/sessions/walker", json={"map": "small"}).status_code == 201
+            yield http, upload
+    finally:
+        service.close()
+
+
 def _service(maps: Path, **kw: object) -> LocalizationService:
     return LocalizationService(Settings(maps_dir=maps, host="127.0.0.1", port=free_port(),
                                         session_store="memory", **kw))
@@ -145,12 +162,7 @@ def test_map_writes_into_a_read_only_maps_directory_answer_503_and_change_nothin
     /maps/{name} and POST /maps/{name}/build on a maps directory the service may not write
     answered a plain-text 500 (an OSError nobody handled; a map delete had already ended its
     sessions and dropped the map when the file's removal failed)."""
-    _map_with_experience(small_map, cloudy1, maps_dir.path)
-    upload = (maps_dir.path / "small.swmap").read_bytes()
-    service = _service(maps_dir.path)
-    with running_server(service, zenoh=False) as url, \
-            httpx.Client(base_url=url, timeout=60) as http:
-        assert http.put("/sessions/walker", json={"map": "small"}).status_code == 201
+    with _serving_a_map_with_experience(maps_dir, small_map, cloudy1) as (http, upload):
         assert http.post("/sessions/walker/frames", params={"t": 0.0}, headers=PNG,
                          content=sunny2.image_path(0).read_bytes()).status_code == 200
         before = _state(http)
@@ -172,18 +184,12 @@ def test_map_writes_into_a_read_only_maps_directory_answer_503_and_change_nothin
         assert not [p.name for p in maps_dir.path.iterdir() if p.name.startswith(".swarmloc")]
         r = http.delete("/maps/small/experiences/e1")  # writable again: the same request
         assert r.status_code == 200 and r.json()["experiences"] == [], r.text
-    service.close()
 
 
 def test_map_writes_on_a_full_disk_answer_507_and_change_nothing(
         maps_dir: MapsDir, small_map: RouteMap, cloudy1: Round) -> None:
     """Regression: as above on a full disk (ENOSPC): a plain-text 500."""
-    _map_with_experience(small_map, cloudy1, maps_dir.path)
-    upload = (maps_dir.path / "small.swmap").read_bytes()
-    service = _service(maps_dir.path)
-    with running_server(service, zenoh=False) as url, \
-            httpx.Client(base_url=url, timeout=60) as http:
-        assert http.put("/sessions/walker", json={"map": "small"}).status_code == 201
+    with _serving_a_map_with_experience(maps_dir, small_map, cloudy1) as (http, upload):
         before = _state(http)
         with maps_dir.full():
             for method, path, body, headers in (
@@ -195,7 +201,6 @@ def test_map_writes_on_a_full_disk_answer_507_and_change_nothing(
                 _json_error(r, 507, "map 'small'", "no space left", "unchanged")
                 assert _state(http) == before, (method, path)
         assert not [p.name for p in maps_dir.path.iterdir() if p.name.startswith(".swarmloc")]
-    service.close()
 
 
 class _Records(logging.Handler):

@@ -56,6 +56,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
+from typing import TypeVar
 
 import numpy as np
 
@@ -76,6 +77,7 @@ from service.maps.route_map import RouteMap
 from service.vision.features import Features
 from service.vision.map_geometry import GeometryParams
 
+T = TypeVar("T")
 PATH_TOLERANCE_M = 1.0  # the estimate lies this close to the path's constant-velocity prediction
 LOCATED_TOLERANCE_M = 1.0  # and this close to where the geometry locates the frame
 GEOMETRY_TRIES = 3  # images near the estimate the geometry tries, best match first
@@ -488,24 +490,22 @@ class Learner:
 
     def identity(self, m: RouteMap) -> str:
         """The map's ``base_identity``, kept per version."""
-        key = str(m.meta.get("checksum"))
-        with self._lock:
-            have = self._bases.get(key)
-        if have is None:
-            have = base_identity(m)
-            with self._lock:
-                self._bases[key] = have
-        return have
+        return self._per_version(self._bases, m, base_identity)
 
     def level(self, m: RouteMap) -> float:
         """The map's same-light level, kept per version."""
+        return self._per_version(self._levels, m, same_light_level)
+
+    def _per_version(self, kept: dict[str, T], m: RouteMap, compute: Callable[[RouteMap], T]
+                     ) -> T:
+        """``compute(m)``, computed once per map version (its checksum) and kept in ``kept``."""
         key = str(m.meta.get("checksum"))
         with self._lock:
-            have = self._levels.get(key)
+            have = kept.get(key)
         if have is None:
-            have = same_light_level(m)
+            have = compute(m)
             with self._lock:
-                self._levels[key] = have
+                kept[key] = have
         return have
 
     def _new_appearance(self, m: RouteMap, features: Features, xy: np.ndarray) -> bool:
