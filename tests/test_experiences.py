@@ -57,6 +57,7 @@ from service.settings import Settings
 from service.vision.features import Features, extract
 from service.vision.map_geometry import GeometryParams
 from service.vision.metric_pose import Camera
+from tests.pose_builds import count_pose_builds
 
 STRETCH = 60  # cloudy frames the map-format tests use (a stretch of the round)
 LEARN_FRAMES = 30  # frames a learning session sends (the start of the round)
@@ -885,10 +886,12 @@ def test_robots_are_answered_while_a_map_is_written_or_a_learner_drains(
 
 
 def test_a_new_version_keeps_the_structures_built_on_the_old_one(
-        camera_maps: Path, tmp_path: Path, cloudy_images: list[NewImage]) -> None:
-    """The two-view structures built on a version carry over to the next one (a session that
-    moves on finds them built), and each is the one the new version would build itself;
-    not where the image's partner changed, nor for an image that is gone."""
+        camera_maps: Path, tmp_path: Path, cloudy_images: list[NewImage],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The two-view structures and camera headings built on a version carry over to the next
+    one (a session that moves on finds them built), and each is the one the new version would
+    build itself; not where the image's partner changed, nor for an image that is gone."""
+
     shutil.copy(camera_maps / "route.swmap", tmp_path / "route.swmap")
     v0 = load_map(tmp_path / "route.swmap", verify="lazy")
     p = GeometryParams()
@@ -912,6 +915,13 @@ def test_a_new_version_keeps_the_structures_built_on_the_old_one(
         if a is not None and b is not None:
             assert np.array_equal(a.feature_ids, b.feature_ids) and \
                 np.array_equal(a.points, b.points), i
+    # the map's own images' headings come along: none needs a pair's pose built again, and
+    # each is the one the new version builds itself
+    own = [i for i in range(v0.n_images) if g2.structure(i, p) is not None]
+    built = count_pose_builds(monkeypatch)
+    headings = [g2.camera_heading(i, p) for i in own]
+    assert own and built == []
+    assert headings == [fresh.camera_heading(i, p) for i in own]
     # e1's images appended in the second write, further along, make a new partner for the
     # last of the first write's
     e1 = experience_layers(v1)["e1"]
@@ -919,6 +929,9 @@ def test_a_new_version_keeps_the_structures_built_on_the_old_one(
     moved = [i for i in first if g1.partner(int(i), p.baseline_m) != g2.partner(int(i),
                                                                                  p.baseline_m)]
     assert moved and not set(moved) & carried
+    # and every heading on the new version, carried or not, is the one it builds itself
+    for i in range(v2.n_images):
+        assert g2.camera_heading(i, p) == fresh.camera_heading(i, p), i
     # removed: nothing of the experience is carried
     v3 = remove_experience(v2, tmp_path / "route.swmap", "e1")
     carry_geometry(v2, v3)

@@ -1,13 +1,13 @@
 """The two-view geometry's structures of a map, built in the background after it is loaded.
 
-A map image's structure (its features' 3-D points from the image and a neighbour,
-service/vision/map_geometry.py) depends on the map alone and is built the first time a frame
-is located there: at dusk, where XFeat's geometry takes over, that cost 19 ms of essential
-matrix RANSAC per image, about 35 ms per frame on a first pass over a route
-(docs/research/performance.md). This worker builds them ahead of the robots, one image at a
-time at a bounded share of a core (``duty``), for every map whose images all fit the
-geometry's cache; frames find them ready. Nothing changes but when they are built: a frame
-that arrives first builds the same structure itself.
+A map image's structure (its features' 3-D points from the image and its neighbours,
+service/vision/map_geometry.py) and its camera's heading depend on the map alone and are
+built the first time a frame is located there: at dusk, where XFeat's geometry takes over,
+that cost 19 ms of essential matrix RANSAC per image, about 35 ms per frame on a first pass
+over a route (docs/research/performance.md). This worker builds them ahead of the robots
+(``MapGeometry.ready``), one image at a time at a bounded share of a core (``duty``), for
+every map whose images all fit the geometry's cache; frames find them ready. Nothing changes
+but when they are built: a frame that arrives first builds the same itself.
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ class GeometryWarmer:
                 if self._stop.is_set() or not self.current(m):
                     return
                 t0 = time.perf_counter()
-                g.structure(int(i), p)
+                g.ready(int(i), p)  # its structure and its camera's heading
                 rest(t0, self.duty)  # leave the rest of the core to the frames
 
 

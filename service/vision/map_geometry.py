@@ -275,31 +275,62 @@ class MapGeometry:
             return None
 
     def carry(self, old: MapGeometry, ids: np.ndarray) -> int:
-        """Keep the structures ``old`` (the geometry of another version of the same map, the
-        same camera) has built, for the images this version holds unchanged: ``ids[i]`` is
-        this version's id of ``old``'s image ``i`` (-1: not here). A structure is carried
-        where its image's partner and neighbours are the same images in both versions (a new
-        image of the same traversal can be the nearer one now); returns how many were. The
-        robots on the new version then find them built, as on the old one."""
+        """Keep the structures and camera headings ``old`` (the geometry of another version of
+        the same map, the same camera) has built, for the images this version holds
+        unchanged: ``ids[i]`` is this version's id of ``old``'s image ``i`` (-1: not here). A
+        structure is carried where its image's partner and neighbours are the same images in
+        both versions (a new image of the same traversal can be the nearer one now); a
+        heading where its chain of partners is, with the same traversal's direction at each
+        (``path_heading``); returns how many structures were. The robots on the new version
+        then find them built, as on the old one."""
         if not np.array_equal(old.k, self.k):
             return 0
         with old._lock:
             items = list(old._cache.items())
+            headings = list(old._headings.items())
+
+        def here(i: int) -> int:
+            return int(ids[i]) if 0 <= i < len(ids) else -1
+
         n = 0
         for (i, p), st in items:
-            j = int(ids[i]) if i < len(ids) else -1
+            j = here(i)
             if j < 0:
                 continue
             was = [old.partner(i, p.baseline_m), *old.neighbours(i, p)]
             now = [self.partner(j, p.baseline_m), *self.neighbours(j, p)]
-            if [None if w is None else int(ids[w]) for w in was] != now:
+            if [None if w is None else here(w) for w in was] != now:
                 continue
             with self._lock:
                 self._cache.setdefault((j, p), st)
                 while len(self._cache) > self.max_cached:
                     self._cache.popitem(last=False)
             n += 1
+        for (i, p), heading in headings:
+            j = here(i)
+            if j < 0:
+                continue
+            chain_was, chain_now = old._chain(i, p), self._chain(j, p)
+            if [here(w) for w in chain_was] != chain_now or \
+                    [old.path_heading(w, p.heading_window_m) for w in chain_was] != \
+                    [self.path_heading(w, p.heading_window_m) for w in chain_now]:
+                continue
+            with self._lock:
+                self._headings.setdefault((j, p), heading)
+                while len(self._headings) > self.max_cached:
+                    self._headings.popitem(last=False)
         return n
+
+    def _chain(self, image_id: int, p: GeometryParams) -> list[int]:
+        """The images whose traversal's direction and pair rotations ``camera_heading``
+        reads: ``image_id`` and up to ``heading_hops`` partners beyond it."""
+        chain = [int(image_id)]
+        while len(chain) <= p.heading_hops:
+            j = self.partner(chain[-1], p.baseline_m)
+            if j is None or j in chain:
+                break
+            chain.append(j)
+        return chain
 
     def cached(self) -> list[int]:
         """The images whose structure (or its absence) is kept now, at any parameters."""
@@ -308,13 +339,24 @@ class MapGeometry:
 
     def warm(self, image_ids: Iterable[int] | None = None, p: GeometryParams | None = None
              ) -> int:
-        """Compute and keep the structures of ``image_ids`` (default: every image, up to the
-        cache's bound) ahead of the frames that need them; returns how many images have one.
-        They depend on the map alone: the same structures a frame would compute."""
+        """Compute and keep the structures and headings of ``image_ids`` (``ready``; default:
+        every image, up to the cache's bound) ahead of the frames that need them; returns how
+        many images have a structure. They depend on the map alone: the same a frame would
+        compute."""
         p = GeometryParams() if p is None else p
         ids = range(min(len(self.images.positions), self.max_cached)) if image_ids is None \
             else image_ids
-        return sum(self.structure(int(i), p) is not None for i in ids)
+        return sum(self.ready(int(i), p) is not None for i in ids)
+
+    def ready(self, image_id: int, p: GeometryParams) -> Structure | None:
+        """Build and keep what locating a frame at ``image_id`` needs: its structure and, where
+        it has one, its camera's heading. The heading reads pair poses along a chain of
+        partners, and only ``POSES_KEPT`` poses are kept: on a map of more pairs than that, a
+        heading left for the frame would build again the poses its warming already built."""
+        st = self.structure(image_id, p)
+        if st is not None:
+            self.camera_heading(image_id, p)
+        return st
 
     def locate(self, frame: Features, image_id: int, p: GeometryParams,
                kept: FramePairs | None = None) -> Offset | None:
