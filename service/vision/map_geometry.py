@@ -306,14 +306,22 @@ class MapGeometry:
                 while len(self._cache) > self.max_cached:
                     self._cache.popitem(last=False)
             n += 1
+        directions: dict[tuple[bool, int, float], float | None] = {}  # path_heading, once each
+
+        def direction(g: MapGeometry, i: int, window_m: float) -> float | None:
+            key = (g is old, i, window_m)
+            if key not in directions:
+                directions[key] = g.path_heading(i, window_m)
+            return directions[key]
+
         for (i, p), heading in headings:
             j = here(i)
             if j < 0:
                 continue
             chain_was, chain_now = old._chain(i, p), self._chain(j, p)
             if [here(w) for w in chain_was] != chain_now or \
-                    [old.path_heading(w, p.heading_window_m) for w in chain_was] != \
-                    [self.path_heading(w, p.heading_window_m) for w in chain_now]:
+                    [direction(old, w, p.heading_window_m) for w in chain_was] != \
+                    [direction(self, w, p.heading_window_m) for w in chain_now]:
                 continue
             with self._lock:
                 self._headings.setdefault((j, p), heading)
