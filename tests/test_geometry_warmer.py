@@ -87,7 +87,8 @@ def test_a_warmed_map_locates_without_building_a_pair_s_pose_again(
     """Warming builds each image's camera heading with its structure: a map with more pairs
     than the poses kept (``POSES_KEPT``, made small here) needs no pair's pose built again
     when frames are located at its images (before, the heading was left for the first frame
-    and rebuilt the evicted poses on the frame path: a learned map's step p50 x1.6)."""
+    and rebuilt the evicted poses on the frame path: on a learned map of 622 images the
+    step's p50 was 23.3 ms, 13.7 ms with the headings warmed)."""
     import service.vision.map_geometry as mg
     from service.engine.geometry_warmer import GeometryWarmer
 

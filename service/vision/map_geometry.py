@@ -216,18 +216,15 @@ class MapGeometry:
             if key in self._headings:
                 self._headings.move_to_end(key)
                 return self._headings[key]
-        image, turned, seen, votes = int(image_id), 0.0, {int(image_id)}, []
-        for hop in range(p.heading_hops + 1):
+        chain, turned, votes = self._chain(image_id, p), 0.0, []
+        for k, image in enumerate(chain):
             direction = self.path_heading(image, p.heading_window_m)
             if direction is not None:
                 votes.append(direction - turned)
-            j = self.partner(image, p.baseline_m) if hop < p.heading_hops else None
-            pose = self.pair_pose(image, j, p) if j is not None and j not in seen else None
-            if j is None or pose is None:
+            pose = self.pair_pose(image, chain[k + 1], p) if k + 1 < len(chain) else None
+            if pose is None:
                 break
             turned += relative_yaw(pose.rot)
-            image = j
-            seen.add(j)
         heading = float(np.angle(np.exp(1j * np.asarray(votes)).sum())) if votes else None
         with self._lock:
             self._headings[key] = heading
