@@ -32,9 +32,10 @@ class WorldResult:
     heading_err_by_source: dict[str, np.ndarray]
 
 
-def true_heading(dataset: Path, round_name: str, n: int) -> np.ndarray | None:
-    """The exact heading (rad) of each image of a rendered round, from the world's seed and
-    the round's index in ``dataset.json``; None for a dataset the world did not render."""
+def true_poses(dataset: Path, round_name: str, n: int) -> np.ndarray | None:
+    """The exact pose (x, y, heading, pitch; m and rad) of each image of a rendered round,
+    from the world's seed and the round's index in ``dataset.json``; None for a dataset the
+    world did not render."""
     import json
 
     import numpy as np
@@ -50,7 +51,13 @@ def true_heading(dataset: Path, round_name: str, n: int) -> np.ndarray | None:
 
     world = World(int(gen["seed"]), float(gen["length_m"]), float(gen["spacing_m"]))
     poses, _, _ = world.round_trajectory(int(rounds[round_name]["index"]), n)
-    return np.asarray(poses[:, 2], float)
+    return np.asarray(poses, float)
+
+
+def true_heading(dataset: Path, round_name: str, n: int) -> np.ndarray | None:
+    """The exact heading (rad) of each image of a rendered round (``true_poses``)."""
+    poses = true_poses(dataset, round_name, n)
+    return None if poses is None else poses[:, 2]
 
 
 def _mean_error(runs: list, warmup: int) -> float:
