@@ -21,14 +21,12 @@ the structure was triangulated from several neighbours.
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import cv2
 import numpy as np
 
 from client.dataset import read_round
 from client.lab.experiment_cli import map_for
+from client.lab.located_fix import located_fix_parser
 from service.estimators.along_track import path_tangent
 from service.maps.experiences import base_spacing
 from service.vision.features import Features, extract
@@ -63,13 +61,7 @@ def sampson_px(geo: MapGeometry, ids: range, p: GeometryParams) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("world", type=Path)
-    ap.add_argument("round")
-    ap.add_argument("--map", default="sunny1", help="the round the map is built from")
-    ap.add_argument("--step", type=int, default=4)
-    ap.add_argument("--frames", type=int, default=200)
-    ap.add_argument("--features", default="clahe-rootsift+xfeat")
+    ap = located_fix_parser(__doc__ or "")
     ap.add_argument("--min-views", type=int, default=GeometryParams().min_views,
                     help="neighbours that must see a structure point (0: the partner alone)")
     ap.add_argument("--views-m", default=",".join(f"{d:g}" for d in GeometryParams().views_m),

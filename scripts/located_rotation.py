@@ -20,15 +20,13 @@ A lab check of the cause of the pull (docs/research/lighting.md); nothing is ass
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import cv2
 import numpy as np
 
 from client.dataset import read_round
 from client.lab.bench_odometry import true_poses
 from client.lab.experiment_cli import map_for
+from client.lab.located_fix import located_fix_parser
 from service.estimators.along_track import path_tangent
 from service.maps.experiences import base_spacing
 from service.vision.features import Features, extract
@@ -99,13 +97,7 @@ def matched(geo: MapGeometry, frame: Features, image_id: int, st: Structure,
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("world", type=Path)
-    ap.add_argument("round")
-    ap.add_argument("--map", default="sunny1", help="the round the map is built from")
-    ap.add_argument("--step", type=int, default=4)
-    ap.add_argument("--frames", type=int, default=200)
-    ap.add_argument("--features", default="clahe-rootsift+xfeat")
+    ap = located_fix_parser(__doc__ or "")
     ap.add_argument("--yaw-noise-deg", type=float, default=0.0)
     ap.add_argument("--no-pitch", action="store_true", help="the relative pitch taken as 0")
     ap.add_argument("--seed", type=int, default=0)
