@@ -7,7 +7,8 @@ place twice, on the same matches and the same structure (``MapGeometry.structure
   geometry, else XFeat's);
 - by the translation alone, with the rotation between the two cameras taken from the world's
   exact poses (yaw and, unless ``--no-pitch``, pitch; ``--yaw-noise-deg``: a Gaussian error
-  added to that yaw), by linear least squares inside a two-point RANSAC (2 px).
+  added to that yaw; ``--map-heading estimated``: the map image's heading in it is the
+  service's estimate instead), by linear least squares inside a two-point RANSAC (2 px).
 
 Printed for the frames both locate: the placed error from the truth (the map image's own
 position error included), the *pull* (the error across the path towards the sunny lane) and
@@ -100,6 +101,9 @@ def main() -> None:
     ap = located_fix_parser(__doc__ or "")
     ap.add_argument("--yaw-noise-deg", type=float, default=0.0)
     ap.add_argument("--no-pitch", action="store_true", help="the relative pitch taken as 0")
+    ap.add_argument("--map-heading", choices=("exact", "estimated"), default="exact",
+                    help="the map image's heading in that yaw: the world's, or the service's "
+                         "camera heading (MapGeometry.camera_heading)")
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args()
     rnd, sun = read_round(a.world / a.round), read_round(a.world / a.map)
@@ -118,7 +122,11 @@ def main() -> None:
             continue
         right = np.array([tangent[1], -tangent[0]])
         true_right = float((truth - m.positions[s]) @ right)
-        yaw = float((pq[q, 2] - ps[s, 2] + np.pi) % (2 * np.pi) - np.pi) \
+        heading = float(ps[s, 2]) if a.map_heading == "exact" else \
+            m.geometry.camera_heading(s, p) if m.geometry is not None else None
+        if heading is None:
+            continue
+        yaw = float((pq[q, 2] - heading + np.pi) % (2 * np.pi) - np.pi) \
             + np.radians(rng.normal(0.0, a.yaw_noise_deg))
         rot = rotation(yaw, 0.0 if a.no_pitch else float(pq[q, 3] - ps[s, 3]))
         for geo, feats in ((m.geometry, frame), (m.second_geometry, frame.second)):
@@ -137,7 +145,7 @@ def main() -> None:
                                    float(r), true_right))
             break
     print(f"{a.world.name} {a.round} at the {a.map} map: yaw noise {a.yaw_noise_deg:g} deg, "
-          f"pitch {'0' if a.no_pitch else 'exact'}")
+          f"pitch {'0' if a.no_pitch else 'exact'}, map heading {a.map_heading}")
     for name, r in rows.items():
         x = np.array(r, float).reshape(-1, 4)
         if len(x) < 3:
