@@ -92,8 +92,7 @@ def matched(geo: MapGeometry, frame: Features, image_id: int, st: Structure,
             p: GeometryParams) -> tuple[np.ndarray, np.ndarray]:
     """The structure's points the frame matches, and the frame's pixels of them."""
     iq, ii = geo.images.pairs(frame.codes, image_id, p.delta)
-    pos = np.searchsorted(st.feature_ids, ii).clip(0, len(st.feature_ids) - 1)
-    hit = st.feature_ids[pos] == ii
+    pos, hit = st.rows(ii)
     return st.points[pos[hit]].astype(float), frame.keypoints[iq[hit]].astype(float)
 
 

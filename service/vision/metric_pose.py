@@ -62,6 +62,13 @@ class Structure:
     feature_ids: np.ndarray
     points: np.ndarray
 
+    def rows(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For the image's features ``ids``: their rows in ``points`` and which of them have
+        a point (rows of those without one are meaningless)."""
+        pos = np.searchsorted(self.feature_ids, ids)
+        pos = np.minimum(pos, len(self.feature_ids) - 1)
+        return pos, self.feature_ids[pos] == ids
+
 
 @dataclass(frozen=True)
 class Offset:
@@ -202,9 +209,7 @@ def locate(kp_q: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], structure: St
     configuration: image points that do not span the view). The offset's yaw is the frame
     camera's relative to the structure's."""
     iq, ii = pairs
-    pos = np.searchsorted(structure.feature_ids, ii)
-    pos = np.minimum(pos, len(structure.feature_ids) - 1)
-    hit = structure.feature_ids[pos] == ii
+    pos, hit = structure.rows(ii)
     if hit.sum() < max(min_inliers, 6):
         return None
     obj = np.ascontiguousarray(structure.points[pos[hit]], np.float64)
