@@ -54,12 +54,6 @@ def true_poses(dataset: Path, round_name: str, n: int) -> np.ndarray | None:
     return np.asarray(poses, float)
 
 
-def true_heading(dataset: Path, round_name: str, n: int) -> np.ndarray | None:
-    """The exact heading (rad) of each image of a rendered round (``true_poses``)."""
-    poses = true_poses(dataset, round_name, n)
-    return None if poses is None else poses[:, 2]
-
-
 def _mean_error(runs: list, warmup: int) -> float:
     import numpy as np
 
@@ -99,7 +93,8 @@ def bench_world(dataset: Path, map_round: str, query: str, same: str | None, met
         same_plain = _mean_error(runs(same, False), warmup)
         same_odom = _mean_error(runs(same, True), warmup)
     kid = [frames_to_recover(r) for r in runs(query, True, kidnap=True)]
-    truth = true_heading(dataset, query, len(tables[query][0]))
+    poses = true_poses(dataset, query, len(tables[query][0]))
+    truth = None if poses is None else poses[:, 2]  # the exact headings
     errs: list[float] = []
     by_source: dict[str, list[float]] = {}
     for r in odom:
