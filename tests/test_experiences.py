@@ -384,11 +384,9 @@ def test_a_learning_session_shows_what_it_taught(learning_run: LearningRun) -> N
 
 
 def _teach_with_gaps(m: RouteMap, cloudy1: Round, feats: list[Features], gaps: list[range],
-                     odometry: list[Odometry | None], reset_at: int | None = None
-                     ) -> tuple[list[NewImage], dict[str, int]]:
+                     odometry: list[Odometry | None]) -> tuple[list[NewImage], dict[str, int]]:
     """A learner fed the cloudy stretch at its true places, the frames of ``gaps`` stopped at
-    gate 1 (the session not tracking there), each frame sent with ``odometry``; the session
-    reset before frame ``reset_at``."""
+    gate 1 (the session not tracking there), each frame sent with ``odometry``."""
     written: list[NewImage] = []
     learner = Learner(LearnGates(accuracy_m=1.5, weak_ratio=0.4, commit_images=1000),
                       lambda _m, _e, images, _c, _r, _b, out=written: out.extend(images))
@@ -400,8 +398,6 @@ def _teach_with_gaps(m: RouteMap, cloudy1: Round, feats: list[Features], gaps: l
                      pose_covariance=[0.0] * 36, accuracy_m=0.5, nearest_image=0,
                      nearest_image_name="x", spread_m=0.1)
         stopped = "confident" if any(i in g for g in gaps) else None
-        if i == reset_at:
-            learner.flush("r", reset=True)
         learner.observe("r", 0.0, "cloudy", m, f, e, stopped, odometry[i])
     stats = learner.stats("r")
     learner.flush("r", end=True)
@@ -500,45 +496,6 @@ def test_a_carry_across_the_way_after_a_session_s_first_taught_frame_is_not_brid
                for i, p in enumerate(poses)]
     kidnapped, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [gap], carried)
     assert not set(seqs(kidnapped)) & set(gap), stats
-
-
-def test_frames_before_a_session_s_first_taught_one_are_taught_by_the_wheels(
-        camera_maps: Path, cloudy1: Round, cloudy_features: list[Features]) -> None:
-    """The session's first 14 frames not tracked (gate 1: its start, a search): with the
-    robot's odometry the wheels place them back from the taught frames after them (its
-    lead), about as close to the truth as those; without the odometry none of them is
-    taught; and where the first frames are another place's (the lead broken: they do not
-    match the frame after them as consecutive frames do), only the frames after the break
-    are; nor where the session was reset between them and the taught frames (the robot
-    may have been carried off)."""
-    m = load_map(camera_maps / "route.swmap")
-    assert cloudy1.odometry is not None
-    poses = odometry_poses(cloudy1.odometry, np.arange(STRETCH))
-    lead = range(0, 14)
-
-    def seqs(images: list[NewImage]) -> list[int]:
-        return [int(f.name.rsplit("/", 1)[1]) - 1 for f in images]
-
-    taught, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], list(poses))
-    led = [i for i in seqs(taught) if i in lead]
-    assert len(led) >= 6 and stats["bridged"] >= len(led), (led, stats)  # one per place
-    assert seqs(taught) == sorted(seqs(taught))  # the experience's images in frame order
-    err = np.linalg.norm(np.array([f.xy for f in taught])
-                         - cloudy1.reference_xy[seqs(taught)], axis=1)
-    on_wheels = np.isin(seqs(taught), led)
-    assert float(err[on_wheels].mean()) < max(0.6, 1.5 * float(err[~on_wheels].mean())), err
-
-    without, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], [None] * STRETCH)
-    assert stats["bridged"] == 0 and not set(seqs(without)) & set(lead), stats
-
-    elsewhere = [cloudy_features[40 + i] for i in range(7)] + cloudy_features[7:]
-    broken, stats = _teach_with_gaps(m, cloudy1, elsewhere, [lead], list(poses))
-    assert not set(seqs(broken)) & set(range(7)), stats
-    assert set(seqs(broken)) & set(range(7, 14)), stats
-
-    reset, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], list(poses),
-                                    reset_at=14)
-    assert not set(seqs(reset)) & set(lead) and set(seqs(reset)) == set(seqs(taught)) - set(led)
 
 
 def test_the_service_hands_a_learning_robot_s_odometry_to_its_learner(

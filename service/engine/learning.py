@@ -34,14 +34,8 @@ frame's located camera heading, and their path aligned to the taught frames befo
 within ``BRIDGE_TOLERANCE_M``, so a robot carried off between them, along its way or across
 it, is not bridged), the held frames join the collection if they pass gates 3 and 5 at the
 place the wheels give them; ``placed`` then places them by the odometry alone, aligned to the
-taught frames around them. The frames held before the session's first taught frame (its
-start, while the swarm searched: its *lead*, up to ``BRIDGE_M`` of travel back) are bridged
-too, once the located frames after them span ``LEAD_SPAN_M`` of travel: the wheels' path
-aligned to those frames places them, where every frame of the lead matched one of the two
-before it as consecutive frames do (``consecutive``: a two-view pose, so frames of another
-place or a robot carried off between them break the lead), and the first taught frame one
-of its last two. A reset drops the lead. A session that never tracks confidently teaches no
-frame, so it bridges none either.
+taught frames around them. A session that never tracks confidently teaches no frame, so it bridges
+none either.
 
 Taught frames are kept (one per place) until ``learn_commit_images`` are collected or the
 session ends or is reset; then the map admin writes them into the map as a new version
@@ -64,7 +58,6 @@ from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import TypeVar
 
-import cv2
 import numpy as np
 
 from service.api.models import Estimate, Odometry
@@ -83,7 +76,6 @@ from service.maps.positions import fuse_with_odometry
 from service.maps.route_map import RouteMap
 from service.vision.features import Features
 from service.vision.map_geometry import GeometryParams
-from service.vision.metric_pose import match_pairs, relative_pose
 
 T = TypeVar("T")
 PATH_TOLERANCE_M = 1.0  # the estimate lies this close to the path's constant-velocity prediction
@@ -95,8 +87,6 @@ BRIDGE_M = 15.0  # a stretch between two taught frames this long (odometry) is t
 BRIDGE_FRAMES = 64  # and holds at most this many frames
 BRIDGE_TOLERANCE_M = 3.0  # the wheels put the frame after a stretch this close to where it was
 # located (``wheels_agree``)
-LEAD_SPAN_M = 8.0  # the located frames after a lead span this much travel before it is placed
-LEAD_LINKS = 2  # a frame continues a lead where it is ``consecutive`` with one of its last two
 PROGRESS_WAIT_S = 1.0  # a session's learning progress waits this long for its queued gates
 # a learning frame's outcomes: taught, bridged by the wheels, or stopped by a gate
 OUTCOMES = ("taught", "bridged", "confident", "path", "appearance", "located", "place")
@@ -138,10 +128,6 @@ class _Trail:
     gap_m: float = 0.0  # the wheels' travel since it
     bridged: int = 0
     context: Context = field(default_factory=list)  # the last batch's taught frames
-    fixed: list[bool] = field(default_factory=list)  # each pending image placed for good (a lead)
-    lead: list[tuple[NewImage, int, np.ndarray]] = field(default_factory=list)  # held before
-    # the session's first taught frame (oldest first)
-    lead_closed: bool = False  # a taught frame followed the lead: it waits to be placed
 
     def refuse(self, gate: str) -> None:
         self.refused[gate] = self.refused.get(gate, 0) + 1
@@ -167,8 +153,8 @@ def smoothed(images: list[NewImage], seqs: list[int], k: int = SMOOTH_FRAMES
 
 
 def placed(images: list[NewImage], seqs: list[int], odometry: list[np.ndarray | None],
-           known: list[bool] | None = None, context: Context | None = None,
-           fixed: list[bool] | None = None) -> list[NewImage]:
+           known: list[bool] | None = None, context: Context | None = None
+           ) -> list[NewImage]:
     """The taught images with their positions for the experience. Where the robot sent its
     odometry with each of them (three or more): its path aligned to their located positions
     over ``positions.WINDOW_M`` of travel on either side (``fuse_with_odometry``: the wheels
@@ -177,16 +163,7 @@ def placed(images: list[NewImage], seqs: list[int], odometry: list[np.ndarray | 
     ``smoothed``. ``known``: which images were located (False: bridged by the wheels, placed
     by the alignment alone, and left out where there is no odometry to place them);
     ``context``: the previous batch's taught frames, which join the alignment (not the
-    output); ``fixed``: images placed already (a lead's), kept where they are, in frame
-    order with the others."""
-    if fixed is not None and any(fixed):
-        free = [i for i, f in enumerate(fixed) if not f]
-        rest = placed([images[i] for i in free], [seqs[i] for i in free],
-                      [odometry[i] for i in free] if len(odometry) == len(images) else [],
-                      None if known is None else [known[i] for i in free], context)
-        seq_of = {f.name: q for f, q in zip(images, seqs, strict=True)}
-        return sorted(rest + [f for f, x in zip(images, fixed, strict=True) if x],
-                      key=lambda f: seq_of[f.name])
+    output)."""
     k = np.ones(len(images), bool) if known is None else np.asarray(known, bool)
     order = np.argsort(np.asarray(seqs), kind="stable")  # bridged frames join after the next
     images, seqs, k = [images[i] for i in order], [seqs[i] for i in order], k[order]
@@ -281,34 +258,6 @@ def wheels_agree(before: Context, at: np.ndarray, here: np.ndarray,
     _, a_xy, a_odom = before[-1]
     return abs(float(np.linalg.norm(at - a_xy)) - float(np.linalg.norm(here - a_odom))) \
         <= BRIDGE_TOLERANCE_M
-
-
-def consecutive(m: RouteMap, a: Features, b: Features) -> bool:
-    """Whether two frames match as consecutive frames of one robot do: a two-view pose from
-    their matches (``GeometryParams``' ratio and inliers) on the map's camera; False on a
-    map without it."""
-    if m.geometry is None:
-        return False
-    p = GeometryParams()
-    pairs = match_pairs(np.asarray(a.codes), np.asarray(b.codes), p.delta)
-    try:
-        return relative_pose(a.keypoints, b.keypoints, pairs, 1.0, m.geometry.k,
-                             p.min_inliers) is not None
-    except cv2.error:  # a degenerate configuration: no pose
-        return False
-
-
-def lead_places(after: Context, lead: list[np.ndarray]) -> np.ndarray | None:
-    """Where the wheels put a lead's frames (odometry ``lead``, oldest first) before the
-    located frames ``after`` it: the odometry path aligned to their located positions as one
-    (``fuse_with_odometry`` over a window that holds them all); None where the wheels do not
-    fit them (``FusedPositions.fits``)."""
-    xy = np.array([np.zeros(2)] * len(lead) + [c[1] for c in after], float)
-    odo = np.array(list(lead) + [c[2] for c in after], float)
-    known = np.arange(len(xy)) >= len(lead)
-    steps = np.linalg.norm(np.diff(odo, axis=0), axis=1)
-    fused = fuse_with_odometry(xy, odo, window_m=2.0 * float(steps.sum()) + 1.0, known=known)
-    return fused.xy[:len(lead)] if fused.fits else None
 
 
 def experience_id(robot_id: str, created: float) -> str:
@@ -426,20 +375,12 @@ class Learner:
                 # frames before were placed in another map's frame
                 t.base, t.context, t.anchor, t.turn, t.gap, t.gap_m = base, [], None, None, \
                     [], 0.0
-                t.lead, t.lead_closed = [], False
-            last = [img for img, seq, _ in t.lead[-LEAD_LINKS:][::-1]
-                    if est.seq - LEAD_LINKS <= seq < est.seq] \
-                if not t.taught and odom is not None else []
-        # whether the frame continues the lead (off the lock: a match and a two-view pose)
-        linked = any(consecutive(m, Features(img.keypoints, img.codes), features)
-                     for img in last)
-        with self._lock:
             t.seen += 1
             t.last_seen = time.monotonic()
             xy = np.array([est.x, est.y])
             if stopped not in (None, "accuracy"):
                 self._refuse(t, str(stopped))
-                self._hold(t, m, features, est.seq, odom, linked)
+                self._hold(t, m, features, est.seq, odom)
                 return
         at: np.ndarray | None = None
         heading: float | None = None
@@ -457,83 +398,41 @@ class Learner:
             if gate is not None or at is None:
                 self._refuse(t, gate or "located")
                 if gate in ("located", "confident"):
-                    self._hold(t, m, features, est.seq, odom, linked)
+                    self._hold(t, m, features, est.seq, odom)
                 return
             t.taught += 1
             self._counted("taught")
             here = None if odom is None else np.array([odom.x, odom.y], float)
             turn = None if odom is None or heading is None else heading - odom.yaw
             held = self._bridge(t, at, est.seq, here, turn)
-            if t.lead and not t.lead_closed:  # the lead's first taught frame
-                t.lead, t.lead_closed = (t.lead, True) if linked else ([], False)
             t.pending.append(NewImage.of(features, at, f"{t.exp_id}/{est.seq:06d}",
                                          second=m.second is not None))
             t.seqs.append(est.seq)
             t.odometry.append(here)
             t.known.append(True)
-            t.fixed.append(False)
             t.with_odometry += odom is not None
-            lead = self._lead(t)
         if held:
             self._bridged(t, m, held)
-        if lead:
-            self._bridged(t, m, lead, fixed=True)
-        with self._lock:  # a lead's images, placed already, do not move the batches'
-            # bounds, where the alignment of the others' positions is weakest
-            full = len(t.pending) - sum(t.fixed) >= self.gates.commit_images
+        with self._lock:
+            full = len(t.pending) >= self.gates.commit_images
         if full:
             self.flush(robot_id)
 
     @staticmethod
     def _hold(t: _Trail, m: RouteMap, features: Features, seq: int,
-              odom: Odometry | None, linked: bool = False) -> None:
-        """Keep a refused frame of a learning robot that sends its odometry: after a taught
-        one, the wheels may bridge it to the next taught frame (``_bridge``); before the
-        session's first taught frame it joins the session's lead (``linked``: it continues
-        the lead, ``consecutive`` with one of its last two frames; else it starts a new one),
-        the last ``BRIDGE_M`` of travel kept. Under the lock."""
-        if odom is None:
-            t.anchor, t.gap, t.gap_m, t.lead, t.lead_closed = None, [], 0.0, [], False
+              odom: Odometry | None) -> None:
+        """Keep a refused frame of a learning robot that sends its odometry, after a taught
+        one: the wheels may bridge it to the next taught frame (``_bridge``). Under the lock."""
+        if odom is None or t.anchor is None:
+            t.anchor, t.gap, t.gap_m = None, [], 0.0
             return
         here = np.array([odom.x, odom.y], float)
-
-        def held() -> tuple[NewImage, int, np.ndarray]:
-            return NewImage.of(features, np.full(2, np.nan), f"{t.exp_id}/{seq:06d}",
-                               second=m.second is not None), seq, here
-
-        if t.anchor is not None:
-            t.gap_m += float(np.linalg.norm(here - (t.gap[-1][2] if t.gap else t.anchor[2])))
-            if t.gap_m <= BRIDGE_M and len(t.gap) < BRIDGE_FRAMES:
-                t.gap.append(held())
-                return
-            t.anchor, t.gap, t.gap_m, linked = None, [], 0.0, False
-        if t.taught:  # the lead is the session's start only: where it recovers later, the
-            return  # wheels placed frames worse than the fixes (seed 37 cloudy, lighting.md)
-        if t.lead_closed or not linked:
-            t.lead, t.lead_closed = [], False
-        t.lead.append(held())
-        odo = np.array([o for _, _, o in t.lead], float)
-        back = np.cumsum(np.linalg.norm(np.diff(odo, axis=0), axis=1)[::-1])[::-1]
-        first = int(np.searchsorted(-back, -BRIDGE_M, side="left"))  # travel to the newest
-        t.lead = t.lead[max(first, len(t.lead) - BRIDGE_FRAMES):]
-
-    def _lead(self, t: _Trail) -> list[tuple[NewImage, int, np.ndarray]]:
-        """A closed lead's frames placed by the wheels (``lead_places``), once the located
-        frames after it span ``LEAD_SPAN_M`` of travel (then the lead is done: placed, or
-        dropped where the wheels do not fit). Under the lock."""
-        if not t.lead_closed:
-            return []
-        after = [c for c in self._before(t) if c[0] > t.lead[-1][1]]
-        odo = np.array([c[2] for c in after], float).reshape(-1, 2)
-        if len(after) < 3 or \
-                float(np.linalg.norm(np.diff(odo, axis=0), axis=1).sum()) < LEAD_SPAN_M:
-            return []
-        lead, t.lead, t.lead_closed = t.lead, [], False
-        at = lead_places(after, [o for _, _, o in lead])
-        if at is None:
-            return []
-        return [(replace(img, xy=xy), seq, o) for (img, seq, o), xy in zip(lead, at, strict=True)
-                if np.isfinite(xy).all()]
+        t.gap_m += float(np.linalg.norm(here - (t.gap[-1][2] if t.gap else t.anchor[2])))
+        if t.gap_m > BRIDGE_M or len(t.gap) >= BRIDGE_FRAMES:
+            t.anchor, t.gap, t.gap_m = None, [], 0.0
+            return
+        t.gap.append((NewImage.of(features, np.full(2, np.nan), f"{t.exp_id}/{seq:06d}",
+                                  second=m.second is not None), seq, here))
 
     @staticmethod
     def _bridge(t: _Trail, at: np.ndarray, seq: int, here: np.ndarray | None,
@@ -567,11 +466,10 @@ class Learner:
         last batch's included (the last ``CONTEXT_FRAMES``). Under the lock."""
         return (t.context + located(t.pending, t.seqs, t.odometry, t.known))[-CONTEXT_FRAMES:]
 
-    def _bridged(self, t: _Trail, m: RouteMap, held: list[tuple[NewImage, int, np.ndarray]],
-                 fixed: bool = False) -> None:
+    def _bridged(self, t: _Trail, m: RouteMap, held: list[tuple[NewImage, int, np.ndarray]]
+                 ) -> None:
         """Held frames bridged by the wheels join the collection where they add a new
-        appearance (gate 3 at their bridged place) and a new place (gate 5); ``fixed``: a
-        lead's, placed for good (``placed`` keeps them where they are)."""
+        appearance (gate 3 at their bridged place) and a new place (gate 5)."""
         new = []
         for img, seq, odom in held:
             second = None if img.codes2 is None or img.keypoints2 is None else \
@@ -587,7 +485,6 @@ class Learner:
                 t.seqs.append(seq)
                 t.odometry.append(odom)
                 t.known.append(False)
-                t.fixed.append(fixed)
                 t.bridged += 1
                 self._counted("bridged")
 
@@ -657,28 +554,23 @@ class Learner:
                     return np.asarray(at, float), off.heading
         return None, None
 
-    def flush(self, robot_id: str, end: bool = False, reset: bool = False) -> None:
+    def flush(self, robot_id: str, end: bool = False) -> None:
         """Hand the robot's collected images to the writer (and with ``end`` forget it), its
         frames handed over before included (not other robots': their backlog does not hold up
-        this robot's reset or end); ``reset``: the session was reset (the robot may stand
-        elsewhere now), so its lead is dropped: no frame after it continues one before."""
+        this robot's reset or end)."""
         self._queue.drain(key=robot_id)
         with self._lock:
             t = self._trails.pop(robot_id, None) if end else self._trails.get(robot_id)
             if t is None:
                 return
-            if reset:
-                t.lead, t.lead_closed = [], False
             images, t.pending = t.pending, []
             seqs, t.seqs = t.seqs, []
             odometry, t.odometry = t.odometry, []
             known, t.known = t.known, []
-            fixed, t.fixed = t.fixed, []
             context, base = t.context, t.base
             t.context = located(images, seqs, odometry, known)[-CONTEXT_FRAMES:]
         if images:
-            self._commit(t.map_name, t.exp_id,
-                         placed(images, seqs, odometry, known, context, fixed),
+            self._commit(t.map_name, t.exp_id, placed(images, seqs, odometry, known, context),
                          t.condition, robot_id, base)
 
     def flush_idle(self, idle_s: float, now: float | None = None) -> None:

@@ -400,7 +400,7 @@ class LocalizationService:
             s.last_input_seq = None
             s.learn_path = []
             s.last_used = time.time()
-        self.learner.flush(robot_id, reset=True)  # a reset breaks the path: images written
+        self.learner.flush(robot_id)  # a reset breaks the path: its images are written
         return self.info(s)
 
     def _followed(self, s: Session) -> Localizer:
