@@ -384,11 +384,13 @@ def test_a_learning_session_shows_what_it_taught(learning_run: LearningRun) -> N
 
 
 def _teach_with_gaps(m: RouteMap, cloudy1: Round, feats: list[Features], gaps: list[range],
-                     odometry: list[Odometry | None]) -> tuple[list[NewImage], dict[str, int]]:
+                     odometry: list[Odometry | None], reset_at: int | None = None,
+                     weak_ratio: float = 0.4) -> tuple[list[NewImage], dict[str, int]]:
     """A learner fed the cloudy stretch at its true places, the frames of ``gaps`` stopped at
-    gate 1 (the session not tracking there), each frame sent with ``odometry``."""
+    gate 1 (the session not tracking there), each frame sent with ``odometry``; the session
+    reset before frame ``reset_at``; gate 3 at ``weak_ratio``."""
     written: list[NewImage] = []
-    learner = Learner(LearnGates(accuracy_m=1.5, weak_ratio=0.4, commit_images=1000),
+    learner = Learner(LearnGates(accuracy_m=1.5, weak_ratio=weak_ratio, commit_images=1000),
                       lambda _m, _e, images, _c, _r, _b, out=written: out.extend(images))
     for i, f in enumerate(feats):
         x, y = (float(v) for v in cloudy1.reference_xy[i])
@@ -398,10 +400,25 @@ def _teach_with_gaps(m: RouteMap, cloudy1: Round, feats: list[Features], gaps: l
                      pose_covariance=[0.0] * 36, accuracy_m=0.5, nearest_image=0,
                      nearest_image_name="x", spread_m=0.1)
         stopped = "confident" if any(i in g for g in gaps) else None
+        if i == reset_at:
+            learner.flush("r", reset=True)
         learner.observe("r", 0.0, "cloudy", m, f, e, stopped, odometry[i])
     stats = learner.stats("r")
     learner.flush("r", end=True)
     return written, stats
+
+
+def _carried(poses: list[Odometry | None], a: int, b: int, at: int
+             ) -> list[tuple[np.ndarray, list[Odometry | None]]]:
+    """The odometry of a robot carried 6 m along its way (from frame ``a`` to ``b``), or 5 m
+    across it, before frame ``at``, unseen by its wheels: (the carry, the odometry)."""
+    pa, pb = poses[a], poses[b]
+    assert pa is not None and pb is not None
+    ahead = np.array([pb.x - pa.x, pb.y - pa.y]) / float(np.hypot(pb.x - pa.x, pb.y - pa.y))
+    return [(carry, [p if p is None or i < at else
+                     p.model_copy(update={"x": p.x - float(carry[0]), "y": p.y - float(carry[1])})
+                     for i, p in enumerate(poses)])
+            for carry in (6.0 * ahead, 5.0 * np.array([-ahead[1], ahead[0]]))]
 
 
 def test_a_robot_sending_its_odometry_teaches_images_placed_along_it(
@@ -457,13 +474,7 @@ def test_frames_between_taught_ones_are_taught_by_the_wheels(
 
     # carried 6 m ahead, or 5 m across its way (the distance between the taught frames on
     # either side barely changes), unseen by the wheels, in the middle of the first stretch
-    a, b = poses[19], poses[28]
-    assert a is not None and b is not None
-    ahead = np.array([b.x - a.x, b.y - a.y]) / float(np.hypot(b.x - a.x, b.y - a.y))
-    for carry in (6.0 * ahead, 5.0 * np.array([-ahead[1], ahead[0]])):
-        carried = [p if p is None or i < 24 else
-                   p.model_copy(update={"x": p.x - float(carry[0]), "y": p.y - float(carry[1])})
-                   for i, p in enumerate(poses)]
+    for carry, carried in _carried(poses, 19, 28, 24):
         kidnapped, stats = _teach_with_gaps(m, cloudy1, cloudy_features, gaps, carried)
         assert not set(seqs(kidnapped)) & set(gaps[0]), (carry, stats)
 
@@ -496,6 +507,47 @@ def test_a_carry_across_the_way_after_a_session_s_first_taught_frame_is_not_brid
                for i, p in enumerate(poses)]
     kidnapped, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [gap], carried)
     assert not set(seqs(kidnapped)) & set(gap), stats
+
+
+def test_frames_before_a_session_s_first_taught_one_are_taught_by_the_wheels(
+        camera_maps: Path, cloudy1: Round, cloudy_features: list[Features]) -> None:
+    """The session's first 14 frames not tracked (gate 1: its start, a search): with the
+    robot's odometry the wheels teach them back from the first taught frame, as far as each
+    step seen by the images is the wheels' step, about as close to the truth as the taught
+    frames; without the odometry none of them is taught. Where the robot was carried in the
+    lead, unseen by its wheels (its first frames another place's, or its odometry missing a
+    carry of 6 m along its way or 5 m across it), no frame before the carry is taught; nor
+    any frame of the lead where the session was reset between it and the taught frames."""
+    m = load_map(camera_maps / "route.swmap")
+    assert cloudy1.odometry is not None
+    poses = odometry_poses(cloudy1.odometry, np.arange(STRETCH))
+    lead = range(0, 14)
+
+    def seqs(images: list[NewImage]) -> list[int]:
+        return [int(f.name.rsplit("/", 1)[1]) - 1 for f in images]
+
+    taught, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], list(poses))
+    led = [i for i in seqs(taught) if i in lead]
+    assert len(led) >= 6 and min(led) <= 3 and stats["bridged"] >= len(led), (led, stats)
+    assert seqs(taught) == sorted(seqs(taught))  # the experience's images in frame order
+    err = np.linalg.norm(np.array([f.xy for f in taught])
+                         - cloudy1.reference_xy[seqs(taught)], axis=1)
+    on_wheels = np.isin(seqs(taught), led)
+    assert float(err[on_wheels].mean()) < max(0.6, 1.5 * float(err[~on_wheels].mean())), err
+
+    without, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], [None] * STRETCH)
+    assert stats["bridged"] == 0 and not set(seqs(without)) & set(lead), stats
+
+    elsewhere = [cloudy_features[40 + i] for i in range(7)] + cloudy_features[7:]
+    broken, _ = _teach_with_gaps(m, cloudy1, elsewhere, [lead], list(poses))
+    assert not set(seqs(broken)) & set(range(7)), seqs(broken)
+
+    for carry, carried in _carried(poses, 0, 14, 7):
+        kidnapped, _ = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], carried)
+        assert not set(seqs(kidnapped)) & set(range(7)), (carry, seqs(kidnapped))
+
+    reset, _ = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], list(poses), reset_at=14)
+    assert not set(seqs(reset)) & set(lead) and set(seqs(reset)) == set(seqs(taught)) - set(led)
 
 
 def test_the_service_hands_a_learning_robot_s_odometry_to_its_learner(

@@ -22,7 +22,7 @@ from service.estimators.base import StepResult
 from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
 from service.vision.features import Features, extract
 from service.vision.map_geometry import FramePairs, GeometryParams, MapGeometry
-from service.vision.metric_pose import Camera
+from service.vision.metric_pose import Camera, match_pairs, step_length
 
 
 @pytest.fixture(scope="module")
@@ -98,6 +98,31 @@ def test_a_frame_without_features_or_elsewhere_is_not_located(
     # a frame from the other side of the loop shares no geometry with image 40
     assert geo.locate(sunny2_features[len(sunny2_features) // 2 + 40], 40,
                       GeometryParams()) is None
+
+
+def test_three_frames_see_the_step_the_scale_of_the_one_before_gives(
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
+    """``step_length``: frame b's structure from frame a, scaled by their true distance, and
+    frame c located on it: the step from b to c within a factor of 2 of the truth (8 of 10
+    triples; the learner's ``LEAD_RATIO``); a frame c ten frames on (a robot carried along
+    its way) lies more than 2.5 steps away in every triple."""
+    k, p = _geometry(camera_map).k, GeometryParams()
+    xy = np.asarray(sunny2.xy, float)
+    f = sunny2_features
+
+    def seen(a: int, b: int, c: int) -> float | None:
+        return step_length(f[a].keypoints, f[b].keypoints, f[c].keypoints,
+                           match_pairs(f[b].codes, f[a].codes, p.delta),
+                           match_pairs(f[c].codes, f[b].codes, p.delta),
+                           float(np.linalg.norm(xy[b] - xy[a])), k, p.min_inliers)
+
+    near, far = [], []
+    for b in range(11, 71, 6):
+        step = float(np.linalg.norm(xy[b + 1] - xy[b]))
+        near.append((seen(b - 1, b, b + 1) or np.nan) / step)
+        far.append((seen(b - 1, b, b + 10) or np.inf) / step)
+    assert int(np.sum((np.array(near) > 0.5) & (np.array(near) < 2.0))) >= 8, near
+    assert min(far) > 2.5, far
 
 
 def test_a_map_without_camera_places_frames_at_images(small_map: RouteMap) -> None:

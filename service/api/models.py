@@ -276,7 +276,8 @@ class LearningInfo(BaseModel):
     experience: str = Field(description="id of the experience its images join")
     frames: int = Field(description="frames the gates have judged")
     taught: int = Field(description="frames that passed every gate")
-    bridged: int = Field(description="frames between two taught ones, placed by the wheels")
+    bridged: int = Field(description="frames the wheels placed: between two taught ones, "
+                         "or before the session's first taught frame (its start)")
     collected: int = Field(description="images collected and not yet handed to the map "
                            "writer (written every learn_commit_images, at a reset and when "
                            "the session ends)")

@@ -34,8 +34,15 @@ frame's located camera heading, and their path aligned to the taught frames befo
 within ``BRIDGE_TOLERANCE_M``, so a robot carried off between them, along its way or across
 it, is not bridged), the held frames join the collection if they pass gates 3 and 5 at the
 place the wheels give them; ``placed`` then places them by the odometry alone, aligned to the
-taught frames around them. A session that never tracks confidently teaches no frame, so it bridges
-none either.
+taught frames around them. The frames held before a session's first taught frame (its start,
+while the swarm searched: its *lead*, up to ``BRIDGE_M`` of travel back) are taught by the
+wheels too, back from that frame as far as each step of the lead is one the wheels made
+(``follows``: the images' step between two frames, scaled by the wheels' step before it,
+within a factor ``LEAD_RATIO`` of the wheels' own; a robot carried in the lead, unseen by its
+wheels, breaks it there): the wheels' step back from the taught frame, turned into the map by
+its located heading, places them for gates 3 and 5, and ``placed`` by the odometry aligned to
+the taught frames after them. A reset drops the lead. A session that never tracks
+confidently teaches no frame, so it bridges none either.
 
 Taught frames are kept (one per place) until ``learn_commit_images`` are collected or the
 session ends or is reset; then the map admin writes them into the map as a new version
@@ -58,6 +65,7 @@ from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import TypeVar
 
+import cv2
 import numpy as np
 
 from service.api.models import Estimate, Odometry
@@ -76,6 +84,7 @@ from service.maps.positions import fuse_with_odometry
 from service.maps.route_map import RouteMap
 from service.vision.features import Features
 from service.vision.map_geometry import GeometryParams
+from service.vision.metric_pose import step_length
 
 T = TypeVar("T")
 PATH_TOLERANCE_M = 1.0  # the estimate lies this close to the path's constant-velocity prediction
@@ -87,12 +96,15 @@ BRIDGE_M = 15.0  # a stretch between two taught frames this long (odometry) is t
 BRIDGE_FRAMES = 64  # and holds at most this many frames
 BRIDGE_TOLERANCE_M = 3.0  # the wheels put the frame after a stretch this close to where it was
 # located (``wheels_agree``)
+LEAD_RATIO = 2.0  # a lead's step seen by the images lies within this factor of the wheels'
+LEAD_MIN_STEP_M = 0.1  # and both steps it is measured on are this long (the wheels')
 PROGRESS_WAIT_S = 1.0  # a session's learning progress waits this long for its queued gates
 # a learning frame's outcomes: taught, bridged by the wheels, or stopped by a gate
 OUTCOMES = ("taught", "bridged", "confident", "path", "appearance", "located", "place")
 LEARN_IDLE_S = 30.0  # a replica writes what it collected of a robot that sent it nothing so long
 
 Context = list[tuple[int, np.ndarray, np.ndarray]]  # a batch's taught frames (seq, xy, odometry)
+Held = tuple[NewImage, int, np.ndarray]  # a frame held for the wheels: (image, seq, odometry)
 Commit = Callable[[str, str, list[NewImage], str | None, str, str | None], None]
 # (map name, experience id, images, condition, robot id, the map's ``base_identity`` where
 # they were learned) -> written (the map admin's)
@@ -124,10 +136,12 @@ class _Trail:
     known: list[bool] = field(default_factory=list)  # each one located (False: bridged)
     anchor: tuple[int, np.ndarray, np.ndarray] | None = None  # last taught (seq, xy, odometry)
     turn: float | None = None  # the anchor's located heading less its odometry yaw
-    gap: list[tuple[NewImage, int, np.ndarray]] = field(default_factory=list)  # since it
+    gap: list[Held] = field(default_factory=list)  # since it
     gap_m: float = 0.0  # the wheels' travel since it
     bridged: int = 0
     context: Context = field(default_factory=list)  # the last batch's taught frames
+    lead: list[Held] = field(default_factory=list)  # held before the session's first taught
+    # frame, oldest first
 
     def refuse(self, gate: str) -> None:
         self.refused[gate] = self.refused.get(gate, 0) + 1
@@ -233,8 +247,13 @@ def wheels_turned(before: Context, turn: float, here: np.ndarray) -> np.ndarray 
     if not before:
         return None
     _, a_xy, a_odom = before[-1]
-    z = complex(np.cos(turn), np.sin(turn)) * complex(*(here - a_odom))
-    return a_xy + np.array([z.real, z.imag])
+    return turned(a_xy, turn, here - a_odom)
+
+
+def turned(xy: np.ndarray, turn: float, step: np.ndarray) -> np.ndarray:
+    """``xy`` plus the wheels' ``step`` turned into the map by ``turn``."""
+    z = complex(np.cos(turn), np.sin(turn)) * complex(*step)
+    return xy + np.array([z.real, z.imag])
 
 
 def wheels_agree(before: Context, at: np.ndarray, here: np.ndarray,
@@ -258,6 +277,49 @@ def wheels_agree(before: Context, at: np.ndarray, here: np.ndarray,
     _, a_xy, a_odom = before[-1]
     return abs(float(np.linalg.norm(at - a_xy)) - float(np.linalg.norm(here - a_odom))) \
         <= BRIDGE_TOLERANCE_M
+
+
+def follows(m: RouteMap, a: Held, b: Held, c: Held) -> bool:
+    """Whether frame ``c`` follows frame ``b`` as the robot's wheels say: the step between
+    them seen by the images (``step_length``: ``b``'s structure from ``a``, the wheels' step
+    from ``a`` to ``b`` its scale; on a map of two feature types RootSIFT's, XFeat's where
+    RootSIFT's gives none) within a factor ``LEAD_RATIO`` of the wheels' step from ``b`` to
+    ``c``; both steps at least ``LEAD_MIN_STEP_M``. False on a map without the camera."""
+    if m.geometry is None:
+        return False
+    base = float(np.linalg.norm(b[2] - a[2]))
+    step = float(np.linalg.norm(c[2] - b[2]))
+    if min(base, step) < LEAD_MIN_STEP_M:
+        return False
+    p = GeometryParams()
+    for second in (False, True)[:1 + (m.second is not None)]:
+        fa, fb, fc = ((x[0].features.second if second else x[0].features) for x in (a, b, c))
+        if fa is None or fb is None or fc is None:
+            continue
+        try:
+            seen = step_length(fa.keypoints, fb.keypoints, fc.keypoints,
+                               m.frame_pairs(fb.codes, fa.codes, p.delta, second),
+                               m.frame_pairs(fc.codes, fb.codes, p.delta, second),
+                               base, m.geometry.k, p.min_inliers)
+        except cv2.error:  # a degenerate configuration: no geometry
+            seen = None
+        if seen is not None:
+            return 1.0 / LEAD_RATIO <= seen / step <= LEAD_RATIO
+    return False
+
+
+def lead_chain(m: RouteMap, frames: list[Held]) -> list[int]:
+    """The frames (indices, newest first) linked back from the last one, each step one the
+    wheels made (``follows``, from one of the two frames before, with one of the two before
+    that): where no link holds, the chain ends (the robot may have been carried there)."""
+    chain = [len(frames) - 1]
+    while True:
+        c = chain[-1]
+        nxt = next((b for b in (c - 1, c - 2) for a in (b - 1, b - 2)
+                    if a >= 0 and follows(m, frames[a], frames[b], frames[c])), None)
+        if nxt is None:
+            return chain
+        chain.append(nxt)
 
 
 def experience_id(robot_id: str, created: float) -> str:
@@ -373,8 +435,8 @@ class Learner:
                 t = self._trails[robot_id] = _Trail(exp_id, m.name, condition)
             if t.base != base and not t.pending:  # new, or reset onto a rebuilt map: the
                 # frames before were placed in another map's frame
-                t.base, t.context, t.anchor, t.turn, t.gap, t.gap_m = base, [], None, None, \
-                    [], 0.0
+                t.base, t.context, t.anchor, t.turn, t.gap, t.gap_m, t.lead = base, [], None, \
+                    None, [], 0.0, []
             t.seen += 1
             t.last_seen = time.monotonic()
             xy = np.array([est.x, est.y])
@@ -405,12 +467,16 @@ class Learner:
             here = None if odom is None else np.array([odom.x, odom.y], float)
             turn = None if odom is None or heading is None else heading - odom.yaw
             held = self._bridge(t, at, est.seq, here, turn)
+            lead, t.lead = t.lead, []  # held before the session's first taught frame
             t.pending.append(NewImage.of(features, at, f"{t.exp_id}/{est.seq:06d}",
                                          second=m.second is not None))
             t.seqs.append(est.seq)
             t.odometry.append(here)
             t.known.append(True)
             t.with_odometry += odom is not None
+        if lead and here is not None and turn is not None:
+            first = (NewImage.of(features, at, "", second=m.second is not None), est.seq, here)
+            held += self._lead(m, lead, first, turn)
         if held:
             self._bridged(t, m, held)
         with self._lock:
@@ -421,22 +487,44 @@ class Learner:
     @staticmethod
     def _hold(t: _Trail, m: RouteMap, features: Features, seq: int,
               odom: Odometry | None) -> None:
-        """Keep a refused frame of a learning robot that sends its odometry, after a taught
-        one: the wheels may bridge it to the next taught frame (``_bridge``). Under the lock."""
-        if odom is None or t.anchor is None:
-            t.anchor, t.gap, t.gap_m = None, [], 0.0
+        """Keep a refused frame of a learning robot that sends its odometry: after a taught
+        one, the wheels may bridge it to the next taught frame (``_bridge``); before the
+        session's first taught frame it joins the session's lead (``_lead``: its last
+        ``BRIDGE_M`` of travel and ``BRIDGE_FRAMES`` kept). Under the lock."""
+        if odom is None:
+            t.anchor, t.gap, t.gap_m, t.lead = None, [], 0.0, []
             return
         here = np.array([odom.x, odom.y], float)
-        t.gap_m += float(np.linalg.norm(here - (t.gap[-1][2] if t.gap else t.anchor[2])))
-        if t.gap_m > BRIDGE_M or len(t.gap) >= BRIDGE_FRAMES:
+        img = NewImage.of(features, np.full(2, np.nan), f"{t.exp_id}/{seq:06d}",
+                          second=m.second is not None)
+        if t.anchor is not None:
+            t.gap_m += float(np.linalg.norm(here - (t.gap[-1][2] if t.gap else t.anchor[2])))
+            if t.gap_m <= BRIDGE_M and len(t.gap) < BRIDGE_FRAMES:
+                t.gap.append((img, seq, here))
+                return
             t.anchor, t.gap, t.gap_m = None, [], 0.0
+        if t.taught:  # the lead is the session's start only
             return
-        t.gap.append((NewImage.of(features, np.full(2, np.nan), f"{t.exp_id}/{seq:06d}",
-                                  second=m.second is not None), seq, here))
+        t.lead = [*t.lead, (img, seq, here)][-BRIDGE_FRAMES:]
+        odo = np.array([o for _, _, o in t.lead], float)
+        back = np.concatenate([np.cumsum(np.linalg.norm(np.diff(odo, axis=0),
+                                                        axis=1)[::-1])[::-1], [0.0]])
+        t.lead = [f for f, travel in zip(t.lead, back, strict=True) if travel <= BRIDGE_M]
+
+    @staticmethod
+    def _lead(m: RouteMap, lead: list[Held], first: Held, turn: float) -> list[Held]:
+        """A session's lead taught by the wheels back from its first taught frame ``first``
+        (``turn``: its located heading less its odometry yaw): the frames of the lead's
+        ``lead_chain`` to it, each placed by the wheels' step back from it turned into the
+        map."""
+        frames = [*lead, first]
+        at, here = first[0].xy, first[2]
+        return [(replace(frames[i][0], xy=turned(at, turn, frames[i][2] - here)),
+                 frames[i][1], frames[i][2]) for i in lead_chain(m, frames)[1:]]
 
     @staticmethod
     def _bridge(t: _Trail, at: np.ndarray, seq: int, here: np.ndarray | None,
-                turn: float | None = None) -> list[tuple[NewImage, int, np.ndarray]]:
+                turn: float | None = None) -> list[Held]:
         """A taught frame at ``at`` (odometry ``here``): the frames held since the last taught
         one, placed by the wheels between the two, where the wheels agree with it
         (``wheels_agree``). Under the lock."""
@@ -466,15 +554,12 @@ class Learner:
         last batch's included (the last ``CONTEXT_FRAMES``). Under the lock."""
         return (t.context + located(t.pending, t.seqs, t.odometry, t.known))[-CONTEXT_FRAMES:]
 
-    def _bridged(self, t: _Trail, m: RouteMap, held: list[tuple[NewImage, int, np.ndarray]]
-                 ) -> None:
+    def _bridged(self, t: _Trail, m: RouteMap, held: list[Held]) -> None:
         """Held frames bridged by the wheels join the collection where they add a new
         appearance (gate 3 at their bridged place) and a new place (gate 5)."""
         new = []
         for img, seq, odom in held:
-            second = None if img.codes2 is None or img.keypoints2 is None else \
-                Features(img.keypoints2, img.codes2)
-            if self._new_appearance(m, Features(img.keypoints, img.codes, second), img.xy):
+            if self._new_appearance(m, img.features, img.xy):
                 new.append((img, seq, odom))
         radius = PLACE_SPACINGS * base_spacing(m)
         with self._lock:
@@ -554,15 +639,18 @@ class Learner:
                     return np.asarray(at, float), off.heading
         return None, None
 
-    def flush(self, robot_id: str, end: bool = False) -> None:
+    def flush(self, robot_id: str, end: bool = False, reset: bool = False) -> None:
         """Hand the robot's collected images to the writer (and with ``end`` forget it), its
         frames handed over before included (not other robots': their backlog does not hold up
-        this robot's reset or end)."""
+        this robot's reset or end); ``reset``: the session was reset (the robot may stand
+        elsewhere now), so its lead is dropped."""
         self._queue.drain(key=robot_id)
         with self._lock:
             t = self._trails.pop(robot_id, None) if end else self._trails.get(robot_id)
             if t is None:
                 return
+            if reset:
+                t.lead = []
             images, t.pending = t.pending, []
             seqs, t.seqs = t.seqs, []
             odometry, t.odometry = t.odometry, []

@@ -400,7 +400,8 @@ class LocalizationService:
             s.last_input_seq = None
             s.learn_path = []
             s.last_used = time.time()
-        self.learner.flush(robot_id)  # a reset breaks the path: its images are written
+        self.learner.flush(robot_id, reset=True)  # a reset breaks the path: its images are
+        # written, and its frames before do not teach
         return self.info(s)
 
     def _followed(self, s: Session) -> Localizer:

@@ -31,17 +31,14 @@ import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from service.estimators.along_track import path_tangents
 from service.maps.compact import KEYPOINT_DTYPE, Keypoints
 from service.maps.route_map import Chunk, MapError, RouteMap, load_map, write_map
+from service.vision.features import Features
 from service.vision.place_index import PlaceIndex
-
-if TYPE_CHECKING:
-    from service.vision.features import Features
 
 KEY = "experiences"
 COMPATIBLE = "compatible_versions"
@@ -175,6 +172,13 @@ class NewImage:
                    np.asarray(xy, float), name,
                    None if two is None else np.array(two.codes),
                    None if two is None else np.array(two.keypoints, np.float32))
+
+    @property
+    def features(self) -> Features:
+        """The image's features as a frame's (its second set where it has one)."""
+        second = None if self.codes2 is None or self.keypoints2 is None else \
+            Features(self.keypoints2, self.codes2)
+        return Features(self.keypoints, self.codes, second)
 
 
 def _rewrite(m: RouteMap, path: Path, keep: np.ndarray, new: Sequence[NewImage],

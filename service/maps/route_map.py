@@ -596,6 +596,21 @@ class RouteMap:
             return self.inverted_file.pairs(codes, image_id, delta)
         return match_pairs(codes, self.prepared(image_id), delta)
 
+    def frame_pairs(self, a: np.ndarray, b: np.ndarray, delta: float, second: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """Matched feature indices of two frames' codes of the map's first feature type
+        (``second``: of its second, XFeat) for the two-view geometry: the symmetric ratio
+        test at ``delta`` (RootSIFT) or mutual nearest neighbours (XFeat)."""
+        p = self.feature_params
+        if second:
+            if not isinstance(p, DualParams):
+                raise ValueError(f"map '{self.name}' has one feature type")
+            return mnn_pairs(a, b, p.xfeat.min_cos, p.xfeat.max_ratio)
+        first = self.first_params
+        if isinstance(first, XFeatParams):
+            return mnn_pairs(a, b, first.min_cos, first.max_ratio)
+        return match_pairs(a, b, delta)
+
     def image_pairs(self, image_id: int, other: int, delta: float
                     ) -> tuple[np.ndarray, np.ndarray]:
         """``pairs`` of map image ``image_id``'s codes with map image ``other`` (a structure's
