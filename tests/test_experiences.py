@@ -408,6 +408,11 @@ def _teach_with_gaps(m: RouteMap, cloudy1: Round, feats: list[Features], gaps: l
     return written, stats
 
 
+def _seqs(images: list[NewImage]) -> list[int]:
+    """The frames (0-based) a learner's images were taught from (their names' numbers)."""
+    return [int(f.name.rsplit("/", 1)[1]) - 1 for f in images]
+
+
 def _carried(poses: list[Odometry | None], a: int, b: int, at: int
              ) -> list[tuple[np.ndarray, list[Odometry | None]]]:
     """The odometry of a robot carried 6 m along its way (from frame ``a`` to ``b``), or 5 m
@@ -437,8 +442,7 @@ def test_a_robot_sending_its_odometry_teaches_images_placed_along_it(
     along_fit = [f for f in _teach_with_gaps(m, cloudy1, cloudy_features, [], list(poses))[0]
                  if f.name in names]
     assert [f.name for f in line_fit] == [f.name for f in along_fit] and len(line_fit) >= 10
-    seqs = [int(f.name.rsplit("/", 1)[1]) - 1 for f in line_fit]
-    truth = cloudy1.reference_xy[seqs]
+    truth = cloudy1.reference_xy[_seqs(line_fit)]
     line, along = (float(np.linalg.norm(np.array([f.xy for f in t]) - truth, axis=1).mean())
                    for t in (line_fit, along_fit))
     assert along < 0.7 * line, (line, along)
@@ -456,27 +460,23 @@ def test_frames_between_taught_ones_are_taught_by_the_wheels(
     poses = odometry_poses(cloudy1.odometry, np.arange(STRETCH))
     gaps = [range(20, 28), range(40, 46)]
     in_gap = [i for g in gaps for i in g]
-
-    def seqs(images: list[NewImage]) -> list[int]:
-        return [int(f.name.rsplit("/", 1)[1]) - 1 for f in images]
-
     taught, stats = _teach_with_gaps(m, cloudy1, cloudy_features, gaps, list(poses))
-    bridged = [f for f, i in zip(taught, seqs(taught), strict=True) if i in in_gap]
+    bridged = [f for f, i in zip(taught, _seqs(taught), strict=True) if i in in_gap]
     assert stats["bridged"] >= len(bridged) >= 8, stats  # most of the 14 (one per place)
-    assert {i for i in seqs(bridged)} & set(gaps[0]) and {i for i in seqs(bridged)} & set(gaps[1])
+    assert {i for i in _seqs(bridged)} & set(gaps[0]) and {i for i in _seqs(bridged)} & set(gaps[1])
     err = np.linalg.norm(np.array([f.xy for f in taught])
-                         - cloudy1.reference_xy[seqs(taught)], axis=1)
-    on_wheels = np.isin(seqs(taught), in_gap)
+                         - cloudy1.reference_xy[_seqs(taught)], axis=1)
+    on_wheels = np.isin(_seqs(taught), in_gap)
     assert float(err[on_wheels].mean()) < max(0.6, 1.5 * float(err[~on_wheels].mean())), err
 
     without, stats = _teach_with_gaps(m, cloudy1, cloudy_features, gaps, [None] * STRETCH)
-    assert stats["bridged"] == 0 and not set(seqs(without)) & set(in_gap)
+    assert stats["bridged"] == 0 and not set(_seqs(without)) & set(in_gap)
 
     # carried 6 m ahead, or 5 m across its way (the distance between the taught frames on
     # either side barely changes), unseen by the wheels, in the middle of the first stretch
     for carry, carried in _carried(poses, 19, 28, 24):
         kidnapped, stats = _teach_with_gaps(m, cloudy1, cloudy_features, gaps, carried)
-        assert not set(seqs(kidnapped)) & set(gaps[0]), (carry, stats)
+        assert not set(_seqs(kidnapped)) & set(gaps[0]), (carry, stats)
 
 
 def test_a_carry_across_the_way_after_a_session_s_first_taught_frame_is_not_bridged(
@@ -489,24 +489,14 @@ def test_a_carry_across_the_way_after_a_session_s_first_taught_frame_is_not_brid
     m = load_map(camera_maps / "route.swmap")
     assert cloudy1.odometry is not None
     poses = odometry_poses(cloudy1.odometry, np.arange(STRETCH))
-
-    def seqs(images: list[NewImage]) -> list[int]:
-        return [int(f.name.rsplit("/", 1)[1]) - 1 for f in images]
-
-    first = min(seqs(_teach_with_gaps(m, cloudy1, cloudy_features, [], list(poses))[0]))
+    first = min(_seqs(_teach_with_gaps(m, cloudy1, cloudy_features, [], list(poses))[0]))
     gap = range(first + 1, first + 9)
     taught, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [gap], list(poses))
-    assert stats["bridged"] > 0 and set(seqs(taught)) & set(gap), stats
+    assert stats["bridged"] > 0 and set(_seqs(taught)) & set(gap), stats
 
-    a, b = poses[first], poses[gap.stop]
-    assert a is not None and b is not None
-    ahead = np.array([b.x - a.x, b.y - a.y]) / float(np.hypot(b.x - a.x, b.y - a.y))
-    carry = 5.0 * np.array([-ahead[1], ahead[0]])
-    carried = [p if p is None or i < first + 5 else
-               p.model_copy(update={"x": p.x - float(carry[0]), "y": p.y - float(carry[1])})
-               for i, p in enumerate(poses)]
+    _, carried = _carried(poses, first, gap.stop, first + 5)[1]  # 5 m across
     kidnapped, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [gap], carried)
-    assert not set(seqs(kidnapped)) & set(gap), stats
+    assert not set(_seqs(kidnapped)) & set(gap), stats
 
 
 def test_frames_before_a_session_s_first_taught_one_are_taught_by_the_wheels(
@@ -522,32 +512,28 @@ def test_frames_before_a_session_s_first_taught_one_are_taught_by_the_wheels(
     assert cloudy1.odometry is not None
     poses = odometry_poses(cloudy1.odometry, np.arange(STRETCH))
     lead = range(0, 14)
-
-    def seqs(images: list[NewImage]) -> list[int]:
-        return [int(f.name.rsplit("/", 1)[1]) - 1 for f in images]
-
     taught, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], list(poses))
-    led = [i for i in seqs(taught) if i in lead]
+    led = [i for i in _seqs(taught) if i in lead]
     assert len(led) >= 6 and min(led) <= 3 and stats["bridged"] >= len(led), (led, stats)
-    assert seqs(taught) == sorted(seqs(taught))  # the experience's images in frame order
+    assert _seqs(taught) == sorted(_seqs(taught))  # the experience's images in frame order
     err = np.linalg.norm(np.array([f.xy for f in taught])
-                         - cloudy1.reference_xy[seqs(taught)], axis=1)
-    on_wheels = np.isin(seqs(taught), led)
+                         - cloudy1.reference_xy[_seqs(taught)], axis=1)
+    on_wheels = np.isin(_seqs(taught), led)
     assert float(err[on_wheels].mean()) < max(0.6, 1.5 * float(err[~on_wheels].mean())), err
 
     without, stats = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], [None] * STRETCH)
-    assert stats["bridged"] == 0 and not set(seqs(without)) & set(lead), stats
+    assert stats["bridged"] == 0 and not set(_seqs(without)) & set(lead), stats
 
     elsewhere = [cloudy_features[40 + i] for i in range(7)] + cloudy_features[7:]
     broken, _ = _teach_with_gaps(m, cloudy1, elsewhere, [lead], list(poses))
-    assert not set(seqs(broken)) & set(range(7)), seqs(broken)
+    assert not set(_seqs(broken)) & set(range(7)), _seqs(broken)
 
     for carry, carried in _carried(poses, 0, 14, 7):
         kidnapped, _ = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], carried)
-        assert not set(seqs(kidnapped)) & set(range(7)), (carry, seqs(kidnapped))
+        assert not set(_seqs(kidnapped)) & set(range(7)), (carry, _seqs(kidnapped))
 
     reset, _ = _teach_with_gaps(m, cloudy1, cloudy_features, [lead], list(poses), reset_at=14)
-    assert not set(seqs(reset)) & set(lead) and set(seqs(reset)) == set(seqs(taught)) - set(led)
+    assert not set(_seqs(reset)) & set(lead) and set(_seqs(reset)) == set(_seqs(taught)) - set(led)
 
 
 def test_the_service_hands_a_learning_robot_s_odometry_to_its_learner(

@@ -221,18 +221,15 @@ def test_a_lead_of_another_place_teaches_nothing_on_an_xfeat_map(
     where the lead's first frames are another place's, none of those is taught. (Gate 3
     open: XFeat matches the small world's cloudy frames as strongly as its sunny ones.)"""
     from client.runs import odometry_poses
-    from tests.test_experiences import STRETCH, _teach_with_gaps
+    from tests.test_experiences import STRETCH, _seqs, _teach_with_gaps
     assert cloudy1.odometry is not None
     poses = list(odometry_poses(cloudy1.odometry, np.arange(STRETCH)))
     lead = range(0, 14)
 
-    def seqs(images: list) -> set[int]:
-        return {int(f.name.rsplit("/", 1)[1]) - 1 for f in images}
-
     feats = xfeat_cloudy1[:STRETCH]
     taught, stats = _teach_with_gaps(xfeat_map, cloudy1, feats, [lead], poses, weak_ratio=9.0)
-    assert seqs(taught) & set(range(7)) and stats["bridged"] > 0, (sorted(seqs(taught)), stats)
+    assert set(_seqs(taught)) & set(range(7)) and stats["bridged"] > 0, (_seqs(taught), stats)
     elsewhere = feats[40:47] + feats[7:]
     broken, _ = _teach_with_gaps(xfeat_map, cloudy1, elsewhere, [lead], poses, weak_ratio=9.0)
-    assert not seqs(broken) & set(range(7)) and seqs(broken) & set(range(7, 14)), \
-        sorted(seqs(broken))
+    assert not set(_seqs(broken)) & set(range(7)) and set(_seqs(broken)) & set(range(7, 14)), \
+        _seqs(broken)

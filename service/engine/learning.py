@@ -495,17 +495,20 @@ class Learner:
             t.anchor, t.gap, t.gap_m, t.lead = None, [], 0.0, []
             return
         here = np.array([odom.x, odom.y], float)
-        img = NewImage.of(features, np.full(2, np.nan), f"{t.exp_id}/{seq:06d}",
-                          second=m.second is not None)
+
+        def held() -> Held:  # the frame's features copied, for a frame that is kept
+            return NewImage.of(features, np.full(2, np.nan), f"{t.exp_id}/{seq:06d}",
+                               second=m.second is not None), seq, here
+
         if t.anchor is not None:
             t.gap_m += float(np.linalg.norm(here - (t.gap[-1][2] if t.gap else t.anchor[2])))
             if t.gap_m <= BRIDGE_M and len(t.gap) < BRIDGE_FRAMES:
-                t.gap.append((img, seq, here))
+                t.gap.append(held())
                 return
             t.anchor, t.gap, t.gap_m = None, [], 0.0
         if t.taught:  # the lead is the session's start only
             return
-        t.lead = [*t.lead, (img, seq, here)][-BRIDGE_FRAMES:]
+        t.lead = [*t.lead, held()][-BRIDGE_FRAMES:]
         odo = np.array([o for _, _, o in t.lead], float)
         back = np.concatenate([np.cumsum(np.linalg.norm(np.diff(odo, axis=0),
                                                         axis=1)[::-1])[::-1], [0.0]])
