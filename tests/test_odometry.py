@@ -289,3 +289,69 @@ def test_a_jump_restarts_the_odometry_map_heading() -> None:
     h.restart()
     assert h.heading(0.3) == (0.3, pytest.approx(math.radians(20.0)))
     assert len(h.pairs) == 0
+
+
+def test_camera_yaws_located_at_the_place_a_jump_finds_survive_its_restart() -> None:
+    """A search that finds the place locates camera yaws there before the jump to it is
+    reported: the restart keeps those yaws as the map heading (not the jump's own direction),
+    and drops yaws located anywhere else, such as a look-alike the swarm held before."""
+    def drive(located_at: np.ndarray, yaw: float = math.pi / 2) -> OdomHeading:
+        h = OdomHeading()
+        for k in range(4):  # the robot drives north in the map, east in its odometry
+            h.advance(OdomStep(1.0, 0.0, 0.0, 0.0, 0.0))
+            h.look(yaw, math.radians(3.0), at=located_at + np.array([0.0, k]))
+        return h
+
+    found = np.array([50.0, 20.0])  # where the last look is carried to: (50, 23) + 1 north
+    kept = drive(found)
+    kept.advance(OdomStep(1.0, 0.0, 0.0, 0.0, 0.0))
+    kept.restart(np.array([50.5, 24.0]))
+    heading, _ = kept.heading(-math.pi / 4)  # the jump's own direction stands by
+    assert heading == pytest.approx(math.pi / 2, abs=1e-6)
+    elsewhere = drive(np.array([-30.0, 20.0]))  # located 80 m away: a look-alike
+    elsewhere.advance(OdomStep(1.0, 0.0, 0.0, 0.0, 0.0))
+    elsewhere.restart(np.array([50.5, 24.0]))
+    assert elsewhere.heading(-math.pi / 4)[0] == pytest.approx(-math.pi / 4)
+    # located here, but with a yaw east: carried by it, the first look arrives 5.3 m away
+    wrong_turn = drive(found, 0.0)
+    wrong_turn.advance(OdomStep(1.0, 0.0, 0.0, 0.0, 0.0))
+    wrong_turn.restart(np.array([50.5, 24.0]))
+    assert wrong_turn.heading(-math.pi / 4)[0] == pytest.approx(-math.pi / 4)
+    assert len(wrong_turn.looks) == 0 and len(kept.looks) == 4
+
+
+def test_a_lost_place_forgets_the_heading_fit_s_pairs_but_not_the_located_yaws() -> None:
+    """The fit's pairs may belong to the wrong place once the place is lost, so they go; the
+    camera yaws located before stay until the place found again judges them (kept where
+    each, carried by the wheels, reaches it), or a frame comes without odometry (the dead
+    reckoning missed a step)."""
+    from service.api.params import DPSOParams
+    from service.estimators.multi_swarm_dpso import MultiSwarmDPSO
+    from tests.line_index import LineIndex
+
+    est = MultiSwarmDPSO(LineIndex(50, 1.0), DPSOParams(), np.random.default_rng(0))
+    step = OdomStep(1.0, 0.0, 0.0, 0.0, 0.0)
+    reckoning = est.dead_reckoning()
+    for k in range(3):
+        reckoning.advance(step)
+        reckoning.look(0.0, math.radians(3.0), at=np.array([k + 1.0, 0.0]))
+        est.odom_observe(step, np.array([k + 1.0, 0.0]), trusted=True, lost=False)
+    assert len(reckoning.pairs) == 3
+    est.odom_observe(step, np.array([4.0, 0.0]), trusted=False, lost=True)
+    assert len(reckoning.pairs) == 0 and len(reckoning.looks) == 3
+    assert reckoning.heading(None)[0] == pytest.approx(0.0)
+    est.odom_observe(step, np.array([5.0, 0.0]), trusted=True, lost=False)  # found 2 m on:
+    assert reckoning.seen is not None and len(reckoning.pairs) == 1  # the yaws reach it
+    est.odom_observe(None, np.array([6.0, 0.0]), trusted=False, lost=True)
+    assert reckoning.seen is None and len(reckoning.looks) == 0
+    assert reckoning.heading(0.7)[0] == pytest.approx(0.7)
+    for found in (np.array([3.0, 1.0]), np.array([3.0, 9.0])):  # the place found after a
+        again = MultiSwarmDPSO(LineIndex(50, 1.0), DPSOParams(), np.random.default_rng(0))
+        wheels = again.dead_reckoning()  # loss: 1 m or 9 m from where the yaws reach
+        for k in range(3):
+            wheels.advance(step)
+            wheels.look(0.0, math.radians(3.0), at=np.array([k + 1.0, 0.0]))
+            again.odom_observe(step, np.array([k + 1.0, 0.0]), trusted=True, lost=False)
+        again.odom_observe(step, found, trusted=False, lost=True)
+        again.odom_observe(step, found, trusted=True, lost=False)
+        assert (wheels.seen is not None) == (found[1] < 5.0)
