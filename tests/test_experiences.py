@@ -39,7 +39,6 @@ from service.engine.localization_service import LocalizationService
 from service.engine.localizer import Localizer
 from service.maps.experiences import (
     BASE,
-    CLEAR_SPACINGS,
     GAP_SPACINGS,
     SEED_SHARE,
     LayerChoice,
@@ -1346,42 +1345,3 @@ def test_particles_compared_with_different_layers_compete_on_one_scale(
     choice.scores["cloudy"] = 0.04  # matches worse than the map's own images: unchanged
     assert np.allclose(choice.scaled(learned, raw)(ids), 0.2)
     assert np.allclose(LayerChoice().scaled(learned, raw)(ids), 0.2)
-
-
-def test_a_searching_swarm_compares_its_particles_near_a_clearly_matched_learned_image_with_it(
-        map_copy: RouteMap, cloudy_images: list[NewImage],
-        cloudy_features: list[Features]) -> None:
-    """While the swarm searches, every particle is compared with the map's own images (the gap
-    rule), except those within ``CLEAR_SPACINGS`` map spacings of a learned image the frame
-    clearly matches (the place seeder's verified learned candidates): those are compared with
-    that image, whose light is today's. A frame on the learned stretch gets such images near
-    its true place."""
-    assert map_copy.path is not None
-    learned, _ = add_experience(map_copy, map_copy.path, "cloudy", cloudy_images[::2],
-                                condition="cloudy", robot=None, now=1.0, budget_bytes=1 << 30)
-    layers = learned.layers
-    assert layers is not None
-    exp_ids = np.flatnonzero(layers == experience_layers(learned)["cloudy"])
-    clear = exp_ids[[3, 12]]
-    spacing = base_spacing(learned)
-    rng = np.random.default_rng(0)
-    near = np.concatenate([learned.positions[c] + rng.normal(0, 0.5 * spacing, (20, 2))
-                           for c in clear])
-    far = learned.positions[exp_ids[25]] + rng.normal(0, 0.5 * spacing, (20, 2))
-    ids, dist = LayerChoice().nearest(learned, None, clear)(np.concatenate([near, far]))
-    reach = np.min(np.linalg.norm(near[:, None] - learned.positions[clear][None], axis=2),
-                   axis=1)
-    own = reach <= CLEAR_SPACINGS * spacing
-    assert own.mean() > 0.9 and np.all(np.isin(ids[:40][own, 0], clear))
-    assert not np.any(np.isin(ids[:40][~own, 0], clear))
-    np.testing.assert_allclose(dist[:40, 0], np.linalg.norm(
-        near - learned.positions[ids[:40, 0]], axis=1))
-    assert not np.any(np.isin(ids[40:, 0], exp_ids))  # elsewhere: the map's own images
-    plain, _ = LayerChoice().nearest(learned, None)(near)
-    assert not np.any(np.isin(plain[:, 0], exp_ids))
-    # the seeder hands the frame's clearly matched learned images to the fitness
-    loc = Localizer(learned, seed=0)
-    loc.step(cloudy_features[30], t=0.0)
-    assert loc.seeder is not None and len(loc.seeder.clear)
-    xy = learned.positions[loc.seeder.clear]
-    assert float(np.min(np.linalg.norm(xy - cloudy_images[30].xy, axis=1))) < 2 * spacing

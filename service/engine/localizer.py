@@ -142,8 +142,7 @@ class Localizer:
                 lambda ids: self.map.similarity(features, ids, kept, kept2, first=record))
             res = self.estimator.step(self.choice.scaled(self.map, similarity), t, locate,
                                       motion,
-                                      nearest=self.choice.nearest(self.map, self._at(),
-                                                                  self._clear()),
+                                      nearest=self.choice.nearest(self.map, self._at()),
                                       first=first)
             # the probes score the layers at the true place: where the swarm tracks (its
             # place reported or still to be confirmed by the geometry)
@@ -162,10 +161,6 @@ class Localizer:
         last = self.last
         return None if last is None or last.status not in _FOUND \
             else np.array([last.x, last.y])
-
-    def _clear(self) -> np.ndarray | None:
-        """The learned images this frame clearly matches, where the swarm searches."""
-        return None if self.seeder is None or not len(self.seeder.clear) else self.seeder.clear
 
     def _second_geometry(self, features: Features) -> bool:
         """Whether a frame RootSIFT's geometry cannot locate is tried with XFeat's: a map

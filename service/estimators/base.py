@@ -237,10 +237,7 @@ class Estimator:
     def odom_move(self, odom: OdomStep) -> tuple[np.ndarray, float]:
         """The odometry step in the map frame (m) and the std (m, per axis) of where it
         ends, turned by the map heading at the previous frame; advances the dead reckoning."""
-        # before the first convergence the search's steps are jumps between places, not
-        # motion: no direction is known, the step only spreads the particles
-        motion_heading = self.motion(1.0)[1] \
-            if self.ema_step is not None and self._converged else None
+        motion_heading = self.motion(1.0)[1] if self.ema_step is not None else None
         reckoning = self.dead_reckoning()
         d, sigma = reckoning.displacement(odom, motion_heading)
         reckoning.advance(odom)
@@ -257,18 +254,12 @@ class Estimator:
                      lost: bool) -> None:
         """After a frame: an image estimate ``trusted`` to be the place teaches the map
         heading; a lost place, or a frame without odometry, forgets the pairs (they may
-        belong to a wrong place, or the dead reckoning missed a step). A lost place keeps
-        the located camera yaws: they hold where the swarm finds the place again, and a jump
-        to another place judges them (``OdomHeading.restart``)."""
+        belong to a wrong place, or the dead reckoning missed a step)."""
         if self.odometry is None:
             return
-        if odom is None:
+        if odom is None or lost:
             if len(self.odometry.pairs):
                 self.odometry.forget()
-            return
-        if lost:  # the located camera yaws stay: a jump to another place judges them
-            if len(self.odometry.pairs):
-                self.odometry.forget(yaws=False)
             return
         if trusted:
             self.odometry.observe(xy)

@@ -328,8 +328,7 @@ class MultiSwarmDPSO(DPSO):
         cam = camera[1] if camera is not None else None
         if cam is not None and cam.heading is not None and cam.heading_sigma is not None \
                 and odom is not None and self.odometry is not None and self.params.odom_look:
-            self.odometry.look(cam.heading, cam.heading_sigma, self.params.odom_drift,
-                               at=located)
+            self.odometry.look(cam.heading, cam.heading_sigma, self.params.odom_drift)
         heading, source, h_sigma = self.odom_heading(odom, heading)
         if cam is not None and cam.heading is not None:  # the camera's yaw
             heading, source, h_sigma = cam.heading, "camera", cam.heading_sigma
@@ -465,7 +464,7 @@ class MultiSwarmDPSO(DPSO):
             return self.smoother.carry(odom_d)
         if status is not Status.TRACKING or p.along_track_alpha >= 1 or not len(ids):
             if far:
-                self._odom_restart(pos)
+                self._odom_restart()
             self.smoother.reset()
             return pos
         nearest = int(ids[np.argmin(np.einsum("ij,ij->i", compared_xy - pos,
@@ -476,7 +475,7 @@ class MultiSwarmDPSO(DPSO):
                 # the images (or the search after a carried stretch) place the robot far
                 # from the odometry's track: the estimate restarts there, and so does the
                 # odometry's map heading
-                self._odom_restart(pos)
+                self._odom_restart()
                 self.smoother.reset()
             gain = p.odom_alpha if confirmed else p.odom_alpha_weak
             return self.smoother.update(pos, tangent, gain, p.along_track_gate_m,
@@ -520,11 +519,10 @@ class MultiSwarmDPSO(DPSO):
         self.evidence[out] = 0.0
         self.age[out] = 0.0
 
-    def _odom_restart(self, at: np.ndarray) -> None:
-        """After a jump beyond along_track_gate_m to ``at``: the odometry's map heading
-        restarts, keeping the camera yaws located at ``at``."""
+    def _odom_restart(self) -> None:
+        """After a jump beyond along_track_gate_m: the odometry's map heading restarts."""
         if self.odometry is not None and self.params.odom_restart_heading:
-            self.odometry.restart(at)
+            self.odometry.restart()
 
     def mean_evidence(self) -> np.ndarray:
         """Each particle's evidence as a decayed mean of the fitness along its path (A with

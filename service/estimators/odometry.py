@@ -69,10 +69,6 @@ class OdomHeading:
     tau_m = 12.0  # travel over which a pair's weight falls by e
     min_span_m = 3.0  # rms spread of the dead-reckoned points a fit needs
     keep = 200  # pairs kept at most
-    # a located camera yaw, carried by the odometry, must arrive this near the place found
-    # after a loss or a jump to be kept (m; a sub-swarm's radius)
-    look_reach_m = 5.0
-    unjudged = False  # yaws kept through a loss, not yet judged (class-level: old states)
     # class-level starts too: a session state stored before the camera's yaw was fused
     # (service/engine/state_codec.py) restores without them
     seen: float | None = None
@@ -82,9 +78,6 @@ class OdomHeading:
     # measured against (rad); class-level for a state stored before them
     drift: DriftRate | None = None
     raw_yaw = 0.0
-    # the located yaws fused into ``seen`` since it was last forgotten: (dead-reckoned x, y,
-    # their offset z, the located map x, y) per look; class-level for a state stored before
-    looks = np.zeros((0, 5))
 
     def __init__(self) -> None:
         self.reset()
@@ -100,8 +93,6 @@ class OdomHeading:
         # its variance grows with the odometry's drift between them); None: none seen
         self.seen: float | None = None
         self.seen_var = 0.0
-        self.looks = np.zeros((0, 5))
-        self.unjudged = False
         self.drift = None
         self.raw_yaw = 0.0
 
@@ -142,20 +133,15 @@ class OdomHeading:
             return wrap_angle(float(self.pose[2]) + offset), sigma
         return motion_heading, MOTION_HEADING_SIGMA
 
-    def look(self, heading: float, sigma: float, drift: bool = False,
-             at: np.ndarray | None = None) -> None:
+    def look(self, heading: float, sigma: float, drift: bool = False) -> None:
         """The located camera's yaw ``heading`` (std ``sigma``) at the current pose: a direct
         measurement of the offset between the dead-reckoned yaw and the map's; with
-        ``drift``, also of the odometry's heading drift (``DriftRate``). ``at``: where the
-        camera was located (map frame), for ``restart``."""
+        ``drift``, also of the odometry's heading drift (``DriftRate``)."""
         if drift:
             if self.drift is None:
                 self.drift = DriftRate()
             self.drift.look(wrap_angle(heading - self.raw_yaw), sigma)
         z = wrap_angle(heading - float(self.pose[2]))
-        if at is not None:
-            row = np.array([[self.pose[0], self.pose[1], z, float(at[0]), float(at[1])]])
-            self.looks = np.concatenate([self.looks, row])[-self.keep:]
         if self.seen is None:
             self.seen, self.seen_var = z, sigma * sigma
             return
@@ -177,57 +163,27 @@ class OdomHeading:
         return d, math.hypot(step.sigma_xy, step.distance * min(sigma, 1.0))
 
     def observe(self, xy: np.ndarray) -> None:
-        """The images located the robot at ``xy`` (map frame) at the current pose: refit.
-        The first such place after a loss keeps the camera yaws located before only where
-        they reach it (``restart``)."""
-        if self.unjudged:
-            self.unjudged = False
-            if len(self.looks) == 0 or not self._looks_reach(np.asarray(xy, float),
-                                                              self.look_reach_m):
-                self.forget()
+        """The images located the robot at ``xy`` (map frame) at the current pose: refit."""
         row = np.array([[self.travelled, self.pose[0], self.pose[1], float(xy[0]),
                          float(xy[1])]])
         pairs = np.concatenate([self.pairs, row])[-self.keep:]
         self.pairs = pairs[self.travelled - pairs[:, 0] <= 4.0 * self.tau_m]
         self._fit()
 
-    def forget(self, yaws: bool = True) -> None:
+    def forget(self) -> None:
         """The place was lost: the pairs may belong to a wrong place; the drift since the
-        last fit is kept as the heading's uncertainty. ``yaws``: the located camera yaws
-        go too (False: they stay, their variance growing with the travel, until the place
-        found again judges them: ``observe`` or ``restart``)."""
+        last fit is kept as the heading's uncertainty."""
         self.pairs = np.zeros((0, 5))
-        self.unjudged = not yaws and self.seen is not None
-        if yaws:
-            self.seen = None
-            self.looks = np.zeros((0, 5))
+        self.seen = None
 
-    def restart(self, at: np.ndarray | None = None) -> None:
+    def restart(self) -> None:
         """The estimate jumped far from where the odometry carried it (a kidnap): the map
         heading fitted at the old place says nothing of the new one, so the direction of
-        motion stands in until a new fit. The camera yaws located since ``seen`` was last
-        forgotten are kept where each one, carried by the odometry from where it was
-        located, turned by its own yaw, arrives within ``look_reach_m`` of ``at``, the place
-        the estimate restarts at: they were located at the new place (a search that found it
-        took them before it was reported)."""
-        kept = self.seen is not None and at is not None and len(self.looks) > 0 \
-            and self._looks_reach(np.asarray(at, float), self.look_reach_m)
-        seen, seen_var, looks = self.seen, self.seen_var, self.looks
+        motion stands in until a new fit."""
         self.forget()
-        if kept:
-            self.seen, self.seen_var, self.looks = seen, seen_var, looks
         self.offset, self.offset_sigma = None, math.pi
         if self.drift is not None:  # the wheels did not see the jump: their drift holds
             self.drift.restart()
-
-    def _looks_reach(self, at: np.ndarray, radius: float) -> bool:
-        """Whether every kept look, carried to the current pose by the dead reckoning turned
-        by its own offset, arrives within ``radius`` of ``at``."""
-        rows = self.looks
-        d = self.scale * (self.pose[:2][None, :] - rows[:, 0:2])
-        c, s = np.cos(rows[:, 2]), np.sin(rows[:, 2])
-        moved = np.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1]], axis=1)
-        return bool(np.all(np.linalg.norm(rows[:, 3:5] + moved - at, axis=1) <= radius))
 
     def _fit(self) -> None:
         p = self.pairs

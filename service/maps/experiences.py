@@ -51,7 +51,6 @@ GAP_SPACINGS = 2.0  # a particle farther than this many spacings from an experie
 PLACE_SPACINGS = 0.5  # one image per place and experience: this many spacings apart at least
 
 LEVEL_SAMPLE = 40  # consecutive image pairs of a map whose median similarity is its level
-CLEAR_SPACINGS = 2.0  # a searching particle this near a clearly matched learned image uses it
 SEED_SHARE = 0.2  # a learned image proposed to a searching swarm matches the frame at least
 #                   this share of the map's same-light level
 
@@ -397,8 +396,7 @@ class LayerChoice:
     active: str = BASE
     turn: int = 0  # round-robin over the other layers for the probe
 
-    def nearest(self, m: RouteMap, at: np.ndarray | None = None,
-                clear: np.ndarray | None = None
+    def nearest(self, m: RouteMap, at: np.ndarray | None = None
                 ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """For the fitness: each particle's base images (one column per base layer), replaced
         by the active experience's image of the same place where it has one: the experience
@@ -421,17 +419,7 @@ class LayerChoice:
         def nearest(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             ids, dist = nearest_base(m, positions, base)
             if layer is None:
-                if clear is None or not len(clear):
-                    return ids, dist
-                # a searching swarm: the particles near a learned image the frame clearly
-                # matches are compared with it
-                xy = np.asarray(positions, float).reshape(-1, 2)
-                d = np.linalg.norm(xy[:, None, :] - m.positions[clear][None, :, :], axis=2)
-                j = np.argmin(d, axis=1)
-                dj = d[np.arange(len(xy)), j]
-                near = dj <= CLEAR_SPACINGS * spacing
-                return (np.where(near[:, None], clear[j][:, None], ids),
-                        np.where(near[:, None], dj[:, None], dist))
+                return ids, dist
             # each particle's first base image stands in for its place: the experience image
             # nearest to that image replaces it, so a frame compares no more distinct images
             # than it would on the base layer alone

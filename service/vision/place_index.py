@@ -261,8 +261,6 @@ class PlaceSeeder:
         self.last_query_s = 0.0
         self.queries = 0
         self.last_ids = np.zeros(0, np.int64)
-        # the learned candidates ``verify`` accepted for this frame (a searching swarm's)
-        self.clear = np.zeros(0, np.int64)
 
     def _query(self, codes: np.ndarray, verify: Verify | None = None) -> np.ndarray:
         t0 = time.perf_counter()
@@ -273,7 +271,6 @@ class PlaceSeeder:
             learned, _ = self.index.query(codes, self.k // 2, self.learned)
             if verify is not None and len(learned):
                 learned = learned[verify(learned)]
-                self.clear = learned
             ids = interleaved(own, learned)
         self.last_query_s = time.perf_counter() - t0
         self.queries += 1
@@ -286,7 +283,6 @@ class PlaceSeeder:
         reported for the previous frame; ``verify``: which learned candidates a searching
         estimator may be given (a mask over their ids; None: all)."""
         self.last_query_s = 0.0
-        self.clear = np.zeros(0, np.int64)
         estimator.place_candidates = None
         if self.k <= 0:
             return
