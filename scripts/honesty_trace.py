@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 
 from client.dataset import read_round
+from client.lab.bench_experience import WARMUP
 from client.runs import odometry_poses
 from service.engine.localizer import Localizer
 from service.maps.route_map import load_map
 from service.vision.features import extract
 
-WARMUP = 20  # frames before errors are averaged (as the experience benchmark)
 OFF_M = 10.0  # a frame this far off must not be reported tracking
 
 
