@@ -84,3 +84,29 @@ def test_a_swarm_that_moves_to_a_far_place_earns_tracking_there_later_positions_
     assert all(held[k][1] is Status.RECOVERING and held[k][2] > 10
                for k in range(first_free, first_held))
     assert held[-1][1] is Status.TRACKING and abs(held[-1][0][0] - 0.6 * 189) < 2
+
+
+def test_a_jump_to_another_place_does_not_teach_the_velocity() -> None:
+    """The swarm's estimate jumps 48 m ahead to the place that now matches (a look-alike, a
+    kidnap, or the search's first find): that displacement is not motion. The velocity the
+    frames before it taught holds through the jump (0.6 m per frame along the line); with the
+    gate set beyond the jump, the jump teaches it (the contrast): the speed after it is more
+    than twice the robot's. (The search's wild estimates before it are weak frames, which
+    teach nothing either way.)"""
+    line = LineIndex(200, 0.6)
+
+    def m(ids: np.ndarray, at: int) -> np.ndarray:
+        return 0.3 * np.exp(-np.abs(np.asarray(ids) - at)) + 0.01
+
+    def speeds(params: DPSOParams) -> list[float]:
+        est = MultiSwarmDPSO(line, params, np.random.default_rng(3))
+        out = []
+        for k in range(60):
+            at = 20 + k if k < 40 else 100 + k
+            est.step(lambda ids, at=at: m(ids, at), float(k))
+            out.append(est.motion(1.0)[0])
+        return out
+
+    gated, taught = speeds(DPSOParams()), speeds(DPSOParams(along_track_gate_m=1e4))
+    assert all(abs(s - 0.6) < 0.1 for s in gated[35:])
+    assert max(taught[40:]) > 1.2

@@ -307,7 +307,9 @@ class DPSOParams(CommonParams):
         "0.15 lets the smoother's prediction carry the position")
     along_track_gate_m: float = Field(
         10.0, gt=0, le=1e5, description="a correction longer than this restarts the "
-        "smoother at the swarm's estimate (m); 10 m, so a real jump is reported at once")
+        "smoother at the swarm's estimate, and DPSO's estimate moving this much farther "
+        "than the predicted step is a jump that does not teach the tracked velocity (m); "
+        "10 m, so a real jump is reported at once")
     odom_look: bool = Field(
         True, description="with wheel odometry, a located frame's camera yaw also corrects "
         "the odometry's map heading (service/estimators/odometry.py)")

@@ -212,18 +212,24 @@ class Estimator:
         self._point_prev: np.ndarray | None = None
         self.ema_step: np.ndarray | None = None  # metres per frame, vector
 
-    def track_motion(self, point: np.ndarray, learn: bool = True) -> None:
+    def track_motion(self, point: np.ndarray, learn: bool = True,
+                     predicted: np.ndarray | None = None, jump_m: float = 0.0) -> None:
         """EMA (alpha = ema_alpha) of the per-frame displacement of the tracked point.
 
         The EMA runs over the displacement *vector*, so jitter of the point averages out
         instead of adding to the speed (an EMA of its norm would be biased upwards). With
         ``learn=False`` the point only becomes the reference of the next displacement and the
-        velocity is kept (a frame whose estimate says nothing about the motion).
+        velocity is kept (a frame whose estimate says nothing about the motion). A
+        displacement farther than ``jump_m`` (> 0) from the ``predicted`` step (none: no
+        step) is a jump between places, not motion: it does not teach the velocity either.
         """
         if learn and self._point_prev is not None:
             d = point - self._point_prev
-            a = self.params.ema_alpha
-            self.ema_step = d.copy() if self.ema_step is None else (1 - a) * self.ema_step + a * d
+            ahead = np.zeros(2) if predicted is None else predicted
+            if jump_m <= 0 or float(np.linalg.norm(d - ahead)) <= jump_m:
+                a = self.params.ema_alpha
+                self.ema_step = d.copy() if self.ema_step is None \
+                    else (1 - a) * self.ema_step + a * d
         self._point_prev = np.array(point, float)
 
     def motion(self, dt: float) -> tuple[float, float]:

@@ -249,8 +249,10 @@ class MultiSwarmDPSO(DPSO):
         # place to leave
         hold_m = p.jump_hold_m if self._converged else 0.0
         status, lost = self._update_evidence_status(good)
-        # a weak frame's estimate lags where images look alike: it does not teach the velocity
-        self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good))
+        # a weak frame's estimate lags where images look alike: it does not teach the velocity;
+        # nor does a jump to another place (the search's, before the first convergence too)
+        self.track_motion(pos, learn=not self._judge_weak(ev.best_m, ev.good),
+                          predicted=step_before, jump_m=p.along_track_gate_m)
         if self.recovery_phase(lost):
             status = Status.RECOVERING
         camera = self._located(fitness, status, pos, ids, scores, compared_xy)
