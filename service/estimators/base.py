@@ -17,6 +17,7 @@ from service.estimators.fitness import (
     NearestFn,
     SimilarityFn,
 )
+from service.estimators.jump_hold import off_prediction
 from service.estimators.odometry import OdomHeading, OdomStep
 
 # radius of the 68 % confidence disc of a 2-D Gaussian in units of sigma: sqrt(chi2_2(0.68))
@@ -225,8 +226,7 @@ class Estimator:
         """
         if learn and self._point_prev is not None:
             d = point - self._point_prev
-            ahead = np.zeros(2) if predicted is None else predicted
-            if jump_m <= 0 or float(np.linalg.norm(d - ahead)) <= jump_m:
+            if jump_m <= 0 or off_prediction(self._point_prev, point, predicted) <= jump_m:
                 a = self.params.ema_alpha
                 self.ema_step = d.copy() if self.ema_step is None \
                     else (1 - a) * self.ema_step + a * d

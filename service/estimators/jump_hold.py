@@ -19,6 +19,12 @@ from __future__ import annotations
 import numpy as np
 
 
+def off_prediction(last: np.ndarray, now: np.ndarray, step: np.ndarray | None) -> float:
+    """How far ``now`` lies from where ``last`` moved by the predicted ``step`` (None: no
+    step known) puts it (m): a jump's length."""
+    return float(np.linalg.norm(now - (last + (step if step is not None else 0.0))))
+
+
 class JumpHold:
     """The jump being held (its length, 0 when none) and the good frames seen since."""
 
@@ -36,14 +42,12 @@ class JumpHold:
         frame's reported position, ``step`` the motion predicted since the previous one (None:
         none known), ``good`` whether the frame's evidence counts as good, ``located``
         whether the two-view geometry located it. ``limit_m`` 0 turns the hold off."""
-        predicted = None if self.last is None else \
-            self.last + (step if step is not None else 0.0)
-        self.last = np.array(reported, float)
+        last, self.last = self.last, np.array(reported, float)
         if limit_m <= 0:
             self.distance, self.good = 0.0, 0
             return 0.0
-        if predicted is not None:
-            jump = float(np.linalg.norm(reported - predicted))
+        if last is not None:
+            jump = off_prediction(last, reported, step)
             if jump > limit_m:
                 self.distance, self.good = jump, 0
         self.good = self.good + 1 if good else 0
