@@ -157,13 +157,13 @@ def test_hypotheses_are_bounded_and_clear_empties_them() -> None:
     assert len(seq) == 0 and seq.place(*RULE) is None
 
 
-def _search(sequence_frames: int, seed: int) -> tuple[int, int]:
+def _search(sequence_frames: int, seed: int) -> tuple[int, int, int]:
     """A DPSO started on a line of 400 images; the robot drives an image per frame from
     image 30 with odometry. A frame matches its image weakly (0.03 over noise up to 0.02),
     and the stretch 60 m ahead matches it more than three times as well in every fourth
     frame. The place index proposes that stretch every frame and the true image every
     fifth frame, among random images. (Frames 20-59 within 3 m of the robot, frames then
-    more than 20 m off.)"""
+    more than 20 m off, frames then reported ``tracking`` more than 10 m off.)"""
     from service.api.params import DPSOParams
     from service.estimators.multi_swarm_dpso import MultiSwarmDPSO
     from service.estimators.odometry import OdomStep
@@ -172,7 +172,7 @@ def _search(sequence_frames: int, seed: int) -> tuple[int, int]:
     est = MultiSwarmDPSO(line, DPSOParams(sequence_frames=sequence_frames),
                          np.random.default_rng(seed))
     draw = np.random.default_rng(100 + seed)
-    near = far = 0
+    near = far = dishonest = 0
     for k in range(60):
         i = 30 + k
 
@@ -192,7 +192,8 @@ def _search(sequence_frames: int, seed: int) -> tuple[int, int]:
         if k >= 20:
             near += err < 3.0
             far += err > 20.0
-    return near, far
+            dishonest += err > 10.0 and r.status == "tracking"
+    return near, far, dishonest
 
 
 def test_a_searching_swarm_is_drawn_to_the_sequences_place() -> None:
@@ -201,5 +202,5 @@ def test_a_searching_swarm_is_drawn_to_the_sequences_place() -> None:
     # 378 against 151, 74 against 286)
     on = [_search(8, seed) for seed in range(12)]
     off = [_search(0, seed) for seed in range(12)]
-    assert sum(n for n, _ in on) > sum(n for n, _ in off) + 120
-    assert 2 * sum(f for _, f in on) < sum(f for _, f in off)
+    assert sum(n for n, _, _ in on) > sum(n for n, _, _ in off) + 120
+    assert 2 * sum(f for _, f, _ in on) < sum(f for _, f, _ in off)
