@@ -16,6 +16,7 @@ from service.api.models import (
     Odometry,
 )
 from service.api.params import DPSOParams
+from service.engine.both_layers import BothLayers
 from service.estimators.base import Status, StepResult
 from service.estimators.fitness import ComparisonCache, LocateFn, TypeScores
 from service.estimators.odometry import OdomStep, body_step
@@ -59,6 +60,8 @@ class Localizer:
         # (``_verify``): a learned image of today's light looks more like any frame of that
         # light than the map's images at the true place
         own = base_images(route_map) if experience_layers(route_map) else None
+        self._own = np.zeros(len(route_map.positions), bool)  # per image: the map's own
+        self._own[base_images(route_map)] = True
         learned = None if own is None else \
             np.setdiff1d(np.arange(len(route_map.positions)), own)
         self.seeder = (PlaceSeeder(route_map.place_index, route_map.positions, k, among=own,
@@ -128,6 +131,9 @@ class Localizer:
         kept2 = FramePairs(GeometryParams().delta) if self._second_geometry(features) \
             else None
         locate = self.locator(features, kept, kept2)
+        both = None
+        if learned and locate is not None:  # service/engine/both_layers.py
+            locate = both = BothLayers(self.map, locate, self.estimator.spacing, self._own)
         # a map of two types: the first type's own m beside the fused one (its vouching)
         first = TypeScores() if self.map.fusion is not None and features.second is not None \
             else None
@@ -151,6 +157,8 @@ class Localizer:
             comparisons = similarity.comparisons
         if verified is not None:  # learned candidates compared for the search
             comparisons += verified.comparisons
+        if both is not None:  # the map's own images located beside learned ones
+            comparisons += both.extra
         self.seq += 1
         self.last = self._estimate(res, t, comparisons, learned)
         return self.last

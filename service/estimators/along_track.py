@@ -37,6 +37,29 @@ def path_tangent(positions: np.ndarray, nearest: int, spacing: float) -> np.ndar
     return d / norm if norm > 0 else None
 
 
+def located_position(positions: np.ndarray, image: int, right_m: float, ahead_m: float,
+                     spacing: float) -> np.ndarray | None:
+    """A camera ``right_m`` right of map image ``image`` and ``ahead_m`` ahead of it along the
+    map's path there (``path_tangent``): its position in the map; None where the path has no
+    direction there."""
+    tangent = path_tangent(positions, image, spacing)
+    if tangent is None:
+        return None
+    right = np.array([tangent[1], -tangent[0]])
+    return np.asarray(positions[image] + right_m * right + ahead_m * tangent, float)
+
+
+def path_offset(positions: np.ndarray, image: int, xy: np.ndarray, spacing: float
+                ) -> tuple[float, float] | None:
+    """``xy`` as metres right of map image ``image`` and ahead of it along the path there:
+    the inverse of ``located_position``; None where the path has no direction there."""
+    tangent = path_tangent(positions, image, spacing)
+    if tangent is None:
+        return None
+    d = np.asarray(xy, float) - positions[image]
+    return float(d @ np.array([tangent[1], -tangent[0]])), float(d @ tangent)
+
+
 def path_tangents(positions: np.ndarray, ids: np.ndarray, spacing: float) -> np.ndarray:
     """``path_tangent`` at each image ``ids`` (n, 2): a zero row where it has none."""
     out = np.zeros((len(ids), 2))

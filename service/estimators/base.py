@@ -128,6 +128,11 @@ class Estimator:
         self.reset_motion()
 
     # ---- placement ----------------------------------------------------------------------
+    @property
+    def spacing(self) -> float:
+        """The map's median distance between consecutive images: the scale of its path."""
+        return self._spacing
+
     def reset(self, near: tuple[float, float] | None = None, radius: float | None = None) -> None:
         """Global re-initialisation, or around a known pose (like AMCL's initial pose)."""
         if near is not None:
