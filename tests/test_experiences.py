@@ -572,15 +572,17 @@ def test_confirming_tracking_moves_no_estimate_on_a_learned_map(
         learning_run: LearningRun, cloudy1: Round) -> None:
     """``confirm_tracking`` is a report: on a map with an experience (the layer choice and
     its probes follow the swarm, not the report) the estimates are those without it, frame
-    for frame, and only statuses differ. A gate of 1 cm confirms no place (the frames are
+    for frame, and only statuses differ. A gate of 1 mm confirms no place (the frames are
     the round's images shifted by 3 pixels, so that none is located exactly at the taught
-    image of itself): every frame the swarm tracks is reported recovering."""
+    image of itself; with 1 cm, one frame's fix averaged with the map's own image's
+    (engine/both_layers.py) lands 3 mm from its learned image and confirms the place): every
+    frame the swarm tracks is reported recovering."""
     m = learning_run.on_disk
     feats = [extract(np.roll(cloudy1.load_image(i), 3, axis=1), m.feature_params)
              for i in range(LEARN_FRAMES)]
     runs = {}
     for confirm in (True, False):
-        loc = Localizer(m, "dpso", {"confirm_tracking": confirm, "metric_gate_m": 0.01,
+        loc = Localizer(m, "dpso", {"confirm_tracking": confirm, "metric_gate_m": 0.001,
                                      "scout_unconfirmed": False},
                         seed=2)
         runs[confirm] = [loc.step(f, t=float(i)) for i, f in enumerate(feats)]

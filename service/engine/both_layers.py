@@ -3,16 +3,16 @@
 On a map with experiences the particles at an experience's places are compared with its
 images (``LayerChoice``, service/maps/experiences.py), so DPSO's two-view geometry locates a
 tracked frame at a learned image (``MultiSwarmDPSO._located``). That fix carries the learned
-image's position: where the learning robot was placed, 0.2-0.6 m from the truth on the rendered
-worlds (docs/research/lighting.md, "Located at both layers"). The map's own image of the same
-place carries an error of its own (its round's fix), and it locates the frame about as well:
-across light at dusk with as many RANSAC inliers as the learned image (12-15, a dusk frame has
-few features either way), in cloudy light with fewer (about 23 against 90) for a fix about as
-far from the truth. So the frame is located at both, and the fix is their mean: two fixes with
-independent errors average them. Where the map's image does not locate the frame, or the two
-fixes lie more than ``AGREE_M`` apart (two answers, not one place), the learned image's fix
-is taken alone, as before. Each such map image is matched with the frame once more (``extra``,
-counted with the frame's comparisons).
+image's position: where the learning robot was placed, 0.1-0.6 m from the truth on the
+rendered worlds (docs/research/lighting.md, "Located at both layers"). The map's own image of
+the same place carries an error of its own (its round's fix), and at dusk it locates the frame
+about as well, with about as many RANSAC inliers (10-18 against 13-17: a dusk frame has few
+features in either light); in cloudy light with fewer (14-28 against 73-92). So the frame is
+located at both, and the fix is their mean: two fixes with independent errors average them.
+Where the map's image does not locate the frame, or the two fixes lie more than ``AGREE_M``
+apart (two answers, not one place), the learned image's fix is taken alone, as before. Each
+such map image counts as one more comparison of the frame (``extra``; an upper bound: where
+the frame's similarity already matched that image, the geometry reuses its matches).
 """
 
 from __future__ import annotations
