@@ -12,7 +12,7 @@ from client.dataset import Round
 from service.engine.both_layers import AGREE_M, BothLayers
 from service.engine.localizer import Localizer
 from service.estimators.along_track import located_position
-from service.maps.experiences import NewImage, add_experience, base_images, experience_layers
+from service.maps.experiences import NewImage, add_experience, experience_layers
 from service.maps.route_map import RouteMap, load_map
 from service.vision.features import Features, extract
 from service.vision.map_geometry import FramePairs, GeometryParams
@@ -47,15 +47,13 @@ def _fixes(m: RouteMap, cloudy1: Round, feats: dict[int, Features]
     images located beside (``extra``)."""
     loc = Localizer(m)
     layer = experience_layers(m)["cloudy"]
-    own = np.zeros(len(m.positions), bool)
-    own[base_images(m)] = True
     alone, both, truth, extra = [], [], [], 0
     for i in FRAMES[1::2]:
         f = feats[i]
         plain = loc.locator(f, FramePairs(GeometryParams().delta))
         assert plain is not None  # the map has the camera
         image = int(m.nearest_in_layer(cloudy1.reference_xy[i][None, :], layer)[0][0])
-        at_both = BothLayers(m, plain, loc.estimator.spacing, own)
+        at_both = BothLayers(m, plain, loc.estimator.spacing)
         a, b = plain(image), at_both(image)
         extra += at_both.extra
         if a is None or b is None:

@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from service.estimators.along_track import located_position, path_offset
+from service.estimators.along_track import along_path, located_position, path_tangent
 from service.estimators.fitness import LocateFn
 from service.maps.experiences import base_layers, nearest_base
 from service.maps.route_map import RouteMap
@@ -39,22 +39,29 @@ class BothLayers:
     m: RouteMap
     locate: LocateFn
     spacing: float  # the map's path scale (``Estimator.spacing``: its tangents' reach)
-    own: np.ndarray  # per map image: one of the map's own (a base layer), not learned
     extra: int = 0  # the map's own images located beside a learned one (each matched once)
+
+    def __post_init__(self) -> None:
+        self._base = base_layers(self.m)  # the map's own layers (its traversals)
 
     def __call__(self, image_id: int) -> Offset | None:
         off = self.locate(image_id)
-        if off is None or self.own[image_id]:
+        layers = self.m.layers
+        if off is None or layers is None or int(layers[image_id]) in self._base:
             return off
         positions = self.m.positions
-        here = located_position(positions, image_id, off.right_m, off.ahead_m, self.spacing)
-        ids, dist = nearest_base(self.m, positions[image_id][None, :], base_layers(self.m))
+        ids, dist = nearest_base(self.m, positions[image_id][None, :], self._base)
         own = int(ids[0, int(np.argmin(dist[0]))])
         self.extra += 1
         off_own = self.locate(own)
+        tangent = path_tangent(positions, image_id, self.spacing)
         there = None if off_own is None else \
             located_position(positions, own, off_own.right_m, off_own.ahead_m, self.spacing)
-        if here is None or there is None or float(np.linalg.norm(there - here)) > AGREE_M:
+        if tangent is None or there is None:
             return off
-        mean = path_offset(positions, image_id, (here + there) / 2, self.spacing)
-        return off if mean is None else replace(off, right_m=mean[0], ahead_m=mean[1])
+        here = along_path(positions[image_id], tangent, off.right_m, off.ahead_m)
+        if float(np.linalg.norm(there - here)) > AGREE_M:
+            return off
+        d = (here + there) / 2 - positions[image_id]  # the mean, as an offset from the image
+        return replace(off, right_m=float(d @ np.array([tangent[1], -tangent[0]])),
+                       ahead_m=float(d @ tangent))

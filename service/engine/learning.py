@@ -70,7 +70,7 @@ import numpy as np
 
 from service.api.models import Estimate, Odometry
 from service.engine.learn_queue import LearnQueue
-from service.estimators.along_track import located_position, path_tangent
+from service.estimators.along_track import along_path, path_tangent
 from service.maps.experiences import (
     GAP_SPACINGS,
     PLACE_SPACINGS,
@@ -628,14 +628,15 @@ class Learner:
         spacing = base_spacing(m)
         for image in order[:GEOMETRY_TRIES]:
             image = int(image)
-            if path_tangent(m.positions, image, spacing) is None:
+            tangent = path_tangent(m.positions, image, spacing)
+            if tangent is None:
                 continue
             for geo, feats in tries:
                 off = geo.locate(feats, image, p)
                 if off is None:
                     continue
-                at = located_position(m.positions, image, off.right_m, off.ahead_m, spacing)
-                if at is not None and np.isfinite(at).all() and \
+                at = along_path(m.positions[image], tangent, off.right_m, off.ahead_m)
+                if np.isfinite(at).all() and \
                         float(np.linalg.norm(at - xy)) <= LOCATED_TOLERANCE_M:
                     return np.asarray(at, float), off.heading
         return None, None

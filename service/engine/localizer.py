@@ -60,8 +60,6 @@ class Localizer:
         # (``_verify``): a learned image of today's light looks more like any frame of that
         # light than the map's images at the true place
         own = base_images(route_map) if experience_layers(route_map) else None
-        self._own = np.zeros(len(route_map.positions), bool)  # per image: the map's own
-        self._own[base_images(route_map)] = True
         learned = None if own is None else \
             np.setdiff1d(np.arange(len(route_map.positions)), own)
         self.seeder = (PlaceSeeder(route_map.place_index, route_map.positions, k, among=own,
@@ -133,7 +131,7 @@ class Localizer:
         locate = self.locator(features, kept, kept2)
         both = None
         if learned and locate is not None:  # service/engine/both_layers.py
-            locate = both = BothLayers(self.map, locate, self.estimator.spacing, self._own)
+            locate = both = BothLayers(self.map, locate, self.estimator.spacing)
         # a map of two types: the first type's own m beside the fused one (its vouching)
         first = TypeScores() if self.map.fusion is not None and features.second is not None \
             else None

@@ -45,9 +45,8 @@ _HEADER = struct.Struct("<4sBI")
 # Localizer's constructor makes it again from (map, estimator name, params, seed).
 REBUILT: dict[str, frozenset[str]] = {
     # the estimator is stored on its own; the place seeder derives from the map and params,
-    # and so do the map's same-light level (computed again when a search needs it) and which
-    # of its images are its own (``_own``, the layers located at both: engine/both_layers.py)
-    "localizer": frozenset({"map", "estimator", "seeder", "_level", "_own"}),
+    # and so does the map's same-light level (computed again when a search needs it)
+    "localizer": frozenset({"map", "estimator", "seeder", "_level"}),
     "estimator": frozenset({"index", "params", "_map_positions", "_x_order",
                             "_x_sorted"}),
 }

@@ -37,27 +37,21 @@ def path_tangent(positions: np.ndarray, nearest: int, spacing: float) -> np.ndar
     return d / norm if norm > 0 else None
 
 
+def along_path(at: np.ndarray, tangent: np.ndarray, right_m: float, ahead_m: float
+               ) -> np.ndarray:
+    """The point ``right_m`` right of ``at`` and ``ahead_m`` ahead of it along the unit
+    direction ``tangent`` (the map's path there)."""
+    right = np.array([tangent[1], -tangent[0]])
+    return np.asarray(at + right_m * right + ahead_m * tangent, float)
+
+
 def located_position(positions: np.ndarray, image: int, right_m: float, ahead_m: float,
                      spacing: float) -> np.ndarray | None:
     """A camera ``right_m`` right of map image ``image`` and ``ahead_m`` ahead of it along the
     map's path there (``path_tangent``): its position in the map; None where the path has no
     direction there."""
     tangent = path_tangent(positions, image, spacing)
-    if tangent is None:
-        return None
-    right = np.array([tangent[1], -tangent[0]])
-    return np.asarray(positions[image] + right_m * right + ahead_m * tangent, float)
-
-
-def path_offset(positions: np.ndarray, image: int, xy: np.ndarray, spacing: float
-                ) -> tuple[float, float] | None:
-    """``xy`` as metres right of map image ``image`` and ahead of it along the path there:
-    the inverse of ``located_position``; None where the path has no direction there."""
-    tangent = path_tangent(positions, image, spacing)
-    if tangent is None:
-        return None
-    d = np.asarray(xy, float) - positions[image]
-    return float(d @ np.array([tangent[1], -tangent[0]])), float(d @ tangent)
+    return None if tangent is None else along_path(positions[image], tangent, right_m, ahead_m)
 
 
 def path_tangents(positions: np.ndarray, ids: np.ndarray, spacing: float) -> np.ndarray:

@@ -89,11 +89,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from service.api.params import DPSOParams
-from service.estimators.along_track import (
-    AlongTrackSmoother,
-    located_position,
-    path_tangent,
-)
+from service.estimators.along_track import AlongTrackSmoother, along_path, path_tangent
 from service.estimators.base import (
     Hypothesis,
     Status,
@@ -402,16 +398,14 @@ class MultiSwarmDPSO(DPSO):
         others = ids[near][np.argsort(-scores[near], kind="stable")]
         tries = [anchor, *[int(i) for i in others if i != anchor]][:p.metric_tries]
         for k, image in enumerate(tries):
-            has_path = path_tangent(self._map_positions, image, self._spacing) is not None
-            off = locate(image) if has_path else None
+            tangent = path_tangent(self._map_positions, image, self._spacing)
+            off = locate(image) if tangent is not None else None
             reach = math.hypot(off.right_m, off.ahead_m) if off is not None else math.inf
             if k == 0:  # the held place is confirmed where the camera stands near its image
                 self.unverified = 0 if reach <= p.metric_gate_m else self.unverified + 1
-            if off is not None and reach <= p.metric_reach_m:
-                at = located_position(self._map_positions, image, off.right_m, off.ahead_m,
-                                      self._spacing)
-                if at is not None:
-                    return at, off
+            if off is not None and tangent is not None and reach <= p.metric_reach_m:
+                return along_path(self._map_positions[image], tangent, off.right_m,
+                                  off.ahead_m), off
         return None
 
     def _unconfirmed(self, fitness: FrameFitness, status: Status, apart: float) -> bool:
