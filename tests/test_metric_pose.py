@@ -17,12 +17,13 @@ from client.lab.world import World
 from client.lab.world.geometry import Pose
 from client.runs import frames_to_recover
 from service.api.round_format import DatasetError, camera_from_hfov, dataset_camera
+from service.engine.learning import LeadSteps
 from service.engine.localizer import Localizer
 from service.estimators.base import StepResult
 from service.maps.route_map import MapError, RouteMap, build_map_from_rounds, load_map, save_map
 from service.vision.features import Features, extract
 from service.vision.map_geometry import FramePairs, GeometryParams, MapGeometry
-from service.vision.metric_pose import Camera, match_pairs, step_length
+from service.vision.metric_pose import Camera
 
 
 @pytest.fixture(scope="module")
@@ -101,20 +102,25 @@ def test_a_frame_without_features_or_elsewhere_is_not_located(
 
 
 def test_three_frames_see_the_step_the_scale_of_the_one_before_gives(
-        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features]) -> None:
-    """``step_length``: frame b's structure from frame a, scaled by their true distance, and
-    frame c located on it: the step from b to c within a factor of 2 of the truth (8 of 10
-    triples; the learner's ``LEAD_RATIO``); a frame c ten frames on (a robot carried along
-    its way) lies more than 2.5 steps away in every triple."""
-    k, p = _geometry(camera_map).k, GeometryParams()
+        camera_map: RouteMap, sunny2: Round, sunny2_features: list[Features],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``LeadSteps.seen``: frame b's structure from frame a, scaled by their true distance
+    (the wheels' step), and frame c located on it: the step from b to c within a factor of 2
+    of the truth (8 of 10 triples; the learner's ``LEAD_RATIO``); a frame c ten frames on (a
+    robot carried along its way) lies more than 2.5 steps away in every triple. Each frame
+    pair is matched, and each structure triangulated, once for all the triples."""
     xy = np.asarray(sunny2.xy, float)
-    f = sunny2_features
+    matched: list[int] = []
+    frame_pairs = camera_map.frame_pairs
 
-    def seen(a: int, b: int, c: int) -> float | None:
-        return step_length(f[a].keypoints, f[b].keypoints, f[c].keypoints,
-                           match_pairs(f[b].codes, f[a].codes, p.delta),
-                           match_pairs(f[c].codes, f[b].codes, p.delta),
-                           float(np.linalg.norm(xy[b] - xy[a])), k, p.min_inliers)
+    def counted(a: np.ndarray, b: np.ndarray, delta: float, second: bool = False
+                ) -> tuple[np.ndarray, np.ndarray]:
+        matched.append(1)
+        return frame_pairs(a, b, delta, second)
+
+    monkeypatch.setattr(camera_map, "frame_pairs", counted)
+    steps = LeadSteps(camera_map, list(sunny2_features), list(xy))
+    seen = steps.seen
 
     near, far = [], []
     for b in range(11, 71, 6):
@@ -123,6 +129,8 @@ def test_three_frames_see_the_step_the_scale_of_the_one_before_gives(
         far.append((seen(b - 1, b, b + 10) or np.inf) / step)
     assert int(np.sum((np.array(near) > 0.5) & (np.array(near) < 2.0))) >= 8, near
     assert min(far) > 2.5, far
+    # 20 triples, 30 pairs matched: (b - 1, b) gave b's structure to both of its c's, once
+    assert len(matched) == 30, len(matched)
 
 
 def test_a_map_without_camera_places_frames_at_images(small_map: RouteMap) -> None:

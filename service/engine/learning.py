@@ -37,7 +37,7 @@ place the wheels give them; ``placed`` then places them by the odometry alone, a
 taught frames around them. The frames held before a session's first taught frame (its start,
 while the swarm searched: its *lead*, up to ``BRIDGE_M`` of travel back) are taught by the
 wheels too, back from that frame as far as each step of the lead is one the wheels made
-(``follows``: the images' step between two frames, scaled by the wheels' step before it,
+(``LeadSteps.follows``: the images' step between two frames, scaled by the wheels' step before it,
 within a factor ``LEAD_RATIO`` of the wheels' own; a robot carried in the lead, unseen by its
 wheels, breaks it there): the wheels' step back from the taught frame, turned into the map by
 its located heading, places them for gates 3 and 5, and ``placed`` by the odometry aligned to
@@ -84,7 +84,7 @@ from service.maps.positions import fuse_with_odometry
 from service.maps.route_map import RouteMap
 from service.vision.features import Features
 from service.vision.map_geometry import GeometryParams
-from service.vision.metric_pose import step_length
+from service.vision.metric_pose import Structure, locate, triangulate
 
 T = TypeVar("T")
 PATH_TOLERANCE_M = 1.0  # the estimate lies this close to the path's constant-velocity prediction
@@ -279,44 +279,98 @@ def wheels_agree(before: Context, at: np.ndarray, here: np.ndarray,
         <= BRIDGE_TOLERANCE_M
 
 
-def follows(m: RouteMap, a: Held, b: Held, c: Held) -> bool:
-    """Whether frame ``c`` follows frame ``b`` as the robot's wheels say: the step between
-    them seen by the images (``step_length``: ``b``'s structure from ``a``, the wheels' step
-    from ``a`` to ``b`` its scale; on a map of two feature types RootSIFT's, XFeat's where
-    RootSIFT's gives none) within a factor ``LEAD_RATIO`` of the wheels' step from ``b`` to
-    ``c``; both steps at least ``LEAD_MIN_STEP_M``. False on a map without the camera."""
-    if m.geometry is None:
-        return False
-    base = float(np.linalg.norm(b[2] - a[2]))
-    step = float(np.linalg.norm(c[2] - b[2]))
-    if min(base, step) < LEAD_MIN_STEP_M:
-        return False
-    p = GeometryParams()
-    for second in (False, True)[:1 + (m.second is not None)]:
-        fa, fb, fc = ((x[0].features.second if second else x[0].features) for x in (a, b, c))
-        if fa is None or fb is None or fc is None:
-            continue
-        try:
-            seen = step_length(fa.keypoints, fb.keypoints, fc.keypoints,
-                               m.frame_pairs(fb.codes, fa.codes, p.delta, second),
-                               m.frame_pairs(fc.codes, fb.codes, p.delta, second),
-                               base, m.geometry.k, p.min_inliers)
-        except cv2.error:  # a degenerate configuration: no geometry
-            seen = None
-        if seen is not None:
-            return 1.0 / LEAD_RATIO <= seen / step <= LEAD_RATIO
-    return False
+@dataclass
+class LeadSteps:
+    """A lead's steps seen by the images: each pair of its frames matched once, and each
+    frame's structure from the frame before triangulated once, however many of the chain's
+    candidate links (``lead_chain``) use them."""
+
+    m: RouteMap
+    features: list[Features]
+    odometry: list[np.ndarray]  # each frame's odometry position (the wheels' path)
+    _pairs: dict[tuple[int, int, bool], tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict)
+    _structures: dict[tuple[int, int, bool], Structure | None] = field(default_factory=dict)
+
+    def _codes(self, i: int, second: bool) -> Features | None:
+        return self.features[i].second if second else self.features[i]
+
+    def _matches(self, x: int, y: int, second: bool) -> tuple[np.ndarray, np.ndarray]:
+        key = (x, y, second)
+        if key not in self._pairs:
+            fx, fy = self._codes(x, second), self._codes(y, second)
+            assert fx is not None and fy is not None
+            self._pairs[key] = self.m.frame_pairs(fx.codes, fy.codes, GeometryParams().delta,
+                                                  second)
+        return self._pairs[key]
+
+    def _structure(self, b: int, a: int, second: bool) -> Structure | None:
+        """Frame ``b``'s structure from its matches with ``a``, scaled by the wheels' step
+        between them."""
+        key = (b, a, second)
+        if key not in self._structures:
+            geometry = self.m.geometry
+            assert geometry is not None
+            fa, fb = self._codes(a, second), self._codes(b, second)
+            assert fa is not None and fb is not None
+            base = float(np.linalg.norm(self.odometry[b] - self.odometry[a]))
+            try:
+                st = triangulate(fb.keypoints, fa.keypoints, self._matches(b, a, second), base,
+                                 geometry.k, GeometryParams().min_inliers)
+            except cv2.error:  # a degenerate configuration: no geometry
+                st = None
+            self._structures[key] = st
+        return self._structures[key]
+
+    def seen(self, a: int, b: int, c: int) -> float | None:
+        """How far frame ``c`` stands from frame ``b``, seen by three frames: ``b``'s
+        structure from ``a``, the wheels' step from ``a`` to ``b`` its scale, and ``c``
+        located on it (on a map of two feature types RootSIFT's, XFeat's where RootSIFT's
+        gives none). None where neither gives geometry, or on a map without the camera."""
+        geometry = self.m.geometry
+        if geometry is None:
+            return None
+        for second in (False, True)[:1 + (self.m.second is not None)]:
+            fc = self._codes(c, second)
+            if fc is None or self._codes(a, second) is None or self._codes(b, second) is None:
+                continue
+            st = self._structure(b, a, second)
+            if st is None:
+                continue
+            try:
+                off = locate(fc.keypoints, self._matches(c, b, second), st, geometry.k,
+                             GeometryParams().min_inliers)
+            except cv2.error:
+                off = None
+            if off is not None:
+                return float(np.hypot(off.right_m, off.ahead_m))
+        return None
+
+    def follows(self, a: int, b: int, c: int) -> bool:
+        """Whether frame ``c`` follows frame ``b`` as the robot's wheels say: the step between
+        them seen by the images (``seen``) within a factor ``LEAD_RATIO`` of the wheels' step
+        from ``b`` to ``c``; both the wheels' steps, ``a`` to ``b`` and ``b`` to ``c``, at
+        least ``LEAD_MIN_STEP_M``."""
+        odo = self.odometry
+        base = float(np.linalg.norm(odo[b] - odo[a]))
+        step = float(np.linalg.norm(odo[c] - odo[b]))
+        if min(base, step) < LEAD_MIN_STEP_M:
+            return False
+        seen = self.seen(a, b, c)
+        return seen is not None and 1.0 / LEAD_RATIO <= seen / step <= LEAD_RATIO
 
 
 def lead_chain(m: RouteMap, frames: list[Held]) -> list[int]:
     """The frames (indices, newest first) linked back from the last one, each step one the
-    wheels made (``follows``, from one of the two frames before, with one of the two before
-    that): where no link holds, the chain ends (the robot may have been carried there)."""
+    wheels made (``LeadSteps.follows``, from one of the two frames before, with one of the two
+    before that): where no link holds, the chain ends (the robot may have been carried
+    there). On a map without the camera no link holds: the chain is the last frame alone."""
+    steps = LeadSteps(m, [f[0].features for f in frames], [f[2] for f in frames])
     chain = [len(frames) - 1]
     while True:
         c = chain[-1]
         nxt = next((b for b in (c - 1, c - 2) for a in (b - 1, b - 2)
-                    if a >= 0 and follows(m, frames[a], frames[b], frames[c])), None)
+                    if a >= 0 and steps.follows(a, b, c)), None)
         if nxt is None:
             return chain
         chain.append(nxt)

@@ -200,20 +200,6 @@ def triangulate_views(kp_i: np.ndarray, views: list[tuple[PairPose, np.ndarray]]
     return Structure(ids[keep][good].astype(np.int64), x[good])
 
 
-def step_length(kp_a: np.ndarray, kp_b: np.ndarray, kp_c: np.ndarray,
-                pairs_ba: tuple[np.ndarray, np.ndarray], pairs_cb: tuple[np.ndarray, np.ndarray],
-                baseline_m: float, k: np.ndarray, min_points: int) -> float | None:
-    """How far frame ``c`` stands from frame ``b``, seen by three frames: ``b``'s structure
-    from its matches ``pairs_ba`` with ``a``, taken ``baseline_m`` away (``triangulate``),
-    and ``c`` located on it by its matches ``pairs_cb`` (``locate``): the scale of the step
-    comes from ``a``'s. None where either gives no geometry."""
-    structure = triangulate(kp_b, kp_a, pairs_ba, baseline_m, k, min_points)
-    if structure is None:
-        return None
-    off = locate(kp_c, pairs_cb, structure, k, min_points)
-    return None if off is None else float(math.hypot(off.right_m, off.ahead_m))
-
-
 def locate(kp_q: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], structure: Structure,
            k: np.ndarray, min_inliers: int, reprojection_px: float = 2.0,
            max_offset_m: float = 50.0) -> Offset | None:
