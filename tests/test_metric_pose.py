@@ -108,7 +108,7 @@ def test_three_frames_see_the_step_the_scale_of_the_one_before_gives(
     (the wheels' step), and frame c located on it: the step from b to c within a factor of 2
     of the truth (8 of 10 triples; the learner's ``LEAD_RATIO``); a frame c ten frames on (a
     robot carried along its way) lies more than 2.5 steps away in every triple. Each frame
-    pair is matched, and each structure triangulated, once for all the triples."""
+    pair is matched once for all the triples (b's structure from b - 1 serves both c's)."""
     xy = np.asarray(sunny2.xy, float)
     matched: list[int] = []
     frame_pairs = camera_map.frame_pairs
