@@ -289,8 +289,9 @@ class LeadSteps:
     features: list[Features]
     odometry: list[np.ndarray]  # each frame's odometry position (the wheels' path)
     _pairs: dict[tuple[int, int, bool], tuple[np.ndarray, np.ndarray]] = field(
-        default_factory=dict)
-    _structures: dict[tuple[int, int, bool], Structure | None] = field(default_factory=dict)
+        default_factory=dict, init=False)
+    _structures: dict[tuple[int, int, bool], Structure | None] = field(
+        default_factory=dict, init=False)
 
     def _codes(self, i: int, second: bool) -> Features | None:
         return self.features[i].second if second else self.features[i]
